@@ -1,0 +1,116 @@
+"""Weights in safetensors with their configuration dataclass as metadata, so a file always knows what it holds."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import subprocess
+from pathlib import Path
+from typing import Any, TypeVar
+
+import torch
+from safetensors import SafetensorError, safe_open
+from safetensors.torch import load_file, save_file
+
+FORMAT = "axispose/1"
+C = TypeVar("C")
+
+
+class CheckpointError(ValueError):
+    """The file is not an AxisPose checkpoint of the expected kind, or its config or tensors do not match."""
+
+
+def git_commit() -> str:
+    """The source commit, recorded in checkpoints for provenance ('unknown' outside a git checkout)."""
+    try:
+        out = subprocess.run(
+            ["git", "rev-parse", "HEAD"], cwd=Path(__file__).parent, capture_output=True, text=True, timeout=5, check=True
+        )
+        return out.stdout.strip()
+    except (OSError, subprocess.SubprocessError):
+        return "unknown"
+
+
+def config_from_dict(cls: type[C], data: dict[str, Any], source: str = "config") -> C:
+    """Build a (possibly nested) config dataclass from a dict, naming any missing or unknown key."""
+    if not isinstance(data, dict):
+        raise CheckpointError(f"{source}: expected a mapping for {cls.__name__}")
+    fields = {f.name: f for f in dataclasses.fields(cls)}  # type: ignore[arg-type]
+    unknown = sorted(set(data) - set(fields))
+    if unknown:
+        raise CheckpointError(f"{source}: unknown key(s) {unknown} for {cls.__name__}")
+    kwargs = {}
+    for name, f in fields.items():
+        if name not in data:
+            if f.default is dataclasses.MISSING and f.default_factory is dataclasses.MISSING:
+                raise CheckpointError(f"{source}: missing key '{name}' for {cls.__name__}")
+            continue
+        value = data[name]
+        ftype = f.type if isinstance(f.type, type) else None
+        if ftype is not None and dataclasses.is_dataclass(ftype):
+            value = config_from_dict(ftype, value, f"{source}.{name}")
+        elif isinstance(value, list):
+            value = tuple(value)
+        kwargs[name] = value
+    return cls(**kwargs)
+
+
+def save_checkpoint(path: str | Path, kind: str, config: Any, modules: dict[str, torch.nn.Module], extra: dict[str, Any] | None = None) -> None:
+    """Write the modules' state dicts (prefixed by their names) and the config dataclass into one safetensors file."""
+    tensors = {}
+    for prefix, module in modules.items():
+        for key, value in module.state_dict().items():
+            tensors[f"{prefix}.{key}"] = value.detach().cpu().contiguous()
+    meta = {
+        "format": FORMAT,
+        "kind": kind,
+        "config": json.dumps(dataclasses.asdict(config)),
+        "extra": json.dumps(extra or {}),
+        "git_commit": git_commit(),
+    }
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_suffix(path.suffix + ".tmp")
+    save_file(tensors, str(tmp), metadata=meta)
+    tmp.replace(path)
+
+
+def read_checkpoint(path: str | Path, kind: str, config_cls: type[C]) -> tuple[C, dict[str, dict[str, torch.Tensor]], dict[str, Any]]:
+    """Read a checkpoint of `kind`: (config, state dicts by module name, extra metadata)."""
+    path = Path(path)
+    if not path.is_file():
+        raise CheckpointError(f"{path}: checkpoint file not found")
+    try:
+        tensors = load_file(str(path))
+        with safe_open(str(path), framework="pt") as f:
+            meta = f.metadata() or {}
+    except (SafetensorError, OSError, ValueError) as err:
+        raise CheckpointError(f"{path}: not a readable safetensors file ({err})") from err
+    if meta.get("format") != FORMAT:
+        raise CheckpointError(f"{path}: not an AxisPose checkpoint (format {meta.get('format')!r}, expected {FORMAT!r})")
+    if meta.get("kind") != kind:
+        raise CheckpointError(f"{path}: holds a {meta.get('kind')!r} model, expected {kind!r}")
+    try:
+        config = config_from_dict(config_cls, json.loads(meta["config"]), f"{path}: config")
+        extra = json.loads(meta.get("extra", "{}"))
+    except (KeyError, json.JSONDecodeError, TypeError) as err:
+        raise CheckpointError(f"{path}: config metadata unreadable ({err})") from err
+    states: dict[str, dict[str, torch.Tensor]] = {}
+    for key, value in tensors.items():
+        prefix, _, rest = key.partition(".")
+        states.setdefault(prefix, {})[rest] = value
+    return config, states, extra
+
+
+def load_state(module: torch.nn.Module, state: dict[str, torch.Tensor], source: str) -> None:
+    """load_state_dict with an error that lists what is missing, unexpected or mis-shaped."""
+    own = module.state_dict()
+    missing = sorted(set(own) - set(state))
+    unexpected = sorted(set(state) - set(own))
+    shapes = sorted(k for k in set(own) & set(state) if own[k].shape != state[k].shape)
+    if missing or unexpected or shapes:
+        raise CheckpointError(
+            f"{source}: weights do not match the network built from its config "
+            f"(missing {missing[:5]}, unexpected {unexpected[:5]}, shape mismatch {shapes[:5]})"
+        )
+    module.load_state_dict(state)

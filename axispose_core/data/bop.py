@@ -1,0 +1,356 @@
+"""BOP dataset format: the one module that reads and writes its files.
+
+BOP stores lengths in millimetres; everything this project computes uses metres. The conversion happens here,
+at the file boundary, through `MM` and nowhere else.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import plyfile
+
+from axispose_core.camera import IntrinsicsError, project_model, validate_intrinsics
+
+MM = 1e-3
+"""Metres per millimetre: BOP files are in mm, the project in m."""
+
+
+class BopFormatError(ValueError):
+    """A BOP file is missing, unreadable or has a malformed field; the message names the file and the field."""
+
+
+# ----------------------------------------------------------------------------------------------- models
+
+
+@dataclass(frozen=True)
+class Mesh:
+    """A triangle mesh in metres; colours are per-vertex RGB uint8 when the file has them."""
+
+    vertices: np.ndarray
+    faces: np.ndarray
+    colors: np.ndarray | None = None
+    normals: np.ndarray | None = None
+
+
+def load_ply(path: str | Path, units: float = MM) -> Mesh:
+    """Read an ASCII or binary PLY; `units` is metres per file unit (BOP models are in mm)."""
+    path = Path(path)
+    try:
+        ply = plyfile.PlyData.read(str(path))
+    except (OSError, plyfile.PlyParseError, ValueError) as err:
+        raise BopFormatError(f"{path}: cannot read PLY ({err})") from err
+    try:
+        v = ply["vertex"].data
+        vertices = np.column_stack([v["x"], v["y"], v["z"]]).astype(np.float64) * units
+    except (KeyError, ValueError) as err:
+        raise BopFormatError(f"{path}: PLY needs a 'vertex' element with x, y, z ({err})") from err
+    names = v.dtype.names or ()
+    colors = np.column_stack([v["red"], v["green"], v["blue"]]).astype(np.uint8) if "red" in names else None
+    normals = np.column_stack([v["nx"], v["ny"], v["nz"]]).astype(np.float64) if "nx" in names else None
+    faces = np.zeros((0, 3), dtype=np.int64)
+    if "face" in ply:
+        idx = ply["face"].data.dtype.names[0]
+        polys = ply["face"].data[idx]
+        if len(polys) and any(len(p) != 3 for p in polys):
+            raise BopFormatError(f"{path}: only triangle faces are supported")
+        faces = np.asarray(np.stack(polys) if len(polys) else faces, dtype=np.int64)
+    if not np.all(np.isfinite(vertices)) or (faces.size and (faces.min() < 0 or faces.max() >= len(vertices))):
+        raise BopFormatError(f"{path}: non-finite vertices or face indices out of range")
+    return Mesh(vertices, faces, colors, normals)
+
+
+def model_path(models_dir: str | Path, obj_id: int) -> Path:
+    """BOP model file name of an object id."""
+    return Path(models_dir) / f"obj_{obj_id:06d}.ply"
+
+
+@dataclass(frozen=True)
+class ObjectInfo:
+    """One entry of models_info.json, in metres."""
+
+    obj_id: int
+    diameter: float
+    bbox_min: np.ndarray
+    bbox_size: np.ndarray
+    symmetries_discrete: tuple[np.ndarray, ...] = ()
+    symmetries_continuous: tuple[dict[str, Any], ...] = ()
+
+    @property
+    def symmetric(self) -> bool:
+        """Whether ADD-S (not ADD) scores this object."""
+        return bool(self.symmetries_discrete or self.symmetries_continuous)
+
+
+def _read_json(path: Path) -> Any:
+    try:
+        with open(path, encoding="utf-8") as f:
+            return json.load(f)
+    except FileNotFoundError as err:
+        raise BopFormatError(f"{path}: file not found") from err
+    except (OSError, json.JSONDecodeError, UnicodeDecodeError) as err:
+        raise BopFormatError(f"{path}: not valid JSON ({err})") from err
+
+
+def _write_json(path: Path, data: Any) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_suffix(path.suffix + ".tmp")
+    with open(tmp, "w", encoding="utf-8") as f:
+        json.dump(data, f, indent=1, sort_keys=False)
+    tmp.replace(path)
+
+
+def _numbers(path: Path, where: str, name: str, value: Any, n: int) -> np.ndarray:
+    """A field that must hold n finite numbers, as float64."""
+    try:
+        arr = np.asarray(value, dtype=np.float64).ravel()
+    except (TypeError, ValueError) as err:
+        raise BopFormatError(f"{path}: {where}: field '{name}' must be numbers") from err
+    if arr.size != n or not np.all(np.isfinite(arr)):
+        raise BopFormatError(f"{path}: {where}: field '{name}' must hold {n} finite numbers, got {arr.size}")
+    return arr
+
+
+def _field(path: Path, where: str, entry: Any, name: str) -> Any:
+    if not isinstance(entry, dict) or name not in entry:
+        raise BopFormatError(f"{path}: {where}: missing field '{name}'")
+    return entry[name]
+
+
+def _int_key(path: Path, key: str) -> int:
+    try:
+        return int(key)
+    except ValueError as err:
+        raise BopFormatError(f"{path}: key '{key}' is not an integer id") from err
+
+
+def load_models_info(path: str | Path) -> dict[int, ObjectInfo]:
+    """models_info.json as ObjectInfo by object id (diameters, boxes and symmetry offsets converted to metres)."""
+    path = Path(path)
+    data = _read_json(path)
+    if not isinstance(data, dict):
+        raise BopFormatError(f"{path}: expected an object keyed by object id")
+    infos = {}
+    for key, entry in data.items():
+        obj_id = _int_key(path, key)
+        where = f"object {obj_id}"
+        diameter = float(_numbers(path, where, "diameter", _field(path, where, entry, "diameter"), 1)[0]) * MM
+        if diameter <= 0:
+            raise BopFormatError(f"{path}: {where}: field 'diameter' must be positive")
+        bbox_min = np.array([_numbers(path, where, f"min_{a}", _field(path, where, entry, f"min_{a}"), 1)[0] for a in "xyz"]) * MM
+        bbox_size = np.array([_numbers(path, where, f"size_{a}", _field(path, where, entry, f"size_{a}"), 1)[0] for a in "xyz"]) * MM
+        syms = []
+        for k, s in enumerate(entry.get("symmetries_discrete", [])):
+            T = _numbers(path, where, f"symmetries_discrete[{k}]", s, 16).reshape(4, 4)
+            T[:3, 3] *= MM
+            syms.append(T)
+        cont = tuple(entry.get("symmetries_continuous", []))
+        infos[obj_id] = ObjectInfo(obj_id, diameter, bbox_min, bbox_size, tuple(syms), cont)
+    return infos
+
+
+def write_models_info(path: str | Path, infos: dict[int, ObjectInfo]) -> None:
+    """Write models_info.json (mm) from ObjectInfo in metres."""
+    out = {}
+    for obj_id, info in sorted(infos.items()):
+        entry: dict[str, Any] = {"diameter": info.diameter / MM}
+        for i, a in enumerate("xyz"):
+            entry[f"min_{a}"] = info.bbox_min[i] / MM
+            entry[f"size_{a}"] = info.bbox_size[i] / MM
+        if info.symmetries_discrete:
+            syms = []
+            for T in info.symmetries_discrete:
+                T = np.array(T, dtype=np.float64)
+                T[:3, 3] /= MM
+                syms.append(T.ravel().tolist())
+            entry["symmetries_discrete"] = syms
+        if info.symmetries_continuous:
+            entry["symmetries_continuous"] = list(info.symmetries_continuous)
+        out[str(obj_id)] = entry
+    _write_json(Path(path), out)
+
+
+# ----------------------------------------------------------------------------------------------- scenes
+
+
+@dataclass(frozen=True)
+class GTInstance:
+    """One annotated object instance: model-to-camera pose in metres."""
+
+    obj_id: int
+    R: np.ndarray
+    t: np.ndarray
+
+
+@dataclass(frozen=True)
+class GTInfo:
+    """scene_gt_info.json entry: boxes are (x, y, w, h) in pixels, -1s when the object is not visible."""
+
+    bbox_obj: tuple[int, int, int, int]
+    bbox_visib: tuple[int, int, int, int] = (-1, -1, -1, -1)
+    px_count_all: int = 0
+    px_count_valid: int = 0
+    px_count_visib: int = 0
+    visib_fract: float = 0.0
+
+
+def load_scene_gt(path: str | Path) -> dict[int, list[GTInstance]]:
+    """scene_gt.json: per image id, the instances in file order (their index names the mask files)."""
+    path = Path(path)
+    data = _read_json(path)
+    if not isinstance(data, dict):
+        raise BopFormatError(f"{path}: expected an object keyed by image id")
+    scene: dict[int, list[GTInstance]] = {}
+    for key, entries in data.items():
+        im_id = _int_key(path, key)
+        if not isinstance(entries, list):
+            raise BopFormatError(f"{path}: image {im_id}: expected a list of instances")
+        insts = []
+        for k, e in enumerate(entries):
+            where = f"image {im_id} instance {k}"
+            R = _numbers(path, where, "cam_R_m2c", _field(path, where, e, "cam_R_m2c"), 9).reshape(3, 3)
+            t = _numbers(path, where, "cam_t_m2c", _field(path, where, e, "cam_t_m2c"), 3) * MM
+            obj_id = int(_numbers(path, where, "obj_id", _field(path, where, e, "obj_id"), 1)[0])
+            if abs(np.linalg.det(R) - 1.0) > 1e-3 or not np.allclose(R @ R.T, np.eye(3), atol=1e-3):
+                raise BopFormatError(f"{path}: {where}: field 'cam_R_m2c' is not a rotation matrix")
+            insts.append(GTInstance(obj_id, R, t))
+        scene[im_id] = insts
+    return scene
+
+
+def write_scene_gt(path: str | Path, scene: dict[int, list[GTInstance]]) -> None:
+    """Write scene_gt.json (translations in mm)."""
+    out = {
+        str(im_id): [
+            {"cam_R_m2c": np.asarray(g.R).ravel().tolist(), "cam_t_m2c": (np.asarray(g.t) / MM).tolist(), "obj_id": int(g.obj_id)}
+            for g in insts
+        ]
+        for im_id, insts in sorted(scene.items())
+    }
+    _write_json(Path(path), out)
+
+
+def load_scene_camera(path: str | Path) -> dict[int, np.ndarray]:
+    """scene_camera.json: K (3x3, pixels) per image id, validated."""
+    path = Path(path)
+    data = _read_json(path)
+    if not isinstance(data, dict):
+        raise BopFormatError(f"{path}: expected an object keyed by image id")
+    cams = {}
+    for key, e in data.items():
+        im_id = _int_key(path, key)
+        where = f"image {im_id}"
+        K = _numbers(path, where, "cam_K", _field(path, where, e, "cam_K"), 9).reshape(3, 3)
+        try:
+            cams[im_id] = validate_intrinsics(K)
+        except IntrinsicsError as err:
+            raise BopFormatError(f"{path}: {where}: field 'cam_K': {err}") from err
+    return cams
+
+
+def write_scene_camera(path: str | Path, cams: dict[int, np.ndarray], depth_scale: float = 1.0) -> None:
+    """Write scene_camera.json."""
+    out = {str(i): {"cam_K": np.asarray(K).ravel().tolist(), "depth_scale": depth_scale} for i, K in sorted(cams.items())}
+    _write_json(Path(path), out)
+
+
+def load_scene_gt_info(path: str | Path) -> dict[int, list[GTInfo]]:
+    """scene_gt_info.json, entries in the same order as scene_gt.json."""
+    path = Path(path)
+    data = _read_json(path)
+    if not isinstance(data, dict):
+        raise BopFormatError(f"{path}: expected an object keyed by image id")
+    out: dict[int, list[GTInfo]] = {}
+    for key, entries in data.items():
+        im_id = _int_key(path, key)
+        if not isinstance(entries, list):
+            raise BopFormatError(f"{path}: image {im_id}: expected a list of instances")
+        infos = []
+        for k, e in enumerate(entries):
+            where = f"image {im_id} instance {k}"
+            box = tuple(int(v) for v in _numbers(path, where, "bbox_obj", _field(path, where, e, "bbox_obj"), 4))
+            vis = tuple(int(v) for v in _numbers(path, where, "bbox_visib", e.get("bbox_visib", [-1] * 4), 4))
+            fract = float(_numbers(path, where, "visib_fract", e.get("visib_fract", 0.0), 1)[0])
+            if not 0.0 <= fract <= 1.0:
+                raise BopFormatError(f"{path}: {where}: field 'visib_fract' must lie in [0, 1], got {fract}")
+            counts = [int(e.get(name, 0)) for name in ("px_count_all", "px_count_valid", "px_count_visib")]
+            infos.append(GTInfo(box, vis, *counts, fract))  # type: ignore[arg-type]
+        out[im_id] = infos
+    return out
+
+
+def write_scene_gt_info(path: str | Path, infos: dict[int, list[GTInfo]]) -> None:
+    """Write scene_gt_info.json."""
+    out = {
+        str(im_id): [
+            {
+                "bbox_obj": list(i.bbox_obj),
+                "bbox_visib": list(i.bbox_visib),
+                "px_count_all": i.px_count_all,
+                "px_count_valid": i.px_count_valid,
+                "px_count_visib": i.px_count_visib,
+                "visib_fract": i.visib_fract,
+            }
+            for i in lst
+        ]
+        for im_id, lst in sorted(infos.items())
+    }
+    _write_json(Path(path), out)
+
+
+def bbox_from_model(K: np.ndarray, R: np.ndarray, t: np.ndarray, pts: np.ndarray) -> tuple[int, int, int, int]:
+    """(x, y, w, h) of the projected model points, not clipped to the image (BOP's bbox_obj)."""
+    uv = project_model(K, R, t, pts)
+    x0, y0 = np.floor(uv.min(axis=0)).astype(int)
+    x1, y1 = np.floor(uv.max(axis=0)).astype(int)
+    return int(x0), int(y0), int(x1 - x0 + 1), int(y1 - y0 + 1)
+
+
+@dataclass
+class BopScene:
+    """One scene folder (``rgb/``, ``scene_gt.json``, ``scene_camera.json``, optional ``scene_gt_info.json``).
+
+    Without scene_gt_info.json, bbox_obj is computed from the models at the GT pose, so `models_dir` is needed.
+    """
+
+    root: Path
+    gt: dict[int, list[GTInstance]] = field(init=False)
+    cameras: dict[int, np.ndarray] = field(init=False)
+    gt_info: dict[int, list[GTInfo]] | None = field(init=False)
+
+    def __post_init__(self) -> None:
+        self.root = Path(self.root)
+        self.gt = load_scene_gt(self.root / "scene_gt.json")
+        self.cameras = load_scene_camera(self.root / "scene_camera.json")
+        info_path = self.root / "scene_gt_info.json"
+        self.gt_info = load_scene_gt_info(info_path) if info_path.exists() else None
+        for im_id in self.gt:
+            if im_id not in self.cameras:
+                raise BopFormatError(f"{self.root / 'scene_camera.json'}: image {im_id} of scene_gt.json has no camera")
+            if self.gt_info is not None and len(self.gt_info.get(im_id, [])) != len(self.gt[im_id]):
+                raise BopFormatError(f"{info_path}: image {im_id}: instance count differs from scene_gt.json")
+
+    @property
+    def image_ids(self) -> list[int]:
+        return sorted(self.gt)
+
+    def rgb_path(self, im_id: int) -> Path:
+        """The image file (PNG or JPEG, as BOP allows both)."""
+        for ext in (".png", ".jpg", ".jpeg"):
+            p = self.root / "rgb" / f"{im_id:06d}{ext}"
+            if p.exists():
+                return p
+        raise BopFormatError(f"{self.root / 'rgb'}: no image file for image {im_id}")
+
+    def boxes(self, im_id: int, model_points: dict[int, np.ndarray] | None = None) -> list[tuple[int, int, int, int]]:
+        """bbox_obj of every instance: from scene_gt_info.json, else projected from `model_points` (metres)."""
+        if self.gt_info is not None:
+            return [i.bbox_obj for i in self.gt_info[im_id]]
+        if model_points is None:
+            raise BopFormatError(f"{self.root}: no scene_gt_info.json; pass the object models to compute boxes")
+        K = self.cameras[im_id]
+        return [bbox_from_model(K, g.R, g.t, model_points[g.obj_id]) for g in self.gt[im_id]]

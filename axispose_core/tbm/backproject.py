@@ -1,0 +1,260 @@
+"""Triaxial back-projection: the pose of a cube corner (C2) from its projected origin and three leg endpoints.
+
+With rays ``q_i = K⁻¹ x̃_i`` and the origin's depth fixed to 1, the corner's vertices are ``X_O = q_O`` and
+``X_i = λ_i q_i``. Orthogonality of the legs ``l_i = λ_i q_i − q_O`` is the paper's system
+
+    λ_A λ_B a_AB − λ_A a_AO − λ_B a_BO + a_OO = 0   (and cyclically for BC, CA),   a_ij = x_iᵀ μ x_j = q_i·q_j.
+
+The first and third equations give λ_B and λ_C as rational functions of λ_A; substituting them in the second
+leaves a quadratic in λ_A. Of its (at most two) roots, the physically valid one has every vertex in front of
+the camera and a right-handed corner (the convex C2 the paper keeps); if two survive, the one whose leg lengths
+best match the known ratios wins. Noisy keypoints of a nearly orthographic view (a small crop far away) often
+give a complex pair: its real part, polished, is then the seed. Every result must re-project onto the given
+keypoints within `MAX_RELATIVE_RESIDUAL` of the longest leg, which refuses corners no object could form. The metric scale then comes from the known leg lengths λ_O (1, r_B, r_C):
+the depth of the origin is the least-squares factor that maps the unit-depth legs onto them.
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import numpy as np
+from scipy.optimize import brentq, least_squares
+from scipy.spatial.transform import Rotation
+
+from axispose_core.axis_image import axis_points
+from axispose_core.camera import IntrinsicsError, project, transform, validate_intrinsics
+
+MIN_AXIS_PIXELS = 1e-3
+"""Projected legs shorter than this (pixels) point at the camera: their depth cannot be recovered."""
+MIN_SINE = 1e-6
+"""Projected legs closer than this (sine of the angle) to one line are collinear: the corner is degenerate."""
+MAX_RELATIVE_RESIDUAL = 0.2
+"""A pose whose re-projected keypoints miss by more than this fraction of the longest projected leg is refused:
+the keypoints do not come from a corner with the known leg ratios (e.g. a vertex behind the camera)."""
+
+
+class Backprojection(NamedTuple):
+    """Result of a back-projection. On failure R is identity, t zero, ok False and reason says why."""
+
+    R: np.ndarray
+    t: np.ndarray
+    ok: bool
+    reason: str = ""
+
+
+def _fail(reason: str) -> Backprojection:
+    return Backprojection(np.eye(3), np.zeros(3), False, reason)
+
+
+def nearest_rotation(M: np.ndarray) -> np.ndarray:
+    """The rotation closest to M in the Frobenius norm (SVD projection onto SO(3))."""
+    U, _, Vt = np.linalg.svd(M)
+    D = np.diag([1.0, 1.0, np.sign(np.linalg.det(U @ Vt))])
+    return U @ D @ Vt
+
+
+def _check_input(K: np.ndarray, uv_origin: np.ndarray, uv_axes: np.ndarray) -> tuple[np.ndarray, np.ndarray, str]:
+    """Common validation; returns (K, 4x2 keypoints, reason) with a non-empty reason on bad input."""
+    try:
+        K = validate_intrinsics(K)
+    except IntrinsicsError as err:
+        return np.eye(3), np.zeros((4, 2)), f"invalid intrinsics: {err}"
+    kp = np.vstack([np.reshape(uv_origin, (1, 2)), np.reshape(uv_axes, (3, 2))]).astype(np.float64)
+    if not np.all(np.isfinite(kp)):
+        return K, kp, "non-finite keypoints"
+    legs = kp[1:] - kp[0]
+    norms = np.linalg.norm(legs, axis=1)
+    for name, n in zip("XYZ", norms):
+        if n < MIN_AXIS_PIXELS:
+            return K, kp, f"axis {name} projects to a point (it points at the camera)"
+    dirs = legs / norms[:, None]
+    for i, j in ((0, 1), (1, 2), (2, 0)):
+        if abs(dirs[i, 0] * dirs[j, 1] - dirs[i, 1] * dirs[j, 0]) < MIN_SINE:
+            return K, kp, f"axes {'XYZ'[i]} and {'XYZ'[j]} project onto one line (collinear)"
+    return K, kp, ""
+
+
+def _rays(K: np.ndarray, kp: np.ndarray) -> np.ndarray:
+    """Back-projected rays with unit depth, one row per keypoint."""
+    return np.column_stack([kp, np.ones(len(kp))]) @ np.linalg.inv(K).T
+
+
+def _polish(a: np.ndarray, lam: np.ndarray, iterations: int = 3) -> np.ndarray:
+    """Newton steps on the three orthogonality equations: the quadratic's roots lose digits near a double root."""
+    pairs = ((1, 2), (2, 3), (3, 1))
+    for _ in range(iterations):
+        full = np.concatenate([[1.0], lam])
+        f = np.array([full[i] * full[j] * a[i, j] - full[i] * a[i, 0] - full[j] * a[j, 0] + a[0, 0] for i, j in pairs])
+        J = np.zeros((3, 3))
+        for row, (i, j) in enumerate(pairs):
+            J[row, i - 1] = full[j] * a[i, j] - a[i, 0]
+            J[row, j - 1] = full[i] * a[i, j] - a[j, 0]
+        try:
+            step = np.linalg.solve(J, f)
+        except np.linalg.LinAlgError:
+            return lam
+        if not np.all(np.isfinite(step)):
+            return lam
+        lam = lam - step
+    return lam
+
+
+def backproject(
+    K: np.ndarray, uv_origin: np.ndarray, uv_axes: np.ndarray, lengths: np.ndarray, refine: bool = False
+) -> Backprojection:
+    """Pose (R, t) of a cube corner from its projected origin (2,), leg endpoints (3,2) and leg lengths (3,) in metres.
+
+    R's columns are the model X, Y, Z axes in the camera frame; t is the model origin in metres. With `refine`,
+    the analytic pose seeds a Levenberg-Marquardt fit of all four keypoints (what to use on noisy keypoints).
+    """
+    K, kp, reason = _check_input(K, uv_origin, uv_axes)
+    if reason:
+        return _fail(reason)
+    lengths = np.asarray(lengths, dtype=np.float64)
+    if lengths.shape != (3,) or not np.all(np.isfinite(lengths)) or np.any(lengths <= 0):
+        return _fail(f"leg lengths must be three positive numbers, got {lengths}")
+
+    q = _rays(K, kp)  # (4,3): O, A, B, C
+    a = q @ q.T
+    O, A, B, C = 0, 1, 2, 3
+    P = np.polynomial.polynomial
+    n_poly = np.array([-a[O, O], a[A, O]])
+    db = np.array([-a[B, O], a[A, B]])
+    dc = np.array([-a[C, O], a[A, C]])
+    quad = P.polysub(
+        P.polyadd(P.polymul(a[B, C] * n_poly, n_poly), P.polymul(a[O, O] * db, dc)),
+        P.polyadd(P.polymul(a[B, O] * n_poly, dc), P.polymul(a[C, O] * n_poly, db)),
+    )
+    roots = P.polyroots(np.trim_zeros(quad, "b")) if np.any(quad) else np.array([])
+    candidates = []
+    for root in np.atleast_1d(roots):
+        # A complex pair means noisy keypoints no exact corner explains; its real part is the nearest
+        # near-solution and still a good seed (the re-projection check below decides whether to keep it).
+        lam_a = root.real
+        den_b, den_c = P.polyval(lam_a, db), P.polyval(lam_a, dc)
+        if abs(den_b) < 1e-15 or abs(den_c) < 1e-15:
+            continue
+        num = P.polyval(lam_a, n_poly)
+        lam = _polish(a, np.array([lam_a, num / den_b, num / den_c]))
+        if np.any(lam <= 0):
+            continue
+        legs = lam[:, None] * q[1:] - q[0]
+        if np.linalg.det(legs) <= 0:
+            continue
+        leg_len = np.linalg.norm(legs, axis=1)
+        ratio_err = np.linalg.norm(leg_len / leg_len[0] - lengths / lengths[0])
+        candidates.append((ratio_err, legs, leg_len))
+    if candidates:
+        _, legs, leg_len = min(candidates, key=lambda c: c[0])
+        scale = float(lengths @ leg_len / (leg_len @ leg_len))
+        R = nearest_rotation((legs / leg_len[:, None]).T)
+        t = scale * q[0]
+    elif refine:
+        # Noise pushed the corner system's roots out of the valid region: fit from the axis directions'
+        # rotation and from the 24 cube rotations, each at the depth where the legs have their observed
+        # mean pixel length, and keep the fit that re-projects best.
+        focal = 0.5 * (K[0, 0] + K[1, 1])
+        t0 = q[0] * focal * lengths.mean() / np.linalg.norm(kp[1:] - kp[0], axis=1).mean()
+        seeds = list(Rotation.create_group("O").as_matrix())
+        slopes = rotation_from_slopes(K, kp[0], kp[1:] - kp[0])
+        if slopes.ok:
+            seeds.insert(0, slopes.R)
+        fits = [refine_pose(K, kp, lengths, R0, t0) for R0 in seeds]
+        R, t = min(fits, key=lambda f: _reprojection_residual(K, kp, lengths, *f))
+        refine = False
+    else:
+        return _fail("no right-handed solution with every vertex in front of the camera")
+    if not (np.all(np.isfinite(R)) and np.all(np.isfinite(t)) and t[2] > 0):
+        return _fail("numerically unstable configuration")
+    if refine:
+        R, t = refine_pose(K, kp, lengths, R, t)
+    residual = _reprojection_residual(K, kp, lengths, R, t)
+    longest = np.linalg.norm(kp[1:] - kp[0], axis=1).max()
+    if residual > MAX_RELATIVE_RESIDUAL * longest:
+        return _fail(
+            f"keypoints inconsistent with the known leg lengths (re-projection misses by {residual:.1f} px "
+            f"of a {longest:.1f} px leg)"
+        )
+    return Backprojection(R, t, True)
+
+
+def _reprojection_residual(K: np.ndarray, kp: np.ndarray, lengths: np.ndarray, R: np.ndarray, t: np.ndarray) -> float:
+    """Largest pixel distance between the given keypoints (4,2) and those of the pose."""
+    cam = transform(R, t, axis_points(lengths))
+    if np.any(cam[:, 2] <= 0):
+        return float("inf")
+    return float(np.linalg.norm(project(K, cam) - kp, axis=1).max())
+
+
+def refine_pose(
+    K: np.ndarray, keypoints: np.ndarray, lengths: np.ndarray, R0: np.ndarray, t0: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """Minimise the reprojection error of origin and endpoints (4,2) over the pose, from (R0, t0)."""
+    pts = axis_points(lengths)
+
+    def residual(x: np.ndarray) -> np.ndarray:
+        R = Rotation.from_rotvec(x[:3]).as_matrix()
+        cam = transform(R, x[3:], pts)
+        cam[:, 2] = np.maximum(cam[:, 2], 1e-6)
+        return (project(K, cam) - keypoints).ravel()
+
+    x0 = np.concatenate([Rotation.from_matrix(R0).as_rotvec(), t0])
+    sol = least_squares(residual, x0, method="lm", xtol=1e-12, ftol=1e-12)
+    R = Rotation.from_rotvec(sol.x[:3]).as_matrix()
+    if not np.all(np.isfinite(sol.x)) or sol.x[5] <= 0:
+        return R0, t0
+    return R, sol.x[3:]
+
+
+def _projected_direction(K: np.ndarray, uv_origin: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """Image direction at the origin of a 3D direction v: d(π(X_O + s v))/ds up to a positive factor."""
+    kv = K @ v
+    return kv[:2] - kv[2] * uv_origin
+
+
+def rotation_from_slopes(K: np.ndarray, uv_origin: np.ndarray, directions: np.ndarray) -> Backprojection:
+    """Rotation from the projected origin and the three axes' image directions (3,2) (slope plus sense).
+
+    Each axis lies in the plane through the camera centre and its image line (normal n_i), so
+    R = [v1 v2 v3] with v_i ⊥ n_i. Writing v1 in its plane by an angle θ, v2 = ±v1×n2/‖·‖ and v3 = v1×v2,
+    the remaining condition v3·n3 = 0 is one equation in θ, bracketed on a grid and solved with brentq.
+    The solution whose axes project with the observed senses is kept. Without leg lengths the depth is
+    unknown, so t is the unit-depth ray through the origin.
+    """
+    dirs = np.asarray(directions, dtype=np.float64).reshape(3, 2)
+    norms = np.linalg.norm(dirs, axis=1)
+    K, kp, reason = _check_input(K, uv_origin, np.asarray(uv_origin).reshape(1, 2) + dirs / np.maximum(norms, 1e-300)[:, None])
+    if reason:
+        return _fail(reason)
+    dirs = kp[1:] - kp[0]
+    q = _rays(K, kp)
+    normals = np.cross(q[0], q[1:])
+    normals /= np.linalg.norm(normals, axis=1, keepdims=True)
+    e1 = q[0] / np.linalg.norm(q[0])
+    e2 = np.cross(normals[0], e1)
+
+    def frames(theta: np.ndarray, sign: float) -> np.ndarray:
+        """Candidate rotations (N,3,3) for angles θ (N,)."""
+        v1 = np.cos(theta)[:, None] * e1 + np.sin(theta)[:, None] * e2
+        v2 = np.cross(v1, normals[1])
+        v2 = sign * v2 / np.maximum(np.linalg.norm(v2, axis=1, keepdims=True), 1e-300)
+        return np.stack([v1, v2, np.cross(v1, v2)], axis=2)
+
+    def condition(theta: float, sign: float) -> float:
+        return float(frames(np.array([theta]), sign)[0, :, 2] @ normals[2])
+
+    grid = np.linspace(0.0, 2.0 * np.pi, 721)
+    best: tuple[float, np.ndarray] | None = None
+    for sign in (1.0, -1.0):
+        f = frames(grid, sign)[:, :, 2] @ normals[2]
+        for i in np.nonzero(np.sign(f[:-1]) * np.sign(f[1:]) <= 0)[0]:
+            theta = grid[i] if f[i] == f[i + 1] else brentq(condition, grid[i], grid[i + 1], args=(sign,), xtol=1e-15)
+            R = frames(np.array([theta]), sign)[0]
+            d = np.stack([_projected_direction(K, kp[0], R[:, k]) for k in range(3)])
+            cosines = np.sum(d * dirs, axis=1) / np.maximum(np.linalg.norm(d, axis=1) * np.linalg.norm(dirs, axis=1), 1e-300)
+            if best is None or cosines.min() > best[0]:
+                best = (float(cosines.min()), R)
+    if best is None or best[0] < 0.5:
+        return _fail("no rotation explains the observed axis directions")
+    return Backprojection(nearest_rotation(best[1]), q[0], True)

@@ -1,0 +1,44 @@
+"""ament_python package `axispose_ros`: the ROS 2 node plus the ROS-free core library `axispose_core`."""
+
+from glob import glob
+
+from setuptools import find_packages, setup
+
+PACKAGE = "axispose_ros"
+
+setup(
+    name=PACKAGE,
+    version="0.1.0",
+    description="AxisPose: single-image 6D object pose by axis generation, as a ROS 2 Jazzy node",
+    license="Apache-2.0",
+    python_requires=">=3.10",
+    packages=find_packages(include=["axispose_core", "axispose_core.*", "axispose_ros", "axispose_ros.*"]),
+    data_files=[
+        ("share/ament_index/resource_index/packages", [f"resource/{PACKAGE}"]),
+        (f"share/{PACKAGE}", ["package.xml"]),
+        (f"share/{PACKAGE}/config", glob("config/*.yaml")),
+    ],
+    # The core runs without ROS; the ROS extra pulls rclpy and the message packages from wheels.
+    install_requires=[
+        "numpy>=1.26",
+        "scipy>=1.11",
+        "opencv-python-headless>=4.8",
+        "torch==2.13.0",
+        "safetensors>=0.4",
+        "plyfile>=1.0",
+        "pyyaml>=6.0",
+        "tqdm>=4.66",
+        "matplotlib>=3.8",
+    ],
+    extras_require={
+        "ros": ["ros-jazzy-rclpy[fastrtps]", "ros-jazzy-common-interfaces", "rosbags>=0.10"],
+        "dev": ["pytest>=8", "ruff>=0.6"],
+    },
+    entry_points={
+        "console_scripts": [
+            "axispose = axispose_core.cli:main",
+            "axispose_node = axispose_ros.node:main",
+        ],
+    },
+    zip_safe=True,
+)

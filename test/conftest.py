@@ -1,0 +1,27 @@
+"""Shared fixtures: the LM-O data beside the clone (../shared/data/lmo), and deterministic torch threads."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+REPO = Path(__file__).resolve().parents[1]
+LMO_DIR = Path(os.environ.get("AXISPOSE_LMO_DIR", REPO.parent / "shared" / "data" / "lmo"))
+
+torch.set_num_threads(min(2, os.cpu_count() or 1))
+
+
+@pytest.fixture(scope="session")
+def lmo_dir() -> Path:
+    if not (LMO_DIR / "models" / "models_info.json").exists():
+        pytest.fail(f"LM-O models not found at {LMO_DIR} (CI keeps ../shared beside the clone; set AXISPOSE_LMO_DIR)")
+    return LMO_DIR
+
+
+@pytest.fixture
+def rng() -> np.random.Generator:
+    return np.random.default_rng(1234)

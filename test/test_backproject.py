@@ -1,0 +1,112 @@
+import numpy as np
+import pytest
+
+from axispose_core.axis_image import axis_keypoints
+from axispose_core.metrics import re, te
+from axispose_core.pose_sampling import LMO_K, sample_pose
+from axispose_core.tbm.backproject import backproject, nearest_rotation, rotation_from_slopes
+
+
+def _random_corner(rng):
+    R, t = sample_pose(rng)
+    lengths = rng.uniform(0.02, 0.15) * np.array([1.0, rng.uniform(0.5, 2.0), rng.uniform(0.5, 2.0)])
+    return R, t, lengths, axis_keypoints(LMO_K, R, t, lengths)
+
+
+def test_exact_keypoints_give_exact_pose_over_1000_random_poses(rng):
+    rot, trans = [], []
+    for _ in range(1000):
+        R, t, lengths, kp = _random_corner(rng)
+        res = backproject(LMO_K, kp[0], kp[1:], lengths)
+        assert res.ok, res.reason
+        rot.append(re(res.R, R))
+        trans.append(te(res.t, t))
+    assert max(rot) < 1e-6, max(rot)
+    assert max(trans) < 1e-6, max(trans)
+
+
+def test_result_is_a_proper_rotation(rng):
+    R, t, lengths, kp = _random_corner(rng)
+    res = backproject(LMO_K, kp[0], kp[1:] + rng.normal(0, 1.0, (3, 2)), lengths)
+    assert res.ok
+    np.testing.assert_allclose(res.R @ res.R.T, np.eye(3), atol=1e-12)
+    assert np.linalg.det(res.R) == pytest.approx(1.0)
+
+
+def test_rotation_from_slopes_is_exact(rng):
+    for _ in range(200):
+        R, t, lengths, kp = _random_corner(rng)
+        res = rotation_from_slopes(LMO_K, kp[0], (kp[1:] - kp[0]) * rng.uniform(0.1, 3.0, (3, 1)))
+        assert res.ok, res.reason
+        assert re(res.R, R) < 1e-6
+        np.testing.assert_allclose(res.t / res.t[2], t / t[2], atol=1e-9)  # the origin's ray
+
+
+def test_noisy_keypoints_refinement_helps(rng):
+    """1 px Gaussian keypoint noise: the numbers for docs/BENCHMARKS.md come from bench/solver_noise.py."""
+    plain, refined = [], []
+    for _ in range(200):
+        R, t, lengths, kp = _random_corner(rng)
+        noisy = kp + rng.normal(0, 1.0, kp.shape)
+        a = backproject(LMO_K, noisy[0], noisy[1:], lengths)
+        b = backproject(LMO_K, noisy[0], noisy[1:], lengths, refine=True)
+        plain.append(re(a.R, R) if a.ok else 180.0)
+        refined.append(re(b.R, R) if b.ok else 180.0)
+    print(f"median rotation error at 1 px noise: analytic {np.median(plain):.2f} deg, refined {np.median(refined):.2f} deg")
+    assert np.median(refined) < np.median(plain)
+    assert np.median(refined) < 10.0
+
+
+def _assert_refused(res, reason):
+    assert not res.ok
+    assert reason in res.reason
+    assert np.all(np.isfinite(res.R)) and np.all(np.isfinite(res.t))
+
+
+def test_collinear_axes_are_refused():
+    o = np.array([320.0, 240.0])
+    axes = np.array([[360.0, 240.0], [280.0, 240.0], [320.0, 280.0]])
+    _assert_refused(backproject(LMO_K, o, axes, np.full(3, 0.05)), "collinear")
+    _assert_refused(rotation_from_slopes(LMO_K, o, axes - o), "collinear")
+
+
+def test_axis_pointing_at_camera_is_refused():
+    o = np.array([320.0, 240.0])
+    axes = np.array([[360.0, 240.0], [320.0, 280.0], [320.0, 240.0]])
+    _assert_refused(backproject(LMO_K, o, axes, np.full(3, 0.05)), "points at the camera")
+
+
+def test_nan_keypoints_and_bad_intrinsics_are_refused():
+    o = np.array([320.0, 240.0])
+    axes = np.array([[360.0, 240.0], [320.0, 280.0], [300.0, 220.0]])
+    _assert_refused(backproject(LMO_K, [np.nan, 1.0], axes, np.full(3, 0.05)), "non-finite")
+    _assert_refused(backproject(np.zeros((3, 3)), o, axes, np.full(3, 0.05)), "invalid intrinsics")
+    _assert_refused(backproject(LMO_K, o, axes, np.array([0.05, -1.0, 0.05])), "lengths")
+
+
+def test_corner_with_a_vertex_behind_the_camera_is_refused():
+    # An axis 0.5 m long reaching from 0.3 m in front of the camera to 0.2 m behind it: its endpoint's pixel
+    # is the mirror image of the true direction, and no physical corner explains the four points.
+    x = np.array([0.3, 0.2, -1.0]) / np.linalg.norm([0.3, 0.2, -1.0])
+    y = np.cross(x, [0.0, 1.0, 0.0])
+    y /= np.linalg.norm(y)
+    R = np.column_stack([x, y, np.cross(x, y)])
+    t = np.array([0.05, 0.02, 0.3])
+    lengths = np.array([0.5, 0.05, 0.05])
+    pts = np.diag(lengths)
+    cam = pts @ R.T + t
+    assert (cam[:, 2] < 0).any()
+    uvw = np.vstack([t, cam]) @ LMO_K.T
+    kp = uvw[:, :2] / uvw[:, 2:3]
+    res = backproject(LMO_K, kp[0], kp[1:], lengths)
+    if res.ok:  # a corner may exist that explains the pixels; it must then not be the impossible true one
+        assert re(res.R, R) > 1.0
+    else:
+        assert "front of the camera" in res.reason or "real solution" in res.reason
+
+
+def test_nearest_rotation_projects_onto_so3(rng):
+    M = rng.normal(size=(3, 3))
+    R = nearest_rotation(M)
+    np.testing.assert_allclose(R @ R.T, np.eye(3), atol=1e-12)
+    assert np.linalg.det(R) == pytest.approx(1.0)

@@ -1,0 +1,134 @@
+import json
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from axispose_core.data.bop import (
+    MM,
+    BopFormatError,
+    BopScene,
+    GTInfo,
+    GTInstance,
+    bbox_from_model,
+    load_models_info,
+    load_ply,
+    load_scene_camera,
+    load_scene_gt,
+    model_path,
+    write_models_info,
+    write_scene_camera,
+    write_scene_gt,
+    write_scene_gt_info,
+)
+from axispose_core.data.objects import LMO_DIAMETERS, LMO_SYMMETRIC, objects_from_models
+from axispose_core.pose_sampling import LMO_K
+
+
+def test_lmo_models_info_in_metres_with_symmetries(lmo_dir):
+    infos = load_models_info(lmo_dir / "models" / "models_info.json")
+    assert sorted(infos) == [1, 5, 6, 8, 9, 10, 11, 12]
+    assert infos[1].diameter == pytest.approx(0.102099)
+    assert {i for i, info in infos.items() if info.symmetric} == set(LMO_SYMMETRIC)
+    T = infos[10].symmetries_discrete[0]
+    assert T[:3, 3] == pytest.approx([0.232611 * MM, 0.694388 * MM, -0.0792063 * MM])
+    for i, d in LMO_DIAMETERS.items():  # the embedded copy agrees with the dataset
+        assert infos[i].diameter == pytest.approx(d, abs=1e-6)
+
+
+def test_lmo_models_load_with_colours_in_metres(lmo_dir):
+    mesh = load_ply(model_path(lmo_dir / "models", 1))
+    assert mesh.colors is not None and mesh.colors.shape == mesh.vertices.shape
+    assert mesh.faces.shape[1] == 3 and mesh.faces.max() < len(mesh.vertices)
+    extent = np.ptp(mesh.vertices, axis=0)
+    assert extent == pytest.approx([0.0759, 0.0776, 0.0918], abs=2e-3)
+    assert load_ply(model_path(lmo_dir / "models_eval", 1)).colors is None  # binary, decimated
+
+
+def test_objects_from_models(lmo_dir):
+    objs = objects_from_models(lmo_dir / "models", [1, 10], {1: "ape", 10: "eggbox"})
+    assert [o.name for o in objs] == ["ape", "eggbox"]
+    assert objs[0].scale == pytest.approx(0.5 * 0.102099) and objs[1].symmetric
+    with pytest.raises(ValueError, match="no object"):
+        objects_from_models(lmo_dir / "models", [99])
+
+
+def _scene(tmp_path, rng):
+    gt, cams, infos = {}, {}, {}
+    for im_id in range(3):
+        insts = []
+        for obj_id in (1, 5):
+            R = Rotation.random(random_state=rng).as_matrix()
+            insts.append(GTInstance(obj_id, R, np.array([0.01 * im_id, -0.02, 0.8])))
+        gt[im_id] = insts
+        cams[im_id] = LMO_K
+        infos[im_id] = [GTInfo((10, 20, 30, 40), (12, 22, 20, 30), 1200, 1200, 600, 0.5)] * 2
+    write_scene_gt(tmp_path / "scene_gt.json", gt)
+    write_scene_camera(tmp_path / "scene_camera.json", cams)
+    write_scene_gt_info(tmp_path / "scene_gt_info.json", infos)
+    return gt
+
+
+def test_scene_round_trip_keeps_metres(tmp_path, rng):
+    gt = _scene(tmp_path, rng)
+    raw = json.loads((tmp_path / "scene_gt.json").read_text())
+    assert raw["1"][0]["cam_t_m2c"] == pytest.approx([10.0, -20.0, 800.0])  # mm on disk
+    scene = BopScene(tmp_path)
+    assert scene.image_ids == [0, 1, 2]
+    np.testing.assert_allclose(scene.gt[2][1].R, gt[2][1].R)
+    np.testing.assert_allclose(scene.gt[2][1].t, gt[2][1].t)
+    np.testing.assert_allclose(scene.cameras[0], LMO_K)
+    assert scene.boxes(1) == [(10, 20, 30, 40)] * 2
+
+
+def test_boxes_from_models_when_gt_info_is_absent(tmp_path, rng):
+    gt = _scene(tmp_path, rng)
+    (tmp_path / "scene_gt_info.json").unlink()
+    scene = BopScene(tmp_path)
+    pts = {1: rng.uniform(-0.04, 0.04, (100, 3)), 5: rng.uniform(-0.08, 0.08, (100, 3))}
+    boxes = scene.boxes(0, pts)
+    assert boxes[1] == bbox_from_model(LMO_K, gt[0][1].R, gt[0][1].t, pts[5])
+    with pytest.raises(BopFormatError, match="scene_gt_info"):
+        scene.boxes(0)
+
+
+def test_models_info_round_trip(tmp_path, lmo_dir):
+    infos = load_models_info(lmo_dir / "models" / "models_info.json")
+    write_models_info(tmp_path / "models_info.json", infos)
+    again = load_models_info(tmp_path / "models_info.json")
+    assert again[11].diameter == pytest.approx(infos[11].diameter)
+    np.testing.assert_allclose(again[11].symmetries_discrete[0], infos[11].symmetries_discrete[0])
+
+
+@pytest.mark.parametrize(
+    "content, message",
+    [
+        ('{"0": [{"cam_R_m2c": [1, 0, 0], "cam_t_m2c": [0, 0, 1], "obj_id": 1}]}', "image 0 instance 0: field 'cam_R_m2c'"),
+        ('{"0": [{"cam_R_m2c": [1, 0, 0, 0, 1, 0, 0, 0, 1], "obj_id": 1}]}', "missing field 'cam_t_m2c'"),
+        ('{"0": [{"cam_R_m2c": [2, 0, 0, 0, 1, 0, 0, 0, 1], "cam_t_m2c": [0, 0, 1], "obj_id": 1}]}', "not a rotation"),
+        ('{"x": []}', "not an integer id"),
+        ("{not json", "not valid JSON"),
+    ],
+)
+def test_bad_scene_gt_names_file_and_field(tmp_path, content, message):
+    p = tmp_path / "scene_gt.json"
+    p.write_text(content)
+    with pytest.raises(BopFormatError, match=message) as err:
+        load_scene_gt(p)
+    assert str(p) in str(err.value)
+
+
+def test_bad_camera_is_refused(tmp_path):
+    p = tmp_path / "scene_camera.json"
+    p.write_text('{"0": {"cam_K": [0, 0, 0, 0, 0, 0, 0, 0, 1]}}')
+    with pytest.raises(BopFormatError, match="cam_K.*focal"):
+        load_scene_camera(p)
+
+
+def test_missing_file_and_broken_ply(tmp_path):
+    with pytest.raises(BopFormatError, match="not found"):
+        load_scene_gt(tmp_path / "nope.json")
+    bad = tmp_path / "obj_000001.ply"
+    bad.write_text("ply\nformat ascii 1.0\nelement vertex 1\nproperty float x\nend_header\nzzz\n")
+    with pytest.raises(BopFormatError, match="obj_000001.ply"):
+        load_ply(bad)

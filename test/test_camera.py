@@ -1,0 +1,79 @@
+import numpy as np
+import pytest
+
+from axispose_core.camera import (
+    Camera,
+    IntrinsicsError,
+    crop_image,
+    crop_intrinsics,
+    crop_transform,
+    project,
+    project_model,
+    square_around_box,
+    validate_intrinsics,
+)
+from axispose_core.pose_sampling import LMO_K, sample_pose
+
+
+def test_crop_intrinsics_match_projection_then_crop(rng):
+    pts = rng.uniform(-0.1, 0.1, size=(200, 3))
+    for _ in range(50):
+        R, t = sample_pose(rng)
+        center = tuple(rng.uniform(100, 500, size=2))
+        side = rng.uniform(20, 400)
+        size = int(rng.choice([64, 128, 256]))
+        uv = project_model(LMO_K, R, t, pts)
+        A = crop_transform(center, side, size)
+        via_crop = np.column_stack([uv, np.ones(len(uv))]) @ A.T
+        via_kp = project_model(crop_intrinsics(LMO_K, center, side, size), R, t, pts)
+        np.testing.assert_allclose(via_kp, via_crop[:, :2], atol=1e-9)
+
+
+def test_crop_centre_maps_to_patch_centre():
+    A = crop_transform((300.0, 200.0), 100.0, 64)
+    np.testing.assert_allclose(A @ [300.0, 200.0, 1.0], [31.5, 31.5, 1.0])
+    # The square's edge (centre - side/2) is the patch's outer edge, half a pixel left of pixel 0.
+    np.testing.assert_allclose(A @ [250.0, 150.0, 1.0], [-0.5, -0.5, 1.0])
+
+
+def test_crop_image_puts_a_pixel_where_the_patch_intrinsics_say():
+    img = np.zeros((480, 640), np.float32)
+    img[200, 300] = 1.0
+    center, side, size = (309.5, 189.5), 64.0, 64  # unit scale, pixel centres on pixel centres
+    patch = crop_image(img, center, side, size)
+    x, y, _ = crop_transform(center, side, size) @ [300.0, 200.0, 1.0]
+    assert patch[int(round(y)), int(round(x))] == 1.0
+    assert patch.sum() == 1.0
+
+
+def test_square_around_box_covers_the_box():
+    (cx, cy), side = square_around_box((10, 20, 30, 50), pad=1.0)
+    assert (cx, cy) == (24.5, 44.5)
+    assert side == 50
+
+
+def test_scaled_camera_matches_resized_image():
+    cam = Camera(LMO_K, 640, 480)
+    half = cam.scaled(320, 240)
+    pts = np.array([[0.01, 0.02, 0.8], [-0.05, 0.03, 0.5]])
+    # cv2.resize by 1/2 averages pixel pairs: full-res centre u maps to (u + 0.5) / 2 - 0.5.
+    np.testing.assert_allclose(project(half.K, pts), (project(cam.K, pts) + 0.5) / 2 - 0.5)
+
+
+@pytest.mark.parametrize(
+    "K, message",
+    [
+        (np.zeros((3, 3)), "focal"),
+        (np.full((3, 3), np.nan), "non-finite"),
+        (np.eye(2), "3x3"),
+        (np.array([[500.0, 0, 320], [0, 500, 240], [0, 0, 2]]), "last row"),
+    ],
+)
+def test_bad_intrinsics_are_refused(K, message):
+    with pytest.raises(IntrinsicsError, match=message):
+        validate_intrinsics(K)
+
+
+def test_camera_refuses_bad_size():
+    with pytest.raises(IntrinsicsError, match="size"):
+        Camera(LMO_K, 0, 480)
