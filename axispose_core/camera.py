@@ -94,9 +94,7 @@ def crop_image(
 ) -> np.ndarray:
     """Cut the square patch that `crop_intrinsics` describes; outside the image is filled with border_value."""
     A = crop_transform(center, side, size)
-    return cv2.warpAffine(
-        image, A[:2], (size, size), flags=interpolation, borderMode=cv2.BORDER_CONSTANT, borderValue=border_value
-    )
+    return cv2.warpAffine(image, A[:2], (size, size), flags=interpolation, borderMode=cv2.BORDER_CONSTANT, borderValue=border_value)
 
 
 def square_around_box(box_xywh: tuple[float, float, float, float], pad: float = 1.2) -> tuple[tuple[float, float], float]:

@@ -23,9 +23,7 @@ class CheckpointError(ValueError):
 def git_commit() -> str:
     """The source commit, recorded in checkpoints for provenance ('unknown' outside a git checkout)."""
     try:
-        out = subprocess.run(
-            ["git", "rev-parse", "HEAD"], cwd=Path(__file__).parent, capture_output=True, text=True, timeout=5, check=True
-        )
+        out = subprocess.run(["git", "rev-parse", "HEAD"], cwd=Path(__file__).parent, capture_output=True, text=True, timeout=5, check=True)
         return out.stdout.strip()
     except (OSError, subprocess.SubprocessError):
         return "unknown"
@@ -55,7 +53,9 @@ def config_from_dict(cls: type[C], data: dict[str, Any], source: str = "config")
     return cls(**kwargs)
 
 
-def save_checkpoint(path: str | Path, kind: str, config: Any, modules: dict[str, torch.nn.Module], extra: dict[str, Any] | None = None) -> None:
+def save_checkpoint(
+    path: str | Path, kind: str, config: Any, modules: dict[str, torch.nn.Module], extra: dict[str, Any] | None = None
+) -> None:
     """Write the modules' state dicts (prefixed by their names) and the config dataclass into one safetensors file."""
     tensors = {}
     for prefix, module in modules.items():
@@ -72,16 +72,16 @@ def save_checkpoint(path: str | Path, kind: str, config: Any, modules: dict[str,
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_suffix(path.suffix + ".tmp")
     save_file(tensors, str(tmp), metadata=meta)
+    tmp.chmod(0o644)  # safetensors writes 0600; a shipped or shared checkpoint must be readable by all
     tmp.replace(path)
 
 
-def read_checkpoint(path: str | Path, kind: str, config_cls: type[C]) -> tuple[C, dict[str, dict[str, torch.Tensor]], dict[str, Any]]:
-    """Read a checkpoint of `kind`: (config, state dicts by module name, extra metadata)."""
+def read_metadata(path: str | Path, kind: str) -> dict[str, str]:
+    """The metadata of an AxisPose checkpoint of `kind`, or CheckpointError saying why the file is not one."""
     path = Path(path)
     if not path.is_file():
         raise CheckpointError(f"{path}: checkpoint file not found")
     try:
-        tensors = load_file(str(path))
         with safe_open(str(path), framework="pt") as f:
             meta = f.metadata() or {}
     except (SafetensorError, OSError, ValueError) as err:
@@ -90,6 +90,16 @@ def read_checkpoint(path: str | Path, kind: str, config_cls: type[C]) -> tuple[C
         raise CheckpointError(f"{path}: not an AxisPose checkpoint (format {meta.get('format')!r}, expected {FORMAT!r})")
     if meta.get("kind") != kind:
         raise CheckpointError(f"{path}: holds a {meta.get('kind')!r} model, expected {kind!r}")
+    return meta
+
+
+def read_checkpoint(path: str | Path, kind: str, config_cls: type[C]) -> tuple[C, dict[str, dict[str, torch.Tensor]], dict[str, Any]]:
+    """Read a checkpoint of `kind`: (config, state dicts by module name, extra metadata)."""
+    meta = read_metadata(path, kind)
+    try:
+        tensors = load_file(str(path))
+    except (SafetensorError, OSError, ValueError) as err:
+        raise CheckpointError(f"{path}: tensors unreadable ({err})") from err
     try:
         config = config_from_dict(config_cls, json.loads(meta["config"]), f"{path}: config")
         extra = json.loads(meta.get("extra", "{}"))

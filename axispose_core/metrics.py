@@ -41,9 +41,7 @@ def te(t_est: np.ndarray, t_gt: np.ndarray) -> float:
     return float(np.linalg.norm(np.asarray(t_est) - np.asarray(t_gt)))
 
 
-def add_or_adi(
-    R_est: np.ndarray, t_est: np.ndarray, R_gt: np.ndarray, t_gt: np.ndarray, pts: np.ndarray, symmetric: bool
-) -> float:
+def add_or_adi(R_est: np.ndarray, t_est: np.ndarray, R_gt: np.ndarray, t_gt: np.ndarray, pts: np.ndarray, symmetric: bool) -> float:
     """ADD(-S): ADI for symmetric objects, ADD otherwise (the LM-O convention)."""
     return (adi if symmetric else add)(R_est, t_est, R_gt, t_gt, pts)
 
@@ -75,4 +73,3 @@ def pose_scores(
     scores["rot_err_deg"] = re(R_est, R_gt)
     scores["trans_err_mm"] = 1000.0 * te(t_est, t_gt)
     return scores
-

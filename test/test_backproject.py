@@ -26,7 +26,7 @@ def test_exact_keypoints_give_exact_pose_over_1000_random_poses(rng):
 
 
 def test_result_is_a_proper_rotation(rng):
-    R, t, lengths, kp = _random_corner(rng)
+    _, _, lengths, kp = _random_corner(rng)
     res = backproject(LMO_K, kp[0], kp[1:] + rng.normal(0, 1.0, (3, 2)), lengths)
     assert res.ok
     np.testing.assert_allclose(res.R @ res.R.T, np.eye(3), atol=1e-12)
@@ -35,7 +35,7 @@ def test_result_is_a_proper_rotation(rng):
 
 def test_rotation_from_slopes_is_exact(rng):
     for _ in range(200):
-        R, t, lengths, kp = _random_corner(rng)
+        R, t, _, kp = _random_corner(rng)
         res = rotation_from_slopes(LMO_K, kp[0], (kp[1:] - kp[0]) * rng.uniform(0.1, 3.0, (3, 1)))
         assert res.ok, res.reason
         assert re(res.R, R) < 1e-6
@@ -46,7 +46,7 @@ def test_noisy_keypoints_refinement_helps(rng):
     """1 px Gaussian keypoint noise: the numbers for docs/BENCHMARKS.md come from bench/solver_noise.py."""
     plain, refined = [], []
     for _ in range(200):
-        R, t, lengths, kp = _random_corner(rng)
+        R, _, lengths, kp = _random_corner(rng)
         noisy = kp + rng.normal(0, 1.0, kp.shape)
         a = backproject(LMO_K, noisy[0], noisy[1:], lengths)
         b = backproject(LMO_K, noisy[0], noisy[1:], lengths, refine=True)

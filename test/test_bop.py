@@ -121,7 +121,7 @@ def test_bad_scene_gt_names_file_and_field(tmp_path, content, message):
 def test_bad_camera_is_refused(tmp_path):
     p = tmp_path / "scene_camera.json"
     p.write_text('{"0": {"cam_K": [0, 0, 0, 0, 0, 0, 0, 0, 1]}}')
-    with pytest.raises(BopFormatError, match="cam_K.*focal"):
+    with pytest.raises(BopFormatError, match=r"cam_K.*focal"):
         load_scene_camera(p)
 
 
@@ -130,5 +130,5 @@ def test_missing_file_and_broken_ply(tmp_path):
         load_scene_gt(tmp_path / "nope.json")
     bad = tmp_path / "obj_000001.ply"
     bad.write_text("ply\nformat ascii 1.0\nelement vertex 1\nproperty float x\nend_header\nzzz\n")
-    with pytest.raises(BopFormatError, match="obj_000001.ply"):
+    with pytest.raises(BopFormatError, match=r"obj_000001\.ply"):
         load_ply(bad)

@@ -42,7 +42,7 @@ def test_crop_image_puts_a_pixel_where_the_patch_intrinsics_say():
     center, side, size = (309.5, 189.5), 64.0, 64  # unit scale, pixel centres on pixel centres
     patch = crop_image(img, center, side, size)
     x, y, _ = crop_transform(center, side, size) @ [300.0, 200.0, 1.0]
-    assert patch[int(round(y)), int(round(x))] == 1.0
+    assert patch[round(y), round(x)] == 1.0
     assert patch.sum() == 1.0
 
 

@@ -47,4 +47,13 @@ def test_thresholds_at_their_edges():
     assert s["add_0.1d"] == 0.0 and s["add_0.2d"] == 1.0  # 1.5 cm against 1 cm and 2 cm
     assert s["reproj_5px"] == 0.0 and s["reproj_15px"] == 1.0  # about 7.5 px
     assert s["trans_err_mm"] == pytest.approx(15.0)
-    assert set(s) == {"add_err_m", "reproj_err_px", "add_0.1d", "add_0.2d", "reproj_5px", "reproj_15px", "rot_err_deg", "trans_err_mm"}
+    assert set(s) == {
+        "add_err_m",
+        "reproj_err_px",
+        "add_0.1d",
+        "add_0.2d",
+        "reproj_5px",
+        "reproj_15px",
+        "rot_err_deg",
+        "trans_err_mm",
+    }

@@ -34,9 +34,7 @@ class ObjectSpec:
 
 def lmo_objects() -> list[ObjectSpec]:
     """The embedded LM-O object list with the default λ_O = half the diameter."""
-    return [
-        ObjectSpec(i, LMO_NAMES[i], d, 0.5 * d, symmetric=i in LMO_SYMMETRIC) for i, d in sorted(LMO_DIAMETERS.items())
-    ]
+    return [ObjectSpec(i, LMO_NAMES[i], d, 0.5 * d, symmetric=i in LMO_SYMMETRIC) for i, d in sorted(LMO_DIAMETERS.items())]
 
 
 def objects_from_models(models_dir: str | Path, obj_ids: list[int] | None = None, names: dict[int, str] | None = None) -> list[ObjectSpec]:
@@ -48,6 +46,5 @@ def objects_from_models(models_dir: str | Path, obj_ids: list[int] | None = None
     if missing:
         raise ValueError(f"{models_dir}/models_info.json has no object(s) {missing}")
     return [
-        ObjectSpec(i, names.get(i, f"obj_{i:06d}"), infos[i].diameter, 0.5 * infos[i].diameter, symmetric=infos[i].symmetric)
-        for i in ids
+        ObjectSpec(i, names.get(i, f"obj_{i:06d}"), infos[i].diameter, 0.5 * infos[i].diameter, symmetric=infos[i].symmetric) for i in ids
     ]

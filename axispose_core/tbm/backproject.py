@@ -8,10 +8,13 @@ With rays ``q_i = K⁻¹ x̃_i`` and the origin's depth fixed to 1, the corner's
 The first and third equations give λ_B and λ_C as rational functions of λ_A; substituting them in the second
 leaves a quadratic in λ_A. Of its (at most two) roots, the physically valid one has every vertex in front of
 the camera and a right-handed corner (the convex C2 the paper keeps); if two survive, the one whose leg lengths
-best match the known ratios wins. Noisy keypoints of a nearly orthographic view (a small crop far away) often
-give a complex pair: its real part, polished, is then the seed. Every result must re-project onto the given
-keypoints within `MAX_RELATIVE_RESIDUAL` of the longest leg, which refuses corners no object could form. The metric scale then comes from the known leg lengths λ_O (1, r_B, r_C):
+best match the known ratios wins. The metric scale then comes from the known leg lengths λ_O (1, r_B, r_C):
 the depth of the origin is the least-squares factor that maps the unit-depth legs onto them.
+
+Noisy keypoints of a nearly orthographic view (a small crop far away) often give a complex pair of roots: its
+real part, polished, is then the seed; if no root is valid, `refine` fits from the slopes' rotation and the 24
+cube rotations instead. Every result must re-project onto the given keypoints within `MAX_RELATIVE_RESIDUAL`
+of the longest leg, which refuses corners no object could form (a vertex behind the camera, wrong ratios).
 """
 
 from __future__ import annotations
@@ -65,7 +68,7 @@ def _check_input(K: np.ndarray, uv_origin: np.ndarray, uv_axes: np.ndarray) -> t
         return K, kp, "non-finite keypoints"
     legs = kp[1:] - kp[0]
     norms = np.linalg.norm(legs, axis=1)
-    for name, n in zip("XYZ", norms):
+    for name, n in zip("XYZ", norms, strict=True):
         if n < MIN_AXIS_PIXELS:
             return K, kp, f"axis {name} projects to a point (it points at the camera)"
     dirs = legs / norms[:, None]
@@ -100,9 +103,7 @@ def _polish(a: np.ndarray, lam: np.ndarray, iterations: int = 3) -> np.ndarray:
     return lam
 
 
-def backproject(
-    K: np.ndarray, uv_origin: np.ndarray, uv_axes: np.ndarray, lengths: np.ndarray, refine: bool = False
-) -> Backprojection:
+def backproject(K: np.ndarray, uv_origin: np.ndarray, uv_axes: np.ndarray, lengths: np.ndarray, refine: bool = False) -> Backprojection:
     """Pose (R, t) of a cube corner from its projected origin (2,), leg endpoints (3,2) and leg lengths (3,) in metres.
 
     R's columns are the model X, Y, Z axes in the camera frame; t is the model origin in metres. With `refine`,
@@ -173,8 +174,7 @@ def backproject(
     longest = np.linalg.norm(kp[1:] - kp[0], axis=1).max()
     if residual > MAX_RELATIVE_RESIDUAL * longest:
         return _fail(
-            f"keypoints inconsistent with the known leg lengths (re-projection misses by {residual:.1f} px "
-            f"of a {longest:.1f} px leg)"
+            f"keypoints inconsistent with the known leg lengths (re-projection misses by {residual:.1f} px of a {longest:.1f} px leg)"
         )
     return Backprojection(R, t, True)
 
@@ -187,9 +187,7 @@ def _reprojection_residual(K: np.ndarray, kp: np.ndarray, lengths: np.ndarray, R
     return float(np.linalg.norm(project(K, cam) - kp, axis=1).max())
 
 
-def refine_pose(
-    K: np.ndarray, keypoints: np.ndarray, lengths: np.ndarray, R0: np.ndarray, t0: np.ndarray
-) -> tuple[np.ndarray, np.ndarray]:
+def refine_pose(K: np.ndarray, keypoints: np.ndarray, lengths: np.ndarray, R0: np.ndarray, t0: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Minimise the reprojection error of origin and endpoints (4,2) over the pose, from (R0, t0)."""
     pts = axis_points(lengths)
 

@@ -15,9 +15,7 @@ MIN_PIXELS = 3
 """A channel with fewer lit pixels than this has no readable axis."""
 
 
-def fit_axis_keypoints(
-    image: np.ndarray, threshold: float = 0.5, line_width: float = DEFAULT_LINE_WIDTH
-) -> AxisKeypoints:
+def fit_axis_keypoints(image: np.ndarray, threshold: float = 0.5, line_width: float = DEFAULT_LINE_WIDTH) -> AxisKeypoints:
     """Read origin and endpoints from an HxWx3 axis image with values in [0,1].
 
     Per channel, the lit pixels' intensity-weighted principal axis gives the line; the origin is the
@@ -54,7 +52,7 @@ def fit_axis_keypoints(
         return unreadable("axis lines are parallel: no common origin")
     origin = np.linalg.solve(A, b)
     ends = np.empty((3, 2))
-    for c, (mu, d, p, _) in enumerate(lines):
+    for c, (_, d, p, _) in enumerate(lines):
         s = (p - origin) @ d
         far = s.max() if abs(s.max()) >= abs(s.min()) else s.min()
         reach = max(abs(far) - 0.5 * line_width, 0.0)

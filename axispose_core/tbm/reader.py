@@ -65,8 +65,12 @@ class KeypointReader(nn.Module):
         self.config = config
         ch = config.channels
         self.stem = nn.Sequential(
-            nn.Conv2d(3, ch, 3, stride=2, padding=1), nn.GroupNorm(8, ch), nn.SiLU(),
-            nn.Conv2d(ch, ch, 3, padding=1), nn.GroupNorm(8, ch), nn.SiLU(),
+            nn.Conv2d(3, ch, 3, stride=2, padding=1),
+            nn.GroupNorm(8, ch),
+            nn.SiLU(),
+            nn.Conv2d(ch, ch, 3, padding=1),
+            nn.GroupNorm(8, ch),
+            nn.SiLU(),
         )
         self.down = nn.Sequential(nn.Conv2d(ch, ch, 3, stride=2, padding=1), nn.GroupNorm(8, ch), nn.SiLU())
         self.context = nn.Sequential(*[_DilatedBlock(ch, d) for d in config.blocks])
@@ -153,20 +157,32 @@ def degrade(images: torch.Tensor, gen: torch.Generator, prob: float) -> torch.Te
 
 
 def synth_batch(
-    rng: np.random.Generator, gen: torch.Generator, config: ReaderConfig, batch: int, degrade_prob: float
-) -> tuple[torch.Tensor, torch.Tensor]:
-    """Rendered (and degraded) axis images (B,3,S,S) with their true keypoints (B,4,2)."""
+    rng: np.random.Generator,
+    gen: torch.Generator,
+    config: ReaderConfig,
+    batch: int,
+    degrade_prob: float,
+    return_samples: bool = False,
+) -> tuple:
+    """Rendered (and degraded) axis images (B,3,S,S) with their true keypoints (B,4,2).
+
+    With `return_samples`, also the crops' PatchSamples and leg lengths, for scoring poses downstream.
+    """
     S = config.size
-    kps = []
+    kps, samples, lens = [], [], []
     for _ in range(batch):
         lengths = np.array([1.0, rng.uniform(0.6, 1.4), rng.uniform(0.6, 1.4)]) * 0.05
         ps = sample_patch(rng, radius=float(lengths.max()), size=S)
         kps.append(axis_keypoints(ps.K_patch, ps.R, ps.t, lengths))
+        samples.append(ps)
+        lens.append(lengths)
     kp = torch.as_tensor(np.stack(kps), dtype=torch.float32)
     width = config.line_width * (0.7 + 0.6 * torch.rand(1, generator=gen).item())
     images = render_axis_keypoints_torch(kp, S, width)
     if degrade_prob > 0:
         images = degrade(images, gen, degrade_prob)
+    if return_samples:
+        return images, kp, samples, lens
     return images, kp
 
 
