@@ -3,18 +3,17 @@
 from __future__ import annotations
 
 import sys
-from pathlib import Path
 
 import matplotlib
 
 matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402
-import numpy as np  # noqa: E402
-from scipy.spatial.transform import Rotation  # noqa: E402
+import matplotlib.pyplot as plt
+import numpy as np
+from scipy.spatial.transform import Rotation
 
-from axispose_core.axis_image import AxisSpec, axis_keypoints, render_axis_keypoints  # noqa: E402
-from axispose_core.camera import crop_intrinsics  # noqa: E402
-from axispose_core.pose_sampling import LMO_K, sphere_crop  # noqa: E402
+from axispose_core.axis_image import AxisSpec, axis_keypoints, render_axis_keypoints
+from axispose_core.camera import crop_intrinsics
+from axispose_core.pose_sampling import LMO_K, sphere_crop
 
 
 def main(out: str) -> None:
