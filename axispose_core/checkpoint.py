@@ -6,7 +6,7 @@ import dataclasses
 import json
 import subprocess
 from pathlib import Path
-from typing import Any, TypeVar
+from typing import Any, TypeVar, get_type_hints
 
 import torch
 from safetensors import SafetensorError, safe_open
@@ -34,6 +34,7 @@ def config_from_dict(cls: type[C], data: dict[str, Any], source: str = "config")
     if not isinstance(data, dict):
         raise CheckpointError(f"{source}: expected a mapping for {cls.__name__}")
     fields = {f.name: f for f in dataclasses.fields(cls)}  # type: ignore[arg-type]
+    hints = get_type_hints(cls)
     unknown = sorted(set(data) - set(fields))
     if unknown:
         raise CheckpointError(f"{source}: unknown key(s) {unknown} for {cls.__name__}")
@@ -44,8 +45,8 @@ def config_from_dict(cls: type[C], data: dict[str, Any], source: str = "config")
                 raise CheckpointError(f"{source}: missing key '{name}' for {cls.__name__}")
             continue
         value = data[name]
-        ftype = f.type if isinstance(f.type, type) else None
-        if ftype is not None and dataclasses.is_dataclass(ftype):
+        ftype = hints.get(name)
+        if isinstance(ftype, type) and dataclasses.is_dataclass(ftype):
             value = config_from_dict(ftype, value, f"{source}.{name}")
         elif isinstance(value, list):
             value = tuple(value)

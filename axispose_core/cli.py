@@ -29,6 +29,50 @@ def _train_reader(args: argparse.Namespace) -> int:
     return 0
 
 
+def _synth(args: argparse.Namespace) -> int:
+    import json
+
+    import numpy as np
+
+    from axispose_core.camera import validate_intrinsics
+    from axispose_core.data.synth.config import SynthConfig
+    from axispose_core.data.synth.generate import generate
+
+    K = SynthConfig().K
+    width, height = args.width, args.height
+    if args.camera:
+        cam = json.loads(Path(args.camera).read_text())
+        try:
+            K = np.array([[cam["fx"], 0.0, cam["cx"]], [0.0, cam["fy"], cam["cy"]], [0.0, 0.0, 1.0]])
+        except KeyError as err:
+            raise SystemExit(f"{args.camera}: camera JSON needs fx, fy, cx, cy (BOP camera.json) - missing {err}") from err
+        K = tuple(validate_intrinsics(K).ravel().tolist())
+        width, height = cam.get("width", width), cam.get("height", height)
+    cfg = SynthConfig(
+        width=width,
+        height=height,
+        K=K,
+        objects=tuple(args.objects),
+        seed=args.seed,
+        scenes=args.scenes,
+        images_per_scene=args.images_per_scene,
+    )
+    n = generate(cfg, args.models, args.out, workers=args.workers)
+    print(f"wrote {n} images into {args.out}")
+    return 0
+
+
+def _synth_preview(args: argparse.Namespace) -> int:
+    from axispose_core.data.synth.preview import contact_sheet
+
+    print(f"wrote {contact_sheet(args.data, args.out, count=args.count)}")
+    return 0
+
+
+def _ids(text: str) -> list[int]:
+    return [int(v) for v in text.split(",") if v.strip()]
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="axispose", description="AxisPose: 6D object pose from one RGB image by axis generation.")
     sub = parser.add_subparsers(dest="command", required=True)
@@ -47,6 +91,25 @@ def build_parser() -> argparse.ArgumentParser:
     tr.add_argument("--threads", type=int, default=2)
     tr.add_argument("--log", default=None, help="CSV of the training loss")
     tr.set_defaults(func=_train_reader)
+
+    sy = sub.add_parser("synth", help="render randomised BOP-format training scenes of the objects in --models")
+    sy.add_argument("--models", required=True, help="BOP models folder (obj_XXXXXX.ply + models_info.json)")
+    sy.add_argument("--out", required=True, help="dataset folder (reruns resume it)")
+    sy.add_argument("--scenes", type=int, required=True)
+    sy.add_argument("--images-per-scene", type=int, default=25)
+    sy.add_argument("--seed", type=int, default=0)
+    sy.add_argument("--objects", type=_ids, default=[], help="comma-separated object ids (default: all in models_info.json)")
+    sy.add_argument("--width", type=int, default=640)
+    sy.add_argument("--height", type=int, default=480)
+    sy.add_argument("--camera", help="BOP camera.json (fx, fy, cx, cy, width, height); default: the LM-O camera")
+    sy.add_argument("--workers", type=int, default=1, help="worker processes")
+    sy.set_defaults(func=_synth)
+
+    sp = sub.add_parser("synth-preview", help="contact sheet of synthetic frames with their GT axes")
+    sp.add_argument("data", help="dataset folder written by `axispose synth`")
+    sp.add_argument("--out", required=True, help="PNG to write")
+    sp.add_argument("--count", type=int, default=16)
+    sp.set_defaults(func=_synth_preview)
     return parser
 
 

@@ -45,7 +45,7 @@ def run_demo(out_dir: str | Path, seed: int = 0, reader_path: str | Path = SHIPP
     rng = np.random.default_rng(seed)
     rows: list[DemoRow] = []
     objects = lmo_objects()
-    fig, axes = plt.subplots(2, len(objects) // 2, figsize=(3 * len(objects) // 2, 6.4))
+    fig, axes = plt.subplots(2, len(objects) // 2, figsize=(3 * len(objects) // 2, 7.2))
     for obj, ax in zip(objects, axes.ravel(), strict=True):
         lengths = obj.axes.lengths
         ps = sample_patch(rng, radius=0.5 * obj.diameter, size=size)

@@ -20,8 +20,8 @@ def fit_axis_keypoints(image: np.ndarray, threshold: float = 0.5, line_width: fl
 
     Per channel, the lit pixels' intensity-weighted principal axis gives the line; the origin is the
     least-squares meeting point of the three lines (weighted by how line-like each channel is); each endpoint
-    is the lit pixel furthest from the origin along its line, moved back by the half line width that the
-    rounded cap adds.
+    is the lit pixel furthest from the origin along its line, moved back by what the rounded cap adds
+    (half the line width, less the half pixel by which the furthest lit pixel centre falls short of it).
     """
     img = np.asarray(image, dtype=np.float64)
     if img.ndim != 3 or img.shape[2] != 3:
@@ -55,6 +55,8 @@ def fit_axis_keypoints(image: np.ndarray, threshold: float = 0.5, line_width: fl
     for c, (_, d, p, _) in enumerate(lines):
         s = (p - origin) @ d
         far = s.max() if abs(s.max()) >= abs(s.min()) else s.min()
-        reach = max(abs(far) - 0.5 * line_width, 0.0)
+        # The 0.5 threshold sits w/2 beyond the endpoint; the furthest lit pixel centre lies on average
+        # half a pixel inside that boundary.
+        reach = max(abs(far) - (0.5 * line_width - 0.5), 0.0)
         ends[c] = origin + np.sign(far) * reach * d
     return AxisKeypoints(origin, ends)

@@ -1,0 +1,203 @@
+"""`axispose synth`: render randomised scenes of known objects into a BOP-format dataset.
+
+Layout of OUT (BOP "train_pbr"-like): ``synth_config.json``, ``models_info.json``, and one folder per scene
+``000000/`` with ``rgb/000000.jpg``, ``mask/000000_000000.png`` (full silhouette), ``mask_visib/...``,
+``scene_gt.json``, ``scene_camera.json`` and ``scene_gt_info.json``. A scene's JSON files are written last,
+so a scene with ``scene_gt_info.json`` is complete; a rerun skips complete scenes and redoes the rest, which
+makes generation resumable. Every image draws from its own generator seeded by (seed, scene, image), so the
+output does not depend on the number of workers or on resumption.
+"""
+
+from __future__ import annotations
+
+import multiprocessing as mp
+import os
+import shutil
+from dataclasses import dataclass
+from pathlib import Path
+
+import cv2
+import numpy as np
+from tqdm import tqdm
+
+from axispose_core.data.bop import (
+    GTInfo,
+    GTInstance,
+    bbox_from_model,
+    load_models_info,
+    load_ply,
+    model_path,
+    write_scene_camera,
+    write_scene_gt,
+    write_scene_gt_info,
+)
+from axispose_core.data.synth.config import SynthConfig
+from axispose_core.data.synth.randomize import background, camera_effects, cutouts, light, object_tint
+from axispose_core.data.synth.raster import RenderMesh, render, vertex_normals
+from axispose_core.data.synth.scene import primitive, sample_placements
+
+
+def load_render_mesh(models_dir: str | Path, obj_id: int, cache_dir: str | Path | None = None) -> RenderMesh:
+    """A BOP model as a RenderMesh (metres, colours in [0,1]); cached as .npz because ASCII PLY parsing is slow."""
+    src = model_path(models_dir, obj_id)
+    cache = Path(cache_dir) / f"{src.stem}.npz" if cache_dir else None
+    stamp = np.array([src.stat().st_size, src.stat().st_mtime_ns], dtype=np.int64)
+    if cache is not None and cache.exists():
+        data = np.load(cache)
+        if np.array_equal(data["stamp"], stamp):
+            return RenderMesh(data["vertices"], data["faces"], data["colors"], data["normals"])
+    mesh = load_ply(src)
+    colors = mesh.colors / 255.0 if mesh.colors is not None else np.full((len(mesh.vertices), 3), 0.6)
+    normals = mesh.normals if mesh.normals is not None else vertex_normals(mesh.vertices, mesh.faces)
+    normals = normals / np.maximum(np.linalg.norm(normals, axis=1, keepdims=True), 1e-12)
+    rm = RenderMesh(mesh.vertices, mesh.faces, colors, normals)
+    if cache is not None:
+        cache.parent.mkdir(parents=True, exist_ok=True)
+        tmp = cache.with_suffix(".tmp.npz")
+        np.savez(tmp, vertices=rm.vertices, faces=rm.faces, colors=rm.colors, normals=rm.normals, stamp=stamp)
+        tmp.replace(cache)
+    return rm
+
+
+@dataclass
+class SynthImage:
+    """One rendered frame with its annotations (instances in scene_gt order)."""
+
+    rgb: np.ndarray
+    jpeg_quality: int
+    gt: list[GTInstance]
+    info: list[GTInfo]
+    masks: list[np.ndarray]
+    masks_visib: list[np.ndarray]
+    depth: np.ndarray
+
+
+def _bbox(mask: np.ndarray) -> tuple[int, int, int, int]:
+    ys, xs = np.nonzero(mask)
+    if not len(xs):
+        return (-1, -1, -1, -1)
+    return (int(xs.min()), int(ys.min()), int(xs.max() - xs.min() + 1), int(ys.max() - ys.min() + 1))
+
+
+def render_image(cfg: SynthConfig, meshes: dict[int, RenderMesh], diameters: dict[int, float], scene_id: int, im_id: int) -> SynthImage:
+    """Sample, render and randomise one frame deterministically from (cfg.seed, scene_id, im_id)."""
+    rng = np.random.default_rng([cfg.seed, scene_id, im_id])
+    K = np.asarray(cfg.K, dtype=np.float64).reshape(3, 3)
+    w, h = cfg.width, cfg.height
+    rcfg = cfg.randomization
+    radii = {i: 0.5 * diameters[i] for i in meshes}
+    placements = sample_placements(rng, cfg.scene, radii, K, w, h)
+    posed = []
+    for p in placements:
+        if p.obj_id:
+            m = meshes[p.obj_id]
+            m = RenderMesh(m.vertices, m.faces, np.clip(m.colors * object_tint(rng, rcfg), 0, 1), m.normals)
+        else:
+            m = primitive(rng, p.radius)
+        posed.append((m, p.R, p.t))
+    bg = background(rng, rcfg, w, h)
+    res = render(posed, K, w, h, light(rng, rcfg))
+    image = np.where(res.instance[..., None] >= 0, res.rgb.astype(np.float32), bg)
+    occluded = cutouts(rng, rcfg, image)
+    image = camera_effects(rng, rcfg, image)
+    quality = int(rng.integers(rcfg.jpeg_quality[0], rcfg.jpeg_quality[1] + 1))
+    gt, info, masks, masks_visib = [], [], [], []
+    for i, p in enumerate(placements):
+        if not p.obj_id:
+            continue
+        full = res.full[i]
+        visib = (res.instance == i) & ~occluded
+        n_all, n_vis = int(full.sum()), int(visib.sum())
+        gt.append(GTInstance(p.obj_id, p.R, p.t))
+        info.append(
+            GTInfo(
+                bbox_obj=bbox_from_model(K, p.R, p.t, meshes[p.obj_id].vertices),
+                bbox_visib=_bbox(visib),
+                px_count_all=n_all,
+                px_count_valid=n_all,
+                px_count_visib=n_vis,
+                visib_fract=n_vis / n_all if n_all else 0.0,
+            )
+        )
+        masks.append(full)
+        masks_visib.append(visib)
+    depth = np.where(occluded, 0.0, res.depth)
+    return SynthImage((image * 255 + 0.5).astype(np.uint8), quality, gt, info, masks, masks_visib, depth)
+
+
+def generate_scene(cfg: SynthConfig, meshes: dict[int, RenderMesh], diameters: dict[int, float], out: Path, scene_id: int) -> int:
+    """Write one complete scene folder; returns the number of images."""
+    folder = out / f"{scene_id:06d}"
+    for sub in ("rgb", "mask", "mask_visib"):
+        (folder / sub).mkdir(parents=True, exist_ok=True)
+    K = np.asarray(cfg.K, dtype=np.float64).reshape(3, 3)
+    gts, infos, cams = {}, {}, {}
+    for im_id in range(cfg.images_per_scene):
+        frame = render_image(cfg, meshes, diameters, scene_id, im_id)
+        cv2.imwrite(str(folder / "rgb" / f"{im_id:06d}.jpg"), frame.rgb[..., ::-1], [cv2.IMWRITE_JPEG_QUALITY, frame.jpeg_quality])
+        for k, (full, vis) in enumerate(zip(frame.masks, frame.masks_visib, strict=True)):
+            cv2.imwrite(str(folder / "mask" / f"{im_id:06d}_{k:06d}.png"), full.astype(np.uint8) * 255)
+            cv2.imwrite(str(folder / "mask_visib" / f"{im_id:06d}_{k:06d}.png"), vis.astype(np.uint8) * 255)
+        gts[im_id], infos[im_id], cams[im_id] = frame.gt, frame.info, K
+    write_scene_gt(folder / "scene_gt.json", gts)
+    write_scene_camera(folder / "scene_camera.json", cams)
+    write_scene_gt_info(folder / "scene_gt_info.json", infos)  # last: marks the scene complete
+    return cfg.images_per_scene
+
+
+def scene_complete(out: Path, scene_id: int) -> bool:
+    return (out / f"{scene_id:06d}" / "scene_gt_info.json").exists()
+
+
+_WORKER: dict = {}
+
+
+def _init_worker(cfg: SynthConfig, models_dir: str, cache: str, diameters: dict[int, float]) -> None:
+    cv2.setNumThreads(1)
+    _WORKER.update(cfg=cfg, meshes={i: load_render_mesh(models_dir, i, cache) for i in cfg.objects}, diameters=diameters)
+
+
+def _scene_task(args: tuple[str, int]) -> int:
+    out, scene_id = args
+    return generate_scene(_WORKER["cfg"], _WORKER["meshes"], _WORKER["diameters"], Path(out), scene_id)
+
+
+def generate(cfg: SynthConfig, models_dir: str | Path, out: str | Path, workers: int = 1, progress: bool = True) -> int:
+    """Generate (or finish) the dataset `cfg` describes into `out`; returns the number of images written now."""
+    out, models_dir = Path(out), Path(models_dir)
+    infos = load_models_info(models_dir / "models_info.json")
+    objects = cfg.objects or tuple(sorted(infos))
+    missing = [i for i in objects if i not in infos]
+    if missing:
+        raise ValueError(f"{models_dir / 'models_info.json'} has no object(s) {missing}")
+    cfg = SynthConfig(**{**cfg.__dict__, "objects": tuple(int(i) for i in objects)})
+    out.mkdir(parents=True, exist_ok=True)
+    cfg_path = out / "synth_config.json"
+    if cfg_path.exists() and SynthConfig.load(cfg_path) != cfg:
+        raise ValueError(f"{out} holds data of a different configuration ({cfg_path}); choose another --out")
+    cfg.save(cfg_path)
+    shutil.copyfile(models_dir / "models_info.json", out / "models_info.json")
+    cache = out / ".mesh_cache"
+    for i in cfg.objects:  # parse the PLYs once here, so workers start from the cache
+        load_render_mesh(models_dir, i, cache)
+    diameters = {i: infos[i].diameter for i in cfg.objects}
+    pending = [s for s in range(cfg.scenes) if not scene_complete(out, s)]
+    bar = tqdm(total=len(pending) * cfg.images_per_scene, desc="synth", unit="img", disable=not progress)
+    done = 0
+    if workers <= 1:
+        _init_worker(cfg, str(models_dir), str(cache), diameters)
+        for s in pending:
+            done += _scene_task((str(out), s))
+            bar.update(cfg.images_per_scene)
+    else:
+        ctx = mp.get_context("spawn")
+        with ctx.Pool(workers, initializer=_init_worker, initargs=(cfg, str(models_dir), str(cache), diameters)) as pool:
+            for n in pool.imap_unordered(_scene_task, [(str(out), s) for s in pending]):
+                done += n
+                bar.update(n)
+    bar.close()
+    return done
+
+
+def default_workers() -> int:
+    return max(1, min(os.cpu_count() or 1, 8))

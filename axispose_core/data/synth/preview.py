@@ -1,0 +1,59 @@
+"""`axispose synth-preview`: a contact sheet of rendered frames with every instance's GT axes and visible box."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from axispose_core.axis_image import AxisSpec, axis_keypoints
+from axispose_core.data.bop import BopScene, load_models_info
+
+AXIS_BGR = ((0, 0, 255), (0, 255, 0), (255, 0, 0))  # X red, Y green, Z blue
+
+
+def draw_axes(image_bgr: np.ndarray, K: np.ndarray, R: np.ndarray, t: np.ndarray, lengths: np.ndarray, thickness: int = 2) -> None:
+    """Draw the axis convention's three segments onto a BGR image in place."""
+    try:
+        kp = axis_keypoints(K, R, t, lengths)
+    except ValueError:
+        return
+    o = tuple(round(v) for v in kp[0])
+    for k in range(3):
+        cv2.line(image_bgr, o, tuple(round(v) for v in kp[k + 1]), AXIS_BGR[k], thickness, cv2.LINE_AA)
+
+
+def contact_sheet(data_dir: str | Path, out: str | Path, count: int = 16, columns: int = 4, tile_width: int = 320) -> Path:
+    """Tile the first `count` frames of a synthetic BOP dataset, GT axes and bbox_visib drawn, into one PNG."""
+    data_dir = Path(data_dir)
+    infos = load_models_info(data_dir / "models_info.json")
+    tiles = []
+    for scene_dir in sorted(p for p in data_dir.iterdir() if (p / "scene_gt_info.json").exists()):
+        scene = BopScene(scene_dir)
+        for im_id in scene.image_ids:
+            img = cv2.imread(str(scene.rgb_path(im_id)))
+            K = scene.cameras[im_id]
+            for g, info in zip(scene.gt[im_id], scene.gt_info[im_id], strict=True):
+                if info.visib_fract > 0:
+                    x, y, w, h = info.bbox_visib
+                    cv2.rectangle(img, (x, y), (x + w - 1, y + h - 1), (255, 255, 255), 1)
+                    cv2.putText(
+                        img, f"{g.obj_id}:{info.visib_fract:.2f}", (x, max(10, y - 3)), cv2.FONT_HERSHEY_SIMPLEX, 0.4, (255, 255, 255), 1
+                    )
+                draw_axes(img, K, g.R, g.t, AxisSpec.from_diameter(infos[g.obj_id].diameter).lengths)
+            scale = tile_width / img.shape[1]
+            tiles.append(cv2.resize(img, (tile_width, round(img.shape[0] * scale)), interpolation=cv2.INTER_AREA))
+            if len(tiles) == count:
+                break
+        if len(tiles) == count:
+            break
+    if not tiles:
+        raise ValueError(f"{data_dir}: no complete scene to preview")
+    while len(tiles) % columns:
+        tiles.append(np.zeros_like(tiles[0]))
+    rows = [np.hstack(tiles[i : i + columns]) for i in range(0, len(tiles), columns)]
+    out = Path(out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    cv2.imwrite(str(out), np.vstack(rows))
+    return out

@@ -1,0 +1,125 @@
+"""Scene sampling: which objects, where, and how they stand; plus the primitive distractor shapes."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.spatial import ConvexHull
+from scipy.spatial.transform import Rotation
+
+from axispose_core.data.synth.config import SceneConfig
+from axispose_core.data.synth.raster import RenderMesh, vertex_normals
+
+
+@dataclass(frozen=True)
+class Placement:
+    """One object in the scene: its id (0 for a distractor), pose, and bounding-sphere radius (m)."""
+
+    obj_id: int
+    R: np.ndarray
+    t: np.ndarray
+    radius: float
+
+
+def upright_rotation(rng: np.random.Generator, elevation_deg: float) -> np.ndarray:
+    """Model +Z along the table's up vector as seen from a camera at this elevation, random yaw about it."""
+    e = np.radians(elevation_deg)
+    up = np.array([0.0, -np.cos(e), -np.sin(e)])  # image up at 0 deg, towards the camera at 90 deg
+    helper = np.array([1.0, 0.0, 0.0])
+    x = helper - up * (helper @ up)
+    x /= np.linalg.norm(x)
+    table = np.column_stack([x, np.cross(up, x), up])
+    return table @ Rotation.from_euler("z", rng.uniform(0, 2 * np.pi)).as_matrix()
+
+
+def sample_placements(
+    rng: np.random.Generator,
+    cfg: SceneConfig,
+    radii: dict[int, float],
+    K: np.ndarray,
+    width: int,
+    height: int,
+) -> list[Placement]:
+    """Target objects clustered around a random scene centre (so they occlude each other), without
+    interpenetrating bounding spheres beyond 20 %, each origin in view and within the distance range;
+    then distractors anywhere in view. The whole scene is finally rolled about the optical axis."""
+    ids = sorted(radii)
+    n = int(rng.integers(cfg.objects_per_image[0], cfg.objects_per_image[1] + 1))
+    chosen = list(rng.choice(ids, size=min(n, len(ids)), replace=False))
+    zc = rng.uniform(cfg.distance[0] + 0.1, cfg.distance[1] - 0.1)
+    ray = np.linalg.solve(K, [rng.uniform(0.3, 0.7) * width, rng.uniform(0.3, 0.7) * height, 1.0])
+    centre = ray * zc
+    elevation = rng.uniform(*cfg.elevation_deg)
+    Kinv = np.linalg.inv(K)
+    placed: list[Placement] = []
+
+    def in_view(t: np.ndarray, lo: float, hi: float) -> bool:
+        if not lo <= t[2] <= hi:
+            return False
+        u, v, w = K @ t
+        return 0 <= u / w < width and 0 <= v / w < height
+
+    def free(t: np.ndarray, r: float) -> bool:
+        return all(np.linalg.norm(t - p.t) >= 0.8 * (r + p.radius) for p in placed)
+
+    for obj_id in chosen:
+        r = radii[int(obj_id)]
+        for _ in range(50):
+            # Spread more along the viewing ray than across it, so that objects stand behind each other.
+            offset = rng.normal(0.0, 2 * r, size=3) * [cfg.cluster_spread, cfg.cluster_spread, 2.0]
+            t = centre + offset
+            if in_view(t, *cfg.distance) and free(t, r):
+                if rng.uniform() < cfg.upright_prob:
+                    R = upright_rotation(rng, elevation)
+                else:
+                    R = Rotation.random(random_state=rng).as_matrix()
+                placed.append(Placement(int(obj_id), R, t, r))
+                break
+    n_dis = int(rng.integers(cfg.distractors_per_image[0], cfg.distractors_per_image[1] + 1))
+    for _ in range(n_dis):
+        r = 0.5 * rng.uniform(*cfg.distractor_size)
+        for _ in range(20):
+            px = np.array([rng.uniform(0, width), rng.uniform(0, height), 1.0])
+            t = Kinv @ px * rng.uniform(cfg.distance[0], cfg.distance[1] + 0.3)
+            if free(t, r):
+                placed.append(Placement(0, Rotation.random(random_state=rng).as_matrix(), t, r))
+                break
+    roll = Rotation.from_euler("z", rng.uniform(*cfg.camera_roll_deg), degrees=True).as_matrix()
+    # Rolling the camera about its axis turns every pose; it keeps objects near the principal point in view.
+    rolled = [Placement(p.obj_id, roll @ p.R, roll @ p.t, p.radius) for p in placed]
+    return [p for p in rolled if p.obj_id == 0 or in_view(p.t, 0.0, np.inf)]
+
+
+def primitive(rng: np.random.Generator, radius: float) -> RenderMesh:
+    """A random convex distractor inside `radius`: a box (flat-shaded), cylinder or ellipsoid, randomly coloured."""
+    kind = rng.integers(3)
+    if kind == 0:
+        pts = np.array([[x, y, z] for x in (-1, 1) for y in (-1, 1) for z in (-1, 1)], dtype=float) * rng.uniform(0.3, 1.0, 3)
+    elif kind == 1:
+        u = np.linspace(0, 2 * np.pi, 32, endpoint=False)
+        r = rng.uniform(0.3, 1.0)
+        ring = np.column_stack([r * np.cos(u), r * np.sin(u), np.zeros_like(u)])
+        h = rng.uniform(0.3, 1.0)
+        pts = np.vstack([ring + [0, 0, -h], ring + [0, 0, h]])
+    else:
+        i = np.arange(300) + 0.5
+        phi, theta = np.arccos(1 - 2 * i / 300), np.pi * (1 + 5**0.5) * i
+        pts = np.column_stack([np.cos(theta) * np.sin(phi), np.sin(theta) * np.sin(phi), np.cos(phi)]) * rng.uniform(0.4, 1.0, 3)
+    pts *= radius / np.linalg.norm(pts, axis=1).max()
+    faces = _outward(pts, ConvexHull(pts).simplices)
+    if kind == 0:  # one vertex per face corner: flat faces
+        pts, faces = pts[faces.ravel()], np.arange(3 * len(faces)).reshape(-1, 3)
+    base = rng.uniform(0.05, 1.0, 3)
+    colors = np.clip(base + rng.normal(0, rng.uniform(0, 0.15), (len(pts), 3)), 0, 1)
+    return RenderMesh(pts, faces, colors, vertex_normals(pts, faces))
+
+
+def _outward(verts: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """Orient the faces of a convex, origin-centred mesh counter-clockwise seen from outside."""
+    tri = verts[faces]
+    n = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    inward = np.einsum("ij,ij->i", n, tri.mean(axis=1)) < 0
+    faces = faces.copy()
+    faces[inward] = faces[inward][:, ::-1]
+    return faces
