@@ -65,7 +65,7 @@ def _synth(args: argparse.Namespace) -> int:
 def _synth_preview(args: argparse.Namespace) -> int:
     from axispose_core.data.synth.preview import contact_sheet
 
-    print(f"wrote {contact_sheet(args.data, args.out, count=args.count)}")
+    print(f"wrote {contact_sheet(args.data, args.out, count=args.count, tile_width=args.tile_width)}")
     return 0
 
 
@@ -109,6 +109,7 @@ def build_parser() -> argparse.ArgumentParser:
     sp.add_argument("data", help="dataset folder written by `axispose synth`")
     sp.add_argument("--out", required=True, help="PNG to write")
     sp.add_argument("--count", type=int, default=16)
+    sp.add_argument("--tile-width", type=int, default=320, help="width of each frame in the sheet (px)")
     sp.set_defaults(func=_synth_preview)
     return parser
 

@@ -150,6 +150,7 @@ def scene_complete(out: Path, scene_id: int) -> bool:
 
 
 _WORKER: dict = {}
+_THREAD_VARS = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")
 
 
 def _init_worker(cfg: SynthConfig, models_dir: str, cache: str, diameters: dict[int, float]) -> None:
@@ -162,8 +163,18 @@ def _scene_task(args: tuple[str, int]) -> int:
     return generate_scene(_WORKER["cfg"], _WORKER["meshes"], _WORKER["diameters"], Path(out), scene_id)
 
 
-def generate(cfg: SynthConfig, models_dir: str | Path, out: str | Path, workers: int = 1, progress: bool = True) -> int:
-    """Generate (or finish) the dataset `cfg` describes into `out`; returns the number of images written now."""
+def generate(
+    cfg: SynthConfig,
+    models_dir: str | Path,
+    out: str | Path,
+    workers: int = 1,
+    progress: bool = True,
+    mesh_cache: str | Path | None = None,
+) -> int:
+    """Generate (or finish) the dataset `cfg` describes into `out`; returns the number of images written now.
+
+    Parsed meshes are cached in `mesh_cache` (default OUT/.mesh_cache), which several datasets may share.
+    """
     out, models_dir = Path(out), Path(models_dir)
     infos = load_models_info(models_dir / "models_info.json")
     objects = cfg.objects or tuple(sorted(infos))
@@ -177,7 +188,7 @@ def generate(cfg: SynthConfig, models_dir: str | Path, out: str | Path, workers:
         raise ValueError(f"{out} holds data of a different configuration ({cfg_path}); choose another --out")
     cfg.save(cfg_path)
     shutil.copyfile(models_dir / "models_info.json", out / "models_info.json")
-    cache = out / ".mesh_cache"
+    cache = Path(mesh_cache) if mesh_cache is not None else out / ".mesh_cache"
     for i in cfg.objects:  # parse the PLYs once here, so workers start from the cache
         load_render_mesh(models_dir, i, cache)
     diameters = {i: infos[i].diameter for i in cfg.objects}
@@ -191,13 +202,19 @@ def generate(cfg: SynthConfig, models_dir: str | Path, out: str | Path, workers:
             bar.update(cfg.images_per_scene)
     else:
         ctx = mp.get_context("spawn")
-        with ctx.Pool(workers, initializer=_init_worker, initargs=(cfg, str(models_dir), str(cache), diameters)) as pool:
-            for n in pool.imap_unordered(_scene_task, [(str(out), s) for s in pending]):
-                done += n
-                bar.update(n)
+        # One BLAS/OpenMP thread per worker: the workers already fill the cores, more threads only contend.
+        saved = {k: os.environ.get(k) for k in _THREAD_VARS}
+        os.environ.update(dict.fromkeys(_THREAD_VARS, "1"))
+        try:
+            with ctx.Pool(workers, initializer=_init_worker, initargs=(cfg, str(models_dir), str(cache), diameters)) as pool:
+                for n in pool.imap_unordered(_scene_task, [(str(out), s) for s in pending]):
+                    done += n
+                    bar.update(n)
+        finally:
+            for k, v in saved.items():
+                if v is None:
+                    os.environ.pop(k, None)
+                else:
+                    os.environ[k] = v
     bar.close()
     return done
-
-
-def default_workers() -> int:
-    return max(1, min(os.cpu_count() or 1, 8))

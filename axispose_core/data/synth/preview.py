@@ -55,5 +55,5 @@ def contact_sheet(data_dir: str | Path, out: str | Path, count: int = 16, column
     rows = [np.hstack(tiles[i : i + columns]) for i in range(0, len(tiles), columns)]
     out = Path(out)
     out.parent.mkdir(parents=True, exist_ok=True)
-    cv2.imwrite(str(out), np.vstack(rows))
+    cv2.imwrite(str(out), np.vstack(rows), [cv2.IMWRITE_PNG_COMPRESSION, 9])
     return out

@@ -20,9 +20,7 @@ PHOTOS = (
     "gravel.png", "hubble_deep_field.jpg", "ihc.png", "moon.png", "motorcycle_left.png", "motorcycle_right.png",
     "retina.jpg", "rocket.jpg", "text.png",
 )  # fmt: skip
-
-
-# page.png is left out: its ICC profile makes libpng print a warning on every read.
+"""Bundled photographs used as backgrounds (not page.png: its ICC profile makes libpng warn on every read)."""
 
 
 @lru_cache(maxsize=1)
@@ -120,5 +118,5 @@ def camera_effects(rng: np.random.Generator, cfg: RandomizationConfig, image: np
         image = cv2.GaussianBlur(image, (0, 0), rng.uniform(*cfg.blur_sigma))
     std = rng.uniform(*cfg.noise_std)
     if std > 0:
-        image = image + rng.normal(0, std, image.shape).astype(np.float32)
+        image = image + std * rng.standard_normal(image.shape, dtype=np.float32)
     return np.clip(image, 0, 1)
