@@ -57,7 +57,14 @@ def _synth(args: argparse.Namespace) -> int:
         scenes=args.scenes,
         images_per_scene=args.images_per_scene,
     )
-    n = generate(cfg, args.models, args.out, workers=args.workers)
+    models = Path(args.models[0])
+    if len(args.models) > 1 or not models.is_dir():
+        from axispose_core.data.mesh_import import import_meshes
+
+        models = Path(args.out) / "models"
+        ids = import_meshes(args.models, models, units=args.mesh_units)
+        print("imported " + ", ".join(f"{p} as object {i}" for i, p in ids.items()) + f" into {models}")
+    n = generate(cfg, models, args.out, workers=args.workers)
     print(f"wrote {n} images into {args.out}")
     return 0
 
@@ -93,7 +100,13 @@ def build_parser() -> argparse.ArgumentParser:
     tr.set_defaults(func=_train_reader)
 
     sy = sub.add_parser("synth", help="render randomised BOP-format training scenes of the objects in --models")
-    sy.add_argument("--models", required=True, help="BOP models folder (obj_XXXXXX.ply + models_info.json)")
+    sy.add_argument(
+        "--models",
+        required=True,
+        nargs="+",
+        help="a BOP models folder (obj_XXXXXX.ply + models_info.json), or PLY/OBJ files (ids 1, 2, ... in order)",
+    )
+    sy.add_argument("--mesh-units", type=float, default=0.001, help="metres per unit of PLY/OBJ files given to --models (BOP: mm)")
     sy.add_argument("--out", required=True, help="dataset folder (reruns resume it)")
     sy.add_argument("--scenes", type=int, required=True)
     sy.add_argument("--images-per-scene", type=int, default=25)

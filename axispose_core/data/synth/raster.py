@@ -76,89 +76,120 @@ def _lattice(k: int) -> np.ndarray:
     return _LATTICES[k]
 
 
-def _splat(mesh: RenderMesh, R: np.ndarray, t: np.ndarray, K: np.ndarray, width: int, height: int):
-    """Samples of one posed mesh: flat pixel index, depth, face index and barycentric weights of each sample.
+@dataclass
+class _Samples:
+    """Samples of one posed mesh. `pix` is the flat pixel index (H*W for samples outside the image). Face and
+    barycentric weights are kept per group, not per sample, and looked up only for the winners."""
 
-    Sample positions are float32 (sub-micrometre at these depths), which halves the memory traffic.
-    """
+    pix: np.ndarray
+    depth: np.ndarray
+    offsets: np.ndarray
+    groups: list[tuple[np.ndarray, np.ndarray, bool]]
+    """(faces, weights, per_sample): per sample, or faces x lattice with the lattice repeated per face."""
+
+    def faces_and_weights(self, idx: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Face index and barycentric weights (N,3) of the samples `idx`."""
+        face = np.empty(len(idx), dtype=np.int64)
+        w = np.empty((len(idx), 3), dtype=np.float32)
+        g = np.searchsorted(self.offsets, idx, side="right") - 1
+        for k in np.unique(g):
+            sel = g == k
+            faces, weights, per_sample = self.groups[k]
+            local = idx[sel] - self.offsets[k]
+            if per_sample:
+                face[sel], w[sel] = faces[local], weights[local]
+            else:
+                face[sel], w[sel] = faces[local // len(weights)], weights[local % len(weights)]
+        return face, w
+
+
+def _min3(a: np.ndarray) -> np.ndarray:
+    return np.minimum(np.minimum(a[:, 0], a[:, 1]), a[:, 2])
+
+
+def _max3(a: np.ndarray) -> np.ndarray:
+    return np.maximum(np.maximum(a[:, 0], a[:, 1]), a[:, 2])
+
+
+def _splat(mesh: RenderMesh, R: np.ndarray, t: np.ndarray, K: np.ndarray, width: int, height: int) -> _Samples | None:
+    """Sample one posed mesh's front faces densely; positions are float32 (sub-micrometre at these depths)."""
+    fx, skew, cx, fy, cy = (np.float32(v) for v in (K[0, 0], K[0, 1], K[0, 2], K[1, 1], K[1, 2]))
     cam = (mesh.vertices @ R.T + t).astype(np.float32)
-    uvw = cam @ K.T.astype(np.float32)
-    uv_v = uvw[:, :2] / np.maximum(uvw[:, 2:3], 1e-9)
-    tri = cam[mesh.faces]
-    uv = uv_v[mesh.faces]
+    iz = 1.0 / np.maximum(cam[:, 2], 1e-9)
+    u_v = (fx * cam[:, 0] + skew * cam[:, 1]) * iz + cx
+    v_v = fy * cam[:, 1] * iz + cy
+    f = mesh.faces
+    tri = cam[f]
+    u, v = u_v[f], v_v[f]
     face_n = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
-    keep = (np.einsum("ij,ij->i", face_n, tri[:, 0]) < 0) & (tri[:, :, 2].min(axis=1) > NEAR)
-    keep &= (uv[..., 0].max(1) >= -1) & (uv[..., 0].min(1) <= width) & (uv[..., 1].max(1) >= -1) & (uv[..., 1].min(1) <= height)
+    keep = (np.einsum("ij,ij->i", face_n, tri[:, 0]) < 0) & (_min3(tri[:, :, 2]) > NEAR)
+    keep &= (_max3(u) >= -1) & (_min3(u) <= width) & (_max3(v) >= -1) & (_min3(v) <= height)
     face_ids = np.nonzero(keep)[0]
     if not len(face_ids):
         return None
-    tri, uv = tri[face_ids], uv[face_ids]
-    edge = np.max(np.linalg.norm(uv - np.roll(uv, 1, axis=1), axis=2), axis=1)
+    tri, u, v = tri[face_ids], u[face_ids], v[face_ids]
+    du, dv = u - np.roll(u, 1, axis=1), v - np.roll(v, 1, axis=1)
+    edge = np.sqrt(_max3(du * du + dv * dv))
     subdiv = np.clip(np.ceil(edge / SPACING), 1, MAX_SUBDIV).astype(np.int64)
-    Kf = K.astype(np.float32)
-    pix, depth, fid, bary = [], [], [], []
+    points, groups, offsets, n = [], [], [], 0
     for k in np.unique(subdiv):
         sel = np.nonzero(subdiv == k)[0]
         if k == 1:
             # Triangles smaller than the spacing: their vertices alone sample them, each shared vertex once.
-            _, first = np.unique(mesh.faces[face_ids[sel]].ravel(), return_index=True)
-            p = tri[sel].reshape(-1, 3)[first]
-            face_of, w = face_ids[sel][first // 3], np.eye(3, dtype=np.float32)[first % 3]
+            _, first = np.unique(f[face_ids[sel]].ravel(), return_index=True)
+            points.append(tri[sel].reshape(-1, 3)[first])
+            groups.append((face_ids[sel][first // 3], np.eye(3, dtype=np.float32)[first % 3], True))
         else:
-            lattice = _lattice(int(k)).astype(np.float32)  # (P,3)
-            p = np.matmul(lattice[None], tri[sel]).reshape(-1, 3)
-            face_of, w = np.repeat(face_ids[sel], len(lattice)), np.tile(lattice, (len(sel), 1))
-        q = p @ Kf.T
-        u = np.floor(q[:, 0] / q[:, 2] + 0.5).astype(np.int64)
-        v = np.floor(q[:, 1] / q[:, 2] + 0.5).astype(np.int64)
-        ok = (u >= 0) & (u < width) & (v >= 0) & (v < height)
-        pix.append((v * width + u)[ok])
-        depth.append(p[ok, 2])
-        fid.append(face_of[ok])
-        bary.append(w[ok])
-    return np.concatenate(pix), np.concatenate(depth), np.concatenate(fid), np.concatenate(bary)
+            lattice = _lattice(int(k)).astype(np.float32)
+            points.append(np.matmul(lattice[None], tri[sel]).reshape(-1, 3))
+            groups.append((face_ids[sel], lattice, False))
+        offsets.append(n)
+        n += len(points[-1])
+    p = np.concatenate(points)
+    iz = 1.0 / p[:, 2]
+    pu = np.floor((fx * p[:, 0] + skew * p[:, 1]) * iz + cx + 0.5).astype(np.int64)
+    pv = np.floor(fy * p[:, 1] * iz + cy + 0.5).astype(np.int64)
+    pix = pv * width + pu
+    pix[(pu < 0) | (pu >= width) | (pv < 0) | (pv >= height)] = width * height
+    return _Samples(pix, p[:, 2], np.asarray(offsets), groups)
 
 
 def render(meshes: list[tuple[RenderMesh, np.ndarray, np.ndarray]], K: np.ndarray, width: int, height: int, light: Light) -> RenderResult:
     """Render posed meshes [(mesh, R, t), ...] through K into a width x height image."""
-    parts = [(_splat(m, R, t, K, width, height), i) for i, (m, R, t) in enumerate(meshes)]
-    full = np.zeros((len(meshes), height * width), dtype=bool)
-    pix_l, dep_l, fid_l, bary_l, ins_l = [], [], [], [], []
-    for part, i in parts:
-        if part is None:
+    n_pix = height * width
+    samples = [_splat(m, R, t, K, width, height) for m, R, t in meshes]
+    full = np.zeros((len(meshes), n_pix + 1), dtype=bool)
+    depth = np.full(n_pix + 1, np.inf, dtype=np.float32)
+    for i, smp in enumerate(samples):
+        if smp is not None:
+            full[i, smp.pix] = True
+            np.minimum.at(depth, smp.pix, smp.depth)
+    depth[n_pix] = np.inf
+    # The nearest sample owns each pixel; on exact depth ties the later instance, then the later sample, wins.
+    owner_mesh = np.full(n_pix + 1, -1, dtype=np.int32)
+    owner_idx = np.full(n_pix + 1, -1, dtype=np.int64)
+    for i, smp in enumerate(samples):
+        if smp is not None:
+            nearest = np.nonzero(smp.depth == depth[smp.pix])[0]
+            owner_mesh[smp.pix[nearest]] = i
+            owner_idx[smp.pix[nearest]] = nearest
+    owner_mesh[n_pix] = -1
+    rgb = np.zeros((n_pix + 1, 3), dtype=np.float32)
+    for i, (mesh, R, _) in enumerate(meshes):
+        px = np.nonzero(owner_mesh == i)[0]
+        if not len(px):
             continue
-        pix, dep, fid, bary = part
-        full[i, pix] = True
-        pix_l.append(pix)
-        dep_l.append(dep)
-        fid_l.append(fid)
-        bary_l.append(bary)
-        ins_l.append(np.full(len(pix), i, dtype=np.int32))
-    rgb = np.zeros((height * width, 3))
-    depth = np.full(height * width, np.inf)
-    instance = np.full(height * width, -1, dtype=np.int32)
-    if pix_l:
-        pix, dep = np.concatenate(pix_l), np.concatenate(dep_l)
-        np.minimum.at(depth, pix, dep)
-        nearest = np.nonzero(dep == depth[pix])[0]
-        # Exact depth ties (rare): the last sample written wins, deterministically.
-        owner = np.full(height * width, -1, dtype=np.int64)
-        owner[pix[nearest]] = nearest
-        win = owner[owner >= 0]
-        fid, bary, ins = np.concatenate(fid_l)[win], np.concatenate(bary_l)[win], np.concatenate(ins_l)[win]
-        col = np.empty((len(win), 3))
-        nor = np.empty((len(win), 3))
-        for i, (mesh, R, _) in enumerate(meshes):
-            sel = ins == i
-            if sel.any():
-                f = mesh.faces[fid[sel]]
-                col[sel] = np.einsum("nk,nkc->nc", bary[sel], mesh.colors[f])
-                nor[sel] = np.einsum("nk,nkc->nc", bary[sel], mesh.normals[f]) @ R.T
-        nor = nor / np.maximum(np.linalg.norm(nor, axis=1, keepdims=True), 1e-12)
+        face, w = samples[i].faces_and_weights(owner_idx[px])
+        fv = mesh.faces[face]
+        col = np.einsum("nk,nkc->nc", w, mesh.colors[fv])
+        nor = np.einsum("nk,nkc->nc", w, mesh.normals[fv]) @ R.T
+        nor /= np.maximum(np.linalg.norm(nor, axis=1, keepdims=True), 1e-12)
         lam = np.clip(-(nor @ light.direction), 0.0, 1.0)
         shade = (light.ambient + (1.0 - light.ambient) * lam)[:, None] * light.color[None, :]
-        rgb[pix[win]] = np.clip(col * shade, 0.0, 1.0)
-        instance[pix[win]] = ins
+        rgb[px] = np.clip(col * shade, 0.0, 1.0)
     return RenderResult(
-        rgb.reshape(height, width, 3), depth.reshape(height, width), instance.reshape(height, width), full.reshape(-1, height, width)
+        rgb[:n_pix].reshape(height, width, 3),
+        depth[:n_pix].reshape(height, width),
+        owner_mesh[:n_pix].reshape(height, width),
+        full[:, :n_pix].reshape(-1, height, width),
     )
