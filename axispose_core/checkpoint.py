@@ -6,7 +6,7 @@ import dataclasses
 import json
 import subprocess
 from pathlib import Path
-from typing import Any, TypeVar, get_type_hints
+from typing import Any, TypeVar, get_args, get_origin, get_type_hints
 
 import torch
 from safetensors import SafetensorError, safe_open
@@ -46,10 +46,13 @@ def config_from_dict(cls: type[C], data: dict[str, Any], source: str = "config")
             continue
         value = data[name]
         ftype = hints.get(name)
+        item = get_args(ftype)[0] if get_origin(ftype) is tuple and get_args(ftype) else None
         if isinstance(ftype, type) and dataclasses.is_dataclass(ftype):
             value = config_from_dict(ftype, value, f"{source}.{name}")
+        elif isinstance(item, type) and dataclasses.is_dataclass(item) and isinstance(value, list):
+            value = tuple(config_from_dict(item, v, f"{source}.{name}[{k}]") for k, v in enumerate(value))
         elif isinstance(value, list):
-            value = tuple(value)
+            value = tuple(tuple(v) if isinstance(v, list) else v for v in value)
         kwargs[name] = value
     return cls(**kwargs)
 

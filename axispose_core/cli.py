@@ -76,6 +76,50 @@ def _synth_preview(args: argparse.Namespace) -> int:
     return 0
 
 
+def _train(args: argparse.Namespace) -> int:
+    import torch
+    import yaml
+
+    from axispose_core.checkpoint import config_from_dict
+    from axispose_core.train.agm import TrainConfig, train_agm
+
+    torch.set_num_threads(args.threads)
+    cfg = TrainConfig()
+    if args.config:
+        cfg = config_from_dict(TrainConfig, yaml.safe_load(Path(args.config).read_text()) or {}, args.config)
+    step = train_agm(cfg, args.data, args.out, val_data=args.val, resume=args.resume, device=args.device, max_minutes=args.max_minutes)
+    print(f"stopped at step {step} of {cfg.steps}; checkpoint {args.out}")
+    return 0
+
+
+def _eval(args: argparse.Namespace) -> int:
+    import torch
+
+    from axispose_core.estimator import Estimator
+    from axispose_core.evaluate import Prediction, evaluate, plot_cdfs, summarize, write_report
+
+    torch.set_num_threads(args.threads)
+    est = Estimator.load(args.checkpoint)
+    objects = [o for o in est.config.objects if not args.objects or o.obj_id in args.objects]
+
+    def predict(image, K, boxes):
+        return [Prediction(p.R, p.t, p.ok) for p in est.estimate(image, K, boxes, steps=args.steps, guidance_scale=args.guidance)]
+
+    records = evaluate(predict, args.data, args.models, objects, limit=args.limit)
+    config = {"checkpoint": str(args.checkpoint), "data": str(args.data), "steps": args.steps or est.config.ddim_steps,
+              "guidance": est.config.guidance_scale if args.guidance is None else args.guidance, "crops": args.crops}  # fmt: skip
+    report = summarize(records, objects, config)
+    write_report(report, args.report)
+    print(f"{'object':<12} {'n':>4} {'ADD0.1d':>8} {'ADD0.2d':>8} {'Rep5px':>8} {'Rep15px':>8} {'rot med':>8}")
+    for e in report["objects"].values():
+        cells = " ".join(f"{e[k]:8.3f}" for k in ("add_0.1d", "add_0.2d", "reproj_5px", "reproj_15px"))
+        print(f"{e['name']:<12} {e['n']:4d} {cells} {e['rot_err_median_deg']:8.1f}")
+    if args.plots:
+        print(f"plots: {plot_cdfs(records, objects, args.plots)}")
+    print(f"report: {args.report}")
+    return 0
+
+
 def _ids(text: str) -> list[int]:
     return [int(v) for v in text.split(",") if v.strip()]
 
@@ -117,6 +161,31 @@ def build_parser() -> argparse.ArgumentParser:
     sy.add_argument("--camera", help="BOP camera.json (fx, fy, cx, cy, width, height); default: the LM-O camera")
     sy.add_argument("--workers", type=int, default=1, help="worker processes")
     sy.set_defaults(func=_synth)
+
+    tn = sub.add_parser("train", help="train the AGM (axis generation) on synthetic BOP data")
+    tn.add_argument("--data", nargs="+", required=True, help="BOP dataset folders written by `axispose synth`")
+    tn.add_argument("--val", nargs="*", default=None, help="held-out BOP folders for periodic validation")
+    tn.add_argument("--out", required=True, help="estimator checkpoint to write (.safetensors); OUT.state.pt holds the resume state")
+    tn.add_argument("--config", help="YAML with TrainConfig fields (e.g. config/train_agm.yaml)")
+    tn.add_argument("--resume", help="OUT.state.pt of an earlier run with the same config")
+    tn.add_argument("--device", default="auto", choices=["cpu", "cuda", "auto"])
+    tn.add_argument("--max-minutes", type=float, default=None, help="stop (and save) after this much wall time")
+    tn.add_argument("--threads", type=int, default=2)
+    tn.set_defaults(func=_train)
+
+    ev = sub.add_parser("eval", help="pose metrics of a checkpoint on BOP scenes (JSON report, plots)")
+    ev.add_argument("--checkpoint", required=True)
+    ev.add_argument("--data", required=True, help="a BOP split folder of scenes, or one scene folder")
+    ev.add_argument("--models", required=True, help="models for the metrics (BOP models_eval folder)")
+    ev.add_argument("--objects", type=_ids, default=[], help="comma-separated object ids (default: all the checkpoint knows)")
+    ev.add_argument("--steps", type=int, default=None, help="DDIM steps (default: the checkpoint's)")
+    ev.add_argument("--guidance", type=float, default=None, help="run-time guidance scale (0: off)")
+    ev.add_argument("--crops", choices=["gt"], default="gt", help="gt: square around the GT box (the paper's protocol)")
+    ev.add_argument("--limit", type=int, default=None, help="stop after this many instances")
+    ev.add_argument("--report", required=True, help="JSON to write")
+    ev.add_argument("--plots", default=None, help="folder for error CDFs")
+    ev.add_argument("--threads", type=int, default=2)
+    ev.set_defaults(func=_eval)
 
     sp = sub.add_parser("synth-preview", help="contact sheet of synthetic frames with their GT axes")
     sp.add_argument("data", help="dataset folder written by `axispose synth`")

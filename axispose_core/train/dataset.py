@@ -1,0 +1,101 @@
+"""Object crops and their axis-image targets from BOP folders, for training and evaluating the AGM."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import cv2
+import numpy as np
+import torch
+from torch.utils.data import Dataset
+
+from axispose_core.data.bop import BopFormatError, BopScene
+from axispose_core.data.crops import CropJitter, axis_target, instance_crop
+from axispose_core.data.objects import ObjectSpec
+
+DEFAULT_JITTER = CropJitter()
+
+
+def scene_dirs(root: str | Path) -> list[Path]:
+    """A scene folder itself, or the scene folders of a BOP split/dataset folder."""
+    root = Path(root)
+    if (root / "scene_gt.json").exists():
+        return [root]
+    scenes = sorted(p for p in root.iterdir() if (p / "scene_gt.json").exists()) if root.is_dir() else []
+    if not scenes:
+        raise BopFormatError(f"{root}: neither a BOP scene folder nor a folder of scenes")
+    return scenes
+
+
+@dataclass(frozen=True)
+class InstanceRef:
+    scene: Path
+    im_id: int
+    index: int
+    obj_id: int
+    box: tuple[int, int, int, int]
+    visib_fract: float
+
+
+class AxisCropDataset(Dataset):
+    """(crop, axis image, object index, K', R, t) per annotated instance with visib_fract >= min_visib.
+
+    Crops are jittered like a detector's boxes when `jitter` is given (training), centred otherwise; images
+    are in [-1, 1], channels first. The sample's randomness depends only on (seed, epoch, index).
+    """
+
+    def __init__(
+        self,
+        roots: list[str | Path],
+        objects: list[ObjectSpec],
+        size: int,
+        min_visib: float = 0.1,
+        jitter: CropJitter | None = DEFAULT_JITTER,
+        color_aug: bool = True,
+        seed: int = 0,
+    ) -> None:
+        self.objects = {o.obj_id: k for k, o in enumerate(objects)}
+        self.specs = objects
+        self.size, self.jitter, self.color_aug, self.seed = size, jitter, color_aug, seed
+        self.epoch = 0
+        self.items: list[InstanceRef] = []
+        self.scenes: dict[Path, BopScene] = {}
+        for root in roots:
+            for sd in scene_dirs(root):
+                scene = BopScene(sd)
+                if scene.gt_info is None:
+                    raise BopFormatError(f"{sd}: scene_gt_info.json is needed for training crops")
+                self.scenes[sd] = scene
+                for im_id in scene.image_ids:
+                    for k, (g, info) in enumerate(zip(scene.gt[im_id], scene.gt_info[im_id], strict=True)):
+                        if g.obj_id in self.objects and info.visib_fract >= min_visib:
+                            self.items.append(InstanceRef(sd, im_id, k, g.obj_id, info.bbox_obj, info.visib_fract))
+
+    def __len__(self) -> int:
+        return len(self.items)
+
+    def __getitem__(self, i: int) -> dict[str, torch.Tensor]:
+        ref = self.items[i]
+        scene = self.scenes[ref.scene]
+        rng = np.random.default_rng([self.seed, self.epoch, i])
+        bgr = cv2.imread(str(scene.rgb_path(ref.im_id)), cv2.IMREAD_COLOR)
+        if bgr is None:
+            raise BopFormatError(f"{scene.rgb_path(ref.im_id)}: unreadable image")
+        rgb = cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB)
+        K = scene.cameras[ref.im_id]
+        g = scene.gt[ref.im_id][ref.index]
+        crop = instance_crop(rgb, K, ref.box, self.size, rng if self.jitter else None, self.jitter or DEFAULT_JITTER)
+        patch = crop.patch.astype(np.float32) / 255.0
+        if self.color_aug:
+            patch = np.clip(patch * rng.uniform(0.8, 1.2, 3) + rng.uniform(-0.08, 0.08), 0, 1).astype(np.float32)
+        spec = self.specs[self.objects[ref.obj_id]]
+        target = axis_target(crop, g.R, g.t, spec.axes.lengths, self.size)
+        return {
+            "crop": torch.from_numpy(patch * 2 - 1).permute(2, 0, 1),
+            "axes": torch.from_numpy(target * 2 - 1).permute(2, 0, 1),
+            "object": torch.tensor(self.objects[ref.obj_id]),
+            "K": torch.from_numpy(crop.K_patch),
+            "R": torch.from_numpy(g.R),
+            "t": torch.from_numpy(g.t),
+        }

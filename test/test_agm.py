@@ -1,0 +1,195 @@
+"""AGM: scheduler maths, sampler determinism, guidance gradient, training behaviour, checkpoint round trip."""
+
+import numpy as np
+import pytest
+import torch
+
+from axispose_core.agm.denoiser import DenoiserConfig
+from axispose_core.agm.guidance import AxisGeometry, axis_geometry, exact_gradient, geo_loss, guided_eps, inject
+from axispose_core.agm.model import AGMConfig, AxisGenerator
+from axispose_core.agm.scheduler import DDIMScheduler, SchedulerConfig
+from axispose_core.axis_image import axis_keypoints, render_axis_keypoints
+from axispose_core.checkpoint import CheckpointError, save_checkpoint
+from axispose_core.data.objects import lmo_objects
+from axispose_core.demo import SHIPPED_READER
+from axispose_core.estimator import Estimator, EstimatorConfig
+from axispose_core.pose_sampling import sample_patch
+from axispose_core.tbm.reader import load_reader
+
+TINY = DenoiserConfig(size=64, channels=8, multipliers=(1, 2), groups=4)
+
+
+def test_schedule_and_timesteps_are_validated():
+    s = DDIMScheduler()
+    with pytest.raises(ValueError, match="num_inference_steps"):
+        s.set_timesteps(0)
+    with pytest.raises(ValueError, match="num_inference_steps"):
+        s.set_timesteps(1001)
+    with pytest.raises(RuntimeError, match="set_timesteps"):
+        DDIMScheduler().step(torch.zeros(1, 3, 4, 4), 999, torch.zeros(1, 3, 4, 4))
+    s.set_timesteps(10)
+    with pytest.raises(ValueError, match="eta"):
+        s.step(torch.zeros(1, 3, 4, 4), int(s.timesteps[0]), torch.zeros(1, 3, 4, 4), eta=1.5)
+    with pytest.raises(ValueError, match="prediction_type"):
+        DDIMScheduler(SchedulerConfig(prediction_type="x"))
+    for n in (1, 2, 4, 50, 1000):
+        s.set_timesteps(n)
+        assert len(s.timesteps) == n and int(s.timesteps[0]) == 999 and int(s.timesteps[-1]) >= 0
+        assert s.previous_timestep(int(s.timesteps[-1])) < 0
+
+
+@pytest.mark.parametrize("eta", [0.0, 0.7])
+def test_step_matches_the_ddim_closed_form(eta):
+    s = DDIMScheduler(SchedulerConfig(clip_sample=False))
+    s.set_timesteps(10)
+    g = torch.Generator().manual_seed(0)
+    x = torch.randn(2, 3, 8, 8, generator=g, dtype=torch.float64)
+    eps = torch.randn(2, 3, 8, 8, generator=g, dtype=torch.float64)
+    t, prev = int(s.timesteps[3]), int(s.timesteps[4])
+    a_t, a_p = s.alphas_cumprod[t], s.alphas_cumprod[prev]
+    x0 = (x - (1 - a_t).sqrt() * eps) / a_t.sqrt()
+    sigma = eta * ((1 - a_p) / (1 - a_t) * (1 - a_t / a_p)).sqrt()
+    noise = torch.randn(x.shape, generator=torch.Generator().manual_seed(5), dtype=torch.float64)
+    expected = a_p.sqrt() * x0 + (1 - a_p - sigma**2).sqrt() * eps + sigma * noise
+    out = s.step(eps, t, x, eta=eta, generator=torch.Generator().manual_seed(5))
+    torch.testing.assert_close(out.prev_sample, expected)
+    torch.testing.assert_close(out.pred_original_sample, x0)
+
+
+def test_ten_step_loop_matches_an_independent_implementation():
+    """The whole DDIM loop with a dummy model (ε = 0.1 x) against a NumPy re-derivation."""
+    s = DDIMScheduler(SchedulerConfig(clip_sample=False))
+    s.set_timesteps(10)
+    x = torch.randn(1, 3, 4, 4, generator=torch.Generator().manual_seed(1), dtype=torch.float64)
+    ref = x.numpy().copy()
+    abar = s.alphas_cumprod.numpy()
+    for t in s.timesteps.tolist():
+        x = s.step(0.1 * x, t, x).prev_sample
+        prev = t - 100
+        e = 0.1 * ref
+        x0 = (ref - np.sqrt(1 - abar[t]) * e) / np.sqrt(abar[t])
+        a_p = abar[prev] if prev >= 0 else 1.0
+        ref = np.sqrt(a_p) * x0 + np.sqrt(1 - a_p) * e
+    np.testing.assert_allclose(x.numpy(), ref, rtol=1e-10)
+
+
+@pytest.mark.parametrize("kind", ["epsilon", "sample", "v_prediction"])
+def test_parametrisations_convert_both_ways(kind):
+    s = DDIMScheduler(SchedulerConfig(prediction_type=kind, clip_sample=False))
+    g = torch.Generator().manual_seed(2)
+    x0 = torch.rand(2, 3, 4, 4, generator=g, dtype=torch.float64) * 2 - 1
+    noise = torch.randn(2, 3, 4, 4, generator=g, dtype=torch.float64)
+    t = torch.tensor([10, 700])
+    x_t = s.add_noise(x0, noise, t)
+    eps, x0_hat = s.to_eps_x0(s.target(x0, noise, t), t, x_t)
+    torch.testing.assert_close(eps, noise)
+    torch.testing.assert_close(x0_hat, x0)
+    torch.testing.assert_close(s.from_eps(noise, t, x_t), s.target(x0, noise, t))
+
+
+def test_cosine_schedule_is_monotone():
+    a = DDIMScheduler(SchedulerConfig(beta_schedule="cosine")).alphas_cumprod
+    assert torch.all(a[1:] < a[:-1]) and a[0] < 1 and a[-1] > 0
+
+
+def _gt_axis_image(rng, size=64):
+    ps = sample_patch(rng, 0.05, size)
+    kp = axis_keypoints(ps.K_patch, ps.R, ps.t, np.full(3, 0.05))
+    return torch.from_numpy(render_axis_keypoints(kp, size) * 2 - 1).permute(2, 0, 1)[None].double(), kp
+
+
+def test_operator_h_reads_origin_and_directions(rng):
+    for _ in range(10):
+        img, kp = _gt_axis_image(rng)
+        geo = axis_geometry(img)
+        origin_px = (geo.origin[0].numpy() + 1) / 2 * 64 - 0.5
+        assert np.linalg.norm(origin_px - kp[0]) < 1.5
+        for i in range(3):
+            leg = kp[i + 1] - kp[0]
+            if np.linalg.norm(leg) > 8:
+                assert geo.directions[0, i].numpy() @ (leg / np.linalg.norm(leg)) > 0.95
+
+
+def test_guidance_gradient_matches_finite_differences(rng):
+    img, _ = _gt_axis_image(rng)
+    target = axis_geometry(img)
+    g = torch.Generator().manual_seed(3)
+    eps = torch.randn(img.shape, generator=g, dtype=torch.float64)
+    abar = torch.tensor(0.6, dtype=torch.float64)
+    x_t = abar.sqrt() * (img * 0.7) + (1 - abar).sqrt() * eps
+
+    def x0_of(x):  # the toy operator: x̂0 at fixed ε
+        return (x - (1 - abar).sqrt() * eps) / abar.sqrt()
+
+    grad = exact_gradient(x_t, x0_of, target)
+    for _ in range(6):
+        idx = tuple(int(v) for v in (0, rng.integers(3), rng.integers(64), rng.integers(64)))
+        h = 1e-6
+        plus, minus = x_t.clone(), x_t.clone()
+        plus[idx] += h
+        minus[idx] -= h
+        fd = (geo_loss(axis_geometry(x0_of(plus)), target) - geo_loss(axis_geometry(x0_of(minus)), target)).item() / (2 * h)
+        assert grad[idx].item() == pytest.approx(fd, rel=1e-4, abs=1e-9)
+    # The injection is the paper's formula with that gradient.
+    eps_g = guided_eps(eps, x_t, abar, target, sigma=0.5, create_graph=False)
+    x0 = x0_of(x_t)
+    assert x0.abs().max() <= 1  # inside the clamp, so guided_eps and exact_gradient see the same x̂0
+    torch.testing.assert_close(eps_g, inject(eps, grad, abar, 0.5))
+    torch.testing.assert_close(eps_g, eps + 4.0 * (1 - abar).sqrt() * grad)
+
+
+def test_sampler_is_deterministic_under_a_seed():
+    torch.manual_seed(0)
+    agm = AxisGenerator(AGMConfig(denoiser=TINY))
+    for p in agm.parameters():  # a non-trivial network: zero-initialised output layers would hide differences
+        p.data.normal_(0, 0.05)
+    crops = torch.rand(2, 3, 64, 64) * 2 - 1
+    a = agm.sample(crops, 4, generator=torch.Generator().manual_seed(7))
+    b = agm.sample(crops, 4, generator=torch.Generator().manual_seed(7))
+    c = agm.sample(crops, 4, generator=torch.Generator().manual_seed(8))
+    assert a.shape == (2, 3, 64, 64) and torch.equal(a, b) and not torch.equal(a, c)
+    assert a.min() >= -1 and a.max() <= 1
+
+
+@pytest.mark.parametrize("guided", [False, True])
+def test_loss_falls_on_a_tiny_set(guided, rng):
+    torch.manual_seed(0)
+    targets = torch.cat([_gt_axis_image(rng)[0] for _ in range(4)]).float()
+    crops = targets.clone()  # a crop that shows its answer: only whether learning happens is tested
+    agm = AxisGenerator(AGMConfig(denoiser=TINY, train_guidance=guided))
+    opt = torch.optim.Adam(agm.parameters(), lr=2e-3)
+    losses = []
+    for i in range(120):
+        loss = agm.loss(crops, targets, torch.Generator().manual_seed(i % 8))
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+        losses.append(loss.item())
+    assert np.isfinite(losses).all()
+    assert np.mean(losses[-15:]) < 0.5 * np.mean(losses[:15])
+
+
+def test_estimator_checkpoint_round_trip(tmp_path):
+    reader = load_reader(SHIPPED_READER)
+    cfg = EstimatorConfig(agm=AGMConfig(denoiser=TINY), reader=reader.config, objects=tuple(lmo_objects()[:2]), ddim_steps=2)
+    est = Estimator(cfg, AxisGenerator(cfg.agm), reader)
+    est.save(tmp_path / "est.safetensors")
+    again = Estimator.load(tmp_path / "est.safetensors")
+    assert again.config == cfg
+    image = (np.random.default_rng(0).uniform(0, 255, (480, 640, 3))).astype(np.uint8)
+    K = np.array([[572.4, 0, 325.3], [0, 573.6, 242.0], [0, 0, 1]])
+    a = est.estimate(image, K, [(1, (300, 200, 60, 70))])
+    b = again.estimate(image, K, [(1, (300, 200, 60, 70))])
+    np.testing.assert_array_equal(a[0].axis_image, b[0].axis_image)
+    assert a[0].ok == b[0].ok and (a[0].ok or a[0].reason)
+    with pytest.raises(ValueError, match="not in this checkpoint"):
+        est.estimate(image, K, [(99, (0, 0, 10, 10))])
+    save_checkpoint(tmp_path / "reader.safetensors", "tbm_reader", reader.config, {"reader": reader})
+    with pytest.raises(CheckpointError, match="expected 'estimator'"):
+        Estimator.load(tmp_path / "reader.safetensors")
+
+
+def test_geo_loss_is_zero_on_target(rng):
+    img, _ = _gt_axis_image(rng)
+    g = axis_geometry(img)
+    assert geo_loss(g, AxisGeometry(g.origin.clone(), g.directions.clone())).item() == 0.0
