@@ -49,6 +49,9 @@ class Record:
     R: np.ndarray
     t: np.ndarray
     ok: bool
+    K: np.ndarray
+    rgb_path: Path
+    box: tuple[int, int, int, int]
 
 
 def evaluate(
@@ -86,13 +89,17 @@ def evaluate(
         start = time.perf_counter()
         preds = predict(cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB), K, [(g.obj_id, info.bbox_obj) for g, info in insts])
         per_object = (time.perf_counter() - start) / len(insts)
-        for (g, _), p in zip(insts, preds, strict=True):
+        for (g, info), p in zip(insts, preds, strict=True):
             spec = specs[g.obj_id]
             if p.ok:
                 scores = pose_scores(p.R, p.t, g.R, g.t, K, points[g.obj_id], spec.diameter, spec.symmetric)
             else:
                 scores = {k: 0.0 for k in SUMMARY_KEYS} | {"rot_err_deg": 180.0, "trans_err_mm": float("inf")}
-            records.append(Record(g.obj_id, scene.root.name, im_id, scores, per_object, g.R, g.t, p.R, p.t, p.ok))
+            records.append(
+                Record(
+                    g.obj_id, scene.root.name, im_id, scores, per_object, g.R, g.t, p.R, p.t, p.ok, K, scene.rgb_path(im_id), info.bbox_obj
+                )
+            )
     return records
 
 
@@ -152,4 +159,49 @@ def plot_cdfs(records: list[Record], objects: list[ObjectSpec], out_dir: str | P
     fig.tight_layout()
     fig.savefig(out, dpi=100)
     plt.close(fig)
+    return out
+
+
+def _box_corners(spec: ObjectSpec, points: np.ndarray) -> np.ndarray:
+    lo, hi = points.min(axis=0), points.max(axis=0)
+    return np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])])
+
+
+def plot_grid(records: list[Record], objects: list[ObjectSpec], models_dir: str | Path, out_dir: str | Path, count: int = 24) -> Path:
+    """Crops around the GT box with the GT (green) and predicted (red) 3D boxes and axes, worst cases last."""
+    from axispose_core.camera import crop_image, crop_intrinsics, square_around_box
+    from axispose_core.data.synth.preview import draw_axes
+
+    specs = {o.obj_id: o for o in objects}
+    corners = {i: _box_corners(specs[i], load_ply(model_path(models_dir, i)).vertices) for i in specs}
+    edges = [(0, 1), (0, 2), (1, 3), (2, 3), (4, 5), (4, 6), (5, 7), (6, 7), (0, 4), (1, 5), (2, 6), (3, 7)]
+    picks = sorted(records, key=lambda r: r.scores["rot_err_deg"])
+    picks = [picks[int(i)] for i in np.linspace(0, len(picks) - 1, min(count, len(picks)))] if picks else []
+    tiles = []
+    for r in picks:
+        image = cv2.imread(str(r.rgb_path))
+        center, side = square_around_box(r.box, 1.5)
+        Kc = crop_intrinsics(r.K, center, side, 160)
+        tile = crop_image(image, center, side, 160)
+        for R, t, color, ok in ((r.R_gt, r.t_gt, (0, 200, 0), True), (r.R, r.t, (0, 0, 255), r.ok)):
+            if not ok:
+                continue
+            cam = corners[r.obj_id] @ R.T + t
+            if np.any(cam[:, 2] <= 0):
+                continue
+            uv = cam @ Kc.T
+            uv = uv[:, :2] / uv[:, 2:3]
+            for a, b in edges:
+                cv2.line(tile, tuple(np.round(uv[a]).astype(int)), tuple(np.round(uv[b]).astype(int)), color, 1, cv2.LINE_AA)
+            draw_axes(tile, Kc, R, t, specs[r.obj_id].axes.lengths, 1)
+        cv2.putText(
+            tile, f"{specs[r.obj_id].name} {r.scores['rot_err_deg']:.0f}deg", (3, 12), cv2.FONT_HERSHEY_SIMPLEX, 0.4, (255, 255, 255), 1
+        )
+        tiles.append(tile)
+    out = Path(out_dir) / "crops_grid.png"
+    out.parent.mkdir(parents=True, exist_ok=True)
+    if tiles:
+        while len(tiles) % 6:
+            tiles.append(np.zeros_like(tiles[0]))
+        cv2.imwrite(str(out), np.vstack([np.hstack(tiles[i : i + 6]) for i in range(0, len(tiles), 6)]))
     return out
