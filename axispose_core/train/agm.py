@@ -26,7 +26,8 @@ from torch.utils.data import DataLoader, DistributedSampler, RandomSampler
 from tqdm import tqdm
 
 from axispose_core.agm.model import AGMConfig, AxisGenerator
-from axispose_core.data.objects import LMO_NAMES, objects_from_models
+from axispose_core.data.objects import LMO_NAMES, ObjectSpec, objects_from_models
+from axispose_core.data.synth.config import SynthConfig
 from axispose_core.estimator import Estimator, EstimatorConfig
 from axispose_core.metrics import re
 from axispose_core.tbm.backproject import backproject
@@ -51,6 +52,13 @@ class TrainConfig:
     val_every: int = 500
     val_samples: int = 32
     val_steps: int = 4
+
+
+def dataset_objects(root: str | Path) -> list[ObjectSpec]:
+    """The objects a synthetic dataset shows (its synth_config.json), else all of its models_info.json."""
+    synth = Path(root) / "synth_config.json"
+    ids = list(SynthConfig.load(synth).objects) if synth.exists() else None
+    return objects_from_models(root, ids or None, names=LMO_NAMES)
 
 
 def _lr(step: int, cfg: TrainConfig) -> float:
@@ -95,7 +103,7 @@ def train_agm(
     out = Path(out)
     out.parent.mkdir(parents=True, exist_ok=True)
     torch.manual_seed(cfg.seed + rank)
-    objects = objects_from_models(data[0], names=LMO_NAMES)
+    objects = dataset_objects(data[0])
     reader = load_reader(reader_path) if reader_path else load_reader(Path(__file__).parents[1] / "models" / "tbm_reader.safetensors")
     if reader.config.size != cfg.agm.denoiser.size:
         raise ValueError(f"the keypoint reader reads {reader.config.size}px images; the AGM is configured for {cfg.agm.denoiser.size}px")
