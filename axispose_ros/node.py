@@ -1,49 +1,317 @@
-"""`axispose_node`: the ROS 2 entry point (init -> spin -> destroy -> shutdown).
+"""`axispose_node`: 6D poses of known objects from an RGB camera stream.
 
-The node validates its parameters at start and refuses, with a clear error, a checkpoint it cannot load. The
-estimator it will run (AGM + TBM) and the Image/CameraInfo pipeline are the "ROS 2 node" issue's work; until
-an estimator checkpoint exists, every start ends at that check.
+Inputs: `image` (sensor_msgs/Image) and `camera_info`, paired by stamp within `sync_slop`; the boxes to
+estimate come from `~/roi/<object_name>` (sensor_msgs/RegionOfInterest, the latest one per object within
+`roi_timeout` seconds), for users with their own detector. Outputs keep the image header: `~/pose` (each
+object's pose in turn, for simple consumers), `~/poses/<object_name>`, `~/pose_array` (every frame, empty
+when nothing was estimated), `~/markers`, `~/debug/axis_image` (only built while subscribed), `/diagnostics`.
+
+Inference runs on a worker thread fed by a latest-frame-wins slot, so the executor never blocks and stale
+frames are dropped and counted instead of queueing.
 """
 
 from __future__ import annotations
 
 import sys
+import threading
+import time
+from collections import Counter
+from dataclasses import dataclass
 from pathlib import Path
 
+import cv2
+import numpy as np
 import rclpy
-from rcl_interfaces.msg import ParameterDescriptor
+import rclpy.executors
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+from geometry_msgs.msg import Point, Pose, PoseArray, PoseStamped
+from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor, SetParametersResult
 from rclpy.node import Node
+from rclpy.parameter import Parameter
+from rclpy.qos import qos_profile_sensor_data
+from rclpy.qos_overriding_options import QoSOverridingOptions
+from scipy.spatial.transform import Rotation
+from sensor_msgs.msg import CameraInfo, Image, RegionOfInterest
+from visualization_msgs.msg import Marker, MarkerArray
 
-from axispose_core.checkpoint import CheckpointError, read_metadata
+from axispose_core.camera import crop_transform
+from axispose_core.checkpoint import CheckpointError
+from axispose_core.data.synth.preview import draw_axes
+from axispose_core.estimator import Estimator
+from axispose_ros.conversions import InputError, camera_for_image, camera_from_info, image_to_rgb, rgb_to_image
+from axispose_ros.sync import StampSynchronizer
 
-ESTIMATOR_KIND = "estimator"
+DEFAULT_CHECKPOINT = Path(__file__).resolve().parents[1] / "axispose_core" / "models" / "axispose_lmo.safetensors"
+
+
+def _stamp_seconds(header) -> float:
+    return header.stamp.sec + 1e-9 * header.stamp.nanosec
+
+
+@dataclass
+class Frame:
+    image: Image
+    info: CameraInfo
+    received: float
 
 
 class AxisPoseNode(Node):
-    """Pose estimation node; construction fails with CheckpointError when `checkpoint` is unusable."""
+    """Pose estimation node; raises CheckpointError/ValueError at construction for unusable parameters."""
 
-    def __init__(self) -> None:
-        super().__init__("axispose")
-        self.declare_parameter(
-            "checkpoint", "", ParameterDescriptor(description="path of the AxisPose estimator checkpoint (.safetensors)")
+    def __init__(self, **kwargs) -> None:
+        super().__init__("axispose", **kwargs)
+        self._declare()
+        self.estimator = Estimator.load(self.get_parameter("checkpoint").value, self.get_parameter("device").value)
+        self.names = {o.obj_id: o.name for o in self.estimator.config.objects}
+        wanted = list(self.get_parameter("objects").value or [])
+        unknown = sorted(set(wanted) - set(self.names.values()))
+        if unknown:
+            raise ValueError(f"parameter 'objects' names {unknown}, not in the checkpoint (it knows {sorted(self.names.values())})")
+        self.published = {i: n for i, n in self.names.items() if not wanted or n in wanted}
+        for name in self.names.values():
+            self.declare_parameter(f"object_scales.{name}", 0.0, ParameterDescriptor(description=f"λ_O of {name} in m (0: checkpoint's)"))
+        import torch
+
+        torch.set_num_threads(int(self.get_parameter("num_threads").value))
+        self.add_on_set_parameters_callback(self._on_set_parameters)
+        self.counts: Counter[str] = Counter()
+        self.latency: list[float] = []
+        self._slot: Frame | None = None
+        self._slot_lock = threading.Lock()
+        self._wake = threading.Event()
+        self._stop = threading.Event()
+        self._rois: dict[int, tuple[RegionOfInterest, float]] = {}
+        self._warned: set[str] = set()
+        self.sync = StampSynchronizer(float(self.get_parameter("sync_slop").value), self._on_pair, self._on_drop)
+        qos_opts = QoSOverridingOptions.with_default_policies()
+        self.create_subscription(Image, "image", self._on_image, qos_profile_sensor_data, qos_overriding_options=qos_opts)
+        self.create_subscription(CameraInfo, "camera_info", self._on_info, qos_profile_sensor_data, qos_overriding_options=qos_opts)
+        for obj_id, name in self.names.items():
+            self.create_subscription(RegionOfInterest, f"~/roi/{name}", lambda m, i=obj_id: self._on_roi(i, m), 10)
+        self.pub_pose = self.create_publisher(PoseStamped, "~/pose", 10)
+        self.pub_object = {i: self.create_publisher(PoseStamped, f"~/poses/{n}", 10) for i, n in self.published.items()}
+        self.pub_array = self.create_publisher(PoseArray, "~/pose_array", 10)
+        self.pub_markers = self.create_publisher(MarkerArray, "~/markers", 10)
+        self.pub_debug = self.create_publisher(Image, "~/debug/axis_image", 1)
+        self.pub_diag = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
+        self.create_timer(1.0, self._publish_diagnostics)
+        self._worker = threading.Thread(target=self._work, name="axispose_inference", daemon=True)
+        self._worker.start()
+
+    # ------------------------------------------------------------------ parameters
+    def _declare(self) -> None:
+        def desc(text: str, **rng) -> ParameterDescriptor:
+            d = ParameterDescriptor(description=text)
+            if "ints" in rng:
+                d.integer_range = [IntegerRange(from_value=rng["ints"][0], to_value=rng["ints"][1], step=1)]
+            if "floats" in rng:
+                d.floating_point_range = [FloatingPointRange(from_value=rng["floats"][0], to_value=rng["floats"][1], step=0.0)]
+            return d
+
+        self.declare_parameter("checkpoint", str(DEFAULT_CHECKPOINT), desc("AxisPose estimator checkpoint (.safetensors)"))
+        self.declare_parameter("ddim_steps", 4, desc("DDIM steps per estimate", ints=(1, 1000)))
+        self.declare_parameter("guidance_scale", 0.0, desc("run-time geometric guidance (0: off)", floats=(0.0, 100.0)))
+        self.declare_parameter("object_scale", 0.0, desc("λ_O in m for every object (0: checkpoint's)", floats=(0.0, 10.0)))
+        self.declare_parameter("device", "cpu", desc("cpu, cuda or auto"))
+        self.declare_parameter("objects", Parameter.Type.STRING_ARRAY, desc("object names to publish (empty: all)"))
+        self.declare_parameter("score_threshold", 0.0, desc("minimum score to publish a pose", floats=(0.0, 1.0)))
+        self.declare_parameter("use_rectified", False, desc("use P instead of K (images already rectified)"))
+        self.declare_parameter("sync_slop", 0.02, desc("largest Image/CameraInfo stamp difference in s", floats=(0.0, 1.0)))
+        self.declare_parameter("num_threads", 2, desc("torch CPU threads for inference", ints=(1, 64)))
+        self.declare_parameter("roi_timeout", 1.0, desc("age in s after which an ROI is ignored", floats=(0.0, 3600.0)))
+        dev = self.get_parameter("device").value
+        if dev not in ("cpu", "cuda", "auto"):
+            raise ValueError(f"parameter 'device' must be cpu, cuda or auto, got {dev!r}")
+        if dev == "auto":
+            import torch
+
+            self.set_parameters([Parameter("device", value="cuda" if torch.cuda.is_available() else "cpu")])
+
+    def _on_set_parameters(self, params: list[Parameter]) -> SetParametersResult:
+        fixed = {"checkpoint", "device", "objects", "use_rectified", "sync_slop", "num_threads"}
+        for p in params:
+            if p.name in fixed:
+                return SetParametersResult(successful=False, reason=f"'{p.name}' is read at start only; restart the node to change it")
+            if p.name.startswith("object_scales.") and (p.type_ != Parameter.Type.DOUBLE or not 0.0 <= p.value <= 10.0):
+                return SetParametersResult(successful=False, reason=f"'{p.name}' must be a length in [0, 10] m")
+        return SetParametersResult(successful=True)
+
+    # ------------------------------------------------------------------ inputs
+    def _warn_once(self, key: str, text: str) -> None:
+        if key not in self._warned:
+            self._warned.add(key)
+            self.get_logger().warning(text)
+
+    def _on_image(self, msg: Image) -> None:
+        self.counts["frames_in"] += 1
+        self.sync.add_image(_stamp_seconds(msg.header), msg)
+
+    def _on_info(self, msg: CameraInfo) -> None:
+        self.sync.add_info(_stamp_seconds(msg.header), msg)
+
+    def _on_roi(self, obj_id: int, msg: RegionOfInterest) -> None:
+        self._rois[obj_id] = (msg, time.monotonic())
+
+    def _on_drop(self, _: Image, reason: str) -> None:
+        self.counts[f"dropped_{reason}"] += 1
+        self.get_logger().warning(f"dropped a frame: {reason}", throttle_duration_sec=5.0)
+
+    def _on_pair(self, image: Image, info: CameraInfo) -> None:
+        with self._slot_lock:
+            if self._slot is not None:
+                self.counts["dropped_stale"] += 1
+            self._slot = Frame(image, info, time.monotonic())
+        self._wake.set()
+
+    # ------------------------------------------------------------------ inference
+    def _work(self) -> None:
+        while not self._stop.is_set():
+            if not self._wake.wait(timeout=0.1):
+                continue
+            with self._slot_lock:
+                frame, self._slot = self._slot, None
+                self._wake.clear()
+            if frame is None:
+                continue
+            try:
+                self._process(frame)
+            except InputError as err:
+                self.counts[f"dropped_{err.reason}"] += 1
+                if err.reason.startswith("encoding:"):
+                    self._warn_once(err.reason, f"{err} — frames with it are dropped")
+                else:
+                    self.get_logger().error(str(err), throttle_duration_sec=5.0)
+            except Exception as err:
+                self.counts["dropped_error"] += 1
+                self.get_logger().error(f"inference failed on a frame: {err!r}", throttle_duration_sec=5.0)
+
+    def _boxes(self, width: int, height: int) -> list[tuple[int, tuple[float, float, float, float]]]:
+        now, timeout = time.monotonic(), float(self.get_parameter("roi_timeout").value)
+        boxes = []
+        for obj_id, (roi, seen) in self._rois.items():
+            if now - seen > timeout or roi.width == 0 or roi.height == 0:
+                continue
+            if roi.x_offset + roi.width > width or roi.y_offset + roi.height > height:
+                self.counts["dropped_roi_outside"] += 1
+                continue
+            boxes.append((obj_id, (roi.x_offset, roi.y_offset, roi.width, roi.height)))
+        return boxes
+
+    def _scales(self) -> dict[int, float]:
+        common = float(self.get_parameter("object_scale").value)
+        out = {}
+        for obj_id, name in self.names.items():
+            own = float(self.get_parameter(f"object_scales.{name}").value)
+            if own > 0 or common > 0:
+                out[obj_id] = own if own > 0 else common
+        return out
+
+    def _process(self, frame: Frame) -> None:
+        rgb = image_to_rgb(frame.image)
+        camera = camera_for_image(camera_from_info(frame.info, bool(self.get_parameter("use_rectified").value)), rgb.shape[1], rgb.shape[0])
+        boxes = self._boxes(rgb.shape[1], rgb.shape[0])
+        estimates = self.estimator.estimate(
+            rgb,
+            camera.K,
+            boxes,
+            steps=int(self.get_parameter("ddim_steps").value),
+            guidance_scale=float(self.get_parameter("guidance_scale").value),
+            scales=self._scales(),
         )
-        path = Path(self.get_parameter("checkpoint").value)
-        if not str(path) or str(path) == ".":
-            raise CheckpointError("parameter 'checkpoint' is empty: pass -p checkpoint:=/path/to/model.safetensors")
-        read_metadata(path, ESTIMATOR_KIND)
+        header = frame.image.header
+        array = PoseArray(header=header)
+        markers = MarkerArray()
+        for est in estimates:
+            if not est.ok:
+                self.counts["pose_refused"] += 1
+                continue
+            pose = _pose(est.R, est.t)
+            array.poses.append(pose)
+            if est.obj_id in self.published:
+                stamped = PoseStamped(header=header, pose=pose)
+                self.pub_pose.publish(stamped)
+                self.pub_object[est.obj_id].publish(stamped)
+                markers.markers.extend(_axis_markers(header, est, self.names[est.obj_id], self.estimator.objects[est.obj_id].axes.lengths))
+        self.pub_array.publish(array)
+        if markers.markers:
+            self.pub_markers.publish(markers)
+        if self.pub_debug.get_subscription_count() > 0:
+            self.pub_debug.publish(rgb_to_image(_debug_overlay(rgb, camera.K, estimates, self.estimator), header))
+        self.counts["frames_processed"] += 1
+        self.latency.append(time.monotonic() - frame.received)
+        self.latency = self.latency[-100:]
+
+    def _publish_diagnostics(self) -> None:
+        status = DiagnosticStatus(name="axispose: pose estimation", hardware_id=self.get_name())
+        dropped = sum(v for k, v in self.counts.items() if k.startswith("dropped_"))
+        status.level = DiagnosticStatus.OK if dropped == 0 or self.counts["frames_processed"] else DiagnosticStatus.WARN
+        status.message = f"{self.counts['frames_processed']} processed, {dropped} dropped"
+        values = dict(self.counts)
+        if self.latency:
+            values["latency_median_ms"] = 1000 * float(np.median(self.latency))
+        status.values = [KeyValue(key=k, value=f"{v:.1f}" if isinstance(v, float) else str(v)) for k, v in sorted(values.items())]
+        msg = DiagnosticArray(status=[status])
+        msg.header.stamp = self.get_clock().now().to_msg()
+        self.pub_diag.publish(msg)
+
+    def destroy_node(self) -> None:
+        self._stop.set()
+        self._wake.set()
+        self._worker.join(timeout=10.0)
+        super().destroy_node()
+
+
+def _pose(R: np.ndarray, t: np.ndarray) -> Pose:
+    pose = Pose()
+    pose.position.x, pose.position.y, pose.position.z = (float(v) for v in t)
+    q = Rotation.from_matrix(R).as_quat()  # x, y, z, w
+    pose.orientation.x, pose.orientation.y, pose.orientation.z, pose.orientation.w = (float(v) for v in q)
+    return pose
+
+
+def _axis_markers(header, est, name: str, lengths: np.ndarray) -> list[Marker]:
+    """Three arrows (X red, Y green, Z blue) from the object's origin, in the camera frame."""
+    out = []
+    for k, color in enumerate(((1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, 0.0, 1.0))):
+        m = Marker(header=header, ns=f"axispose/{name}", id=k, type=Marker.ARROW, action=Marker.ADD)
+        start, end = est.t, est.t + est.R[:, k] * lengths[k]
+        m.points = [
+            Point(x=float(start[0]), y=float(start[1]), z=float(start[2])),
+            Point(x=float(end[0]), y=float(end[1]), z=float(end[2])),
+        ]
+        m.scale.x, m.scale.y, m.scale.z = 0.004, 0.008, 0.01
+        m.color.r, m.color.g, m.color.b, m.color.a = (*color, 1.0)
+        out.append(m)
+    return out
+
+
+def _debug_overlay(rgb: np.ndarray, K: np.ndarray, estimates, estimator: Estimator) -> np.ndarray:
+    """The input with each generated axis image blended into its crop and the estimated axes drawn."""
+    out = rgb.copy()
+    S = estimator.size
+    for est in estimates:
+        A = crop_transform(est.center, est.side, S)[:2]
+        warped = cv2.warpAffine((est.axis_image * 255).astype(np.uint8), A, (rgb.shape[1], rgb.shape[0]), flags=cv2.WARP_INVERSE_MAP)
+        lit = warped.max(axis=2) > 64
+        out[lit] = (0.4 * out[lit] + 0.6 * warped[lit]).astype(np.uint8)
+        if est.ok:
+            bgr = out[..., ::-1].copy()
+            draw_axes(bgr, K, est.R, est.t, estimator.objects[est.obj_id].axes.lengths)
+            out = bgr[..., ::-1].copy()
+    return out
 
 
 def main(args: list[str] | None = None) -> int:
     rclpy.init(args=args)
     try:
         node = AxisPoseNode()
-    except CheckpointError as err:
+    except (CheckpointError, ValueError) as err:
         print(f"axispose_node: {err}", file=sys.stderr)
         rclpy.try_shutdown()
         return 2
     try:
         rclpy.spin(node)
-    except KeyboardInterrupt:
+    except (KeyboardInterrupt, rclpy.executors.ExternalShutdownException):
         pass
     finally:
         node.destroy_node()

@@ -1,0 +1,83 @@
+"""sensor_msgs Image and CameraInfo <-> NumPy, without cv_bridge (not installable from the wheels here).
+
+Every check a robot's camera driver can fail raises `InputError` with a message fit for a throttled log line:
+unsupported encodings, rows shorter than the declared step, a K that is zero or NaN, a CameraInfo whose size
+disagrees with the image other than by a uniform scale.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from sensor_msgs.msg import CameraInfo, Image
+from std_msgs.msg import Header
+
+from axispose_core.camera import Camera, IntrinsicsError
+
+CHANNELS = {"rgb8": 3, "bgr8": 3, "rgba8": 4, "bgra8": 4, "mono8": 1}
+"""Encodings the node reads (8 bits per channel)."""
+
+
+class InputError(ValueError):
+    """A message the node must drop; `reason` is the short key its drop counter uses."""
+
+    def __init__(self, reason: str, message: str) -> None:
+        super().__init__(message)
+        self.reason = reason
+
+
+def image_to_rgb(msg: Image) -> np.ndarray:
+    """An HxWx3 uint8 RGB array (a copy) from an Image of a supported encoding and any row step."""
+    enc = msg.encoding.lower()
+    if enc not in CHANNELS:
+        raise InputError(f"encoding:{msg.encoding}", f"unsupported image encoding '{msg.encoding}' (supported: {', '.join(CHANNELS)})")
+    h, w, c = msg.height, msg.width, CHANNELS[enc]
+    if h == 0 or w == 0:
+        raise InputError("image_size", "image has zero size")
+    if msg.step < w * c:
+        raise InputError("image_step", f"row step {msg.step} is shorter than width {w} x {c} channels")
+    data = np.frombuffer(bytes(msg.data) if not isinstance(msg.data, np.ndarray) else msg.data.tobytes(), dtype=np.uint8)
+    if data.size < msg.step * (h - 1) + w * c:
+        raise InputError("image_data", f"image data holds {data.size} bytes, {msg.step * (h - 1) + w * c} needed")
+    rows = np.lib.stride_tricks.as_strided(data, shape=(h, w, c), strides=(msg.step, c, 1))
+    if enc == "mono8":
+        return np.repeat(rows, 3, axis=2)
+    if enc.startswith("bgr"):
+        return np.ascontiguousarray(rows[:, :, 2::-1])
+    return np.ascontiguousarray(rows[:, :, :3])
+
+
+def rgb_to_image(rgb: np.ndarray, header: Header) -> Image:
+    """An rgb8 Image carrying `header` (stamp and frame_id kept)."""
+    rgb = np.ascontiguousarray(rgb, dtype=np.uint8)
+    msg = Image()
+    msg.header = header
+    msg.height, msg.width = int(rgb.shape[0]), int(rgb.shape[1])
+    msg.encoding = "rgb8"
+    msg.is_bigendian = 0
+    msg.step = int(rgb.shape[1] * 3)
+    msg.data = rgb.tobytes()
+    return msg
+
+
+def camera_from_info(info: CameraInfo, use_rectified: bool = False) -> Camera:
+    """The pinhole camera of a CameraInfo: K, or P's left 3x3 for rectified images."""
+    K = np.asarray(info.p, dtype=np.float64).reshape(3, 4)[:, :3] if use_rectified else np.asarray(info.k, dtype=np.float64).reshape(3, 3)
+    if info.width == 0 or info.height == 0:
+        raise InputError("camera_info_size", "CameraInfo has zero width or height")
+    try:
+        return Camera(K, int(info.width), int(info.height))
+    except IntrinsicsError as err:
+        raise InputError("camera_info_k", f"CameraInfo {'P' if use_rectified else 'K'} is unusable: {err}") from err
+
+
+def camera_for_image(camera: Camera, width: int, height: int, tolerance: float = 1e-3) -> Camera:
+    """The camera for an image of width x height: itself, scaled when the image is a uniformly resized copy,
+    else InputError (the CameraInfo does not describe this image)."""
+    if (width, height) == (camera.width, camera.height):
+        return camera
+    sx, sy = width / camera.width, height / camera.height
+    if abs(sx - sy) > tolerance * max(sx, sy):
+        raise InputError(
+            "camera_info_mismatch", f"image is {width}x{height} but CameraInfo says {camera.width}x{camera.height} (not a uniform scale)"
+        )
+    return camera.scaled(width, height)
