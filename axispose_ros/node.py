@@ -26,6 +26,7 @@ import rclpy.executors
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from geometry_msgs.msg import Point, Pose, PoseArray, PoseStamped
 from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor, SetParametersResult
+from rclpy.exceptions import ParameterUninitializedException
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.qos import qos_profile_sensor_data
@@ -63,7 +64,10 @@ class AxisPoseNode(Node):
         self._declare()
         self.estimator = Estimator.load(self.get_parameter("checkpoint").value, self.get_parameter("device").value)
         self.names = {o.obj_id: o.name for o in self.estimator.config.objects}
-        wanted = list(self.get_parameter("objects").value or [])
+        try:
+            wanted = list(self.get_parameter("objects").value or [])
+        except ParameterUninitializedException:  # declared by type only: not given, so every object
+            wanted = []
         unknown = sorted(set(wanted) - set(self.names.values()))
         if unknown:
             raise ValueError(f"parameter 'objects' names {unknown}, not in the checkpoint (it knows {sorted(self.names.values())})")

@@ -1,0 +1,221 @@
+"""The node, launch-free: in-process executors with their own Context, a tiny random checkpoint (plumbing only)."""
+
+import os
+import time
+
+import numpy as np
+import pytest
+import rclpy
+from diagnostic_msgs.msg import DiagnosticArray
+from geometry_msgs.msg import PoseArray, PoseStamped
+from rclpy.executors import SingleThreadedExecutor
+from rclpy.parameter import Parameter
+from sensor_msgs.msg import CameraInfo, Image, RegionOfInterest
+
+from axispose_core.agm.denoiser import DenoiserConfig
+from axispose_core.agm.model import AGMConfig, AxisGenerator
+from axispose_core.checkpoint import CheckpointError
+from axispose_core.data.objects import lmo_objects
+from axispose_core.demo import SHIPPED_READER
+from axispose_core.estimator import Estimator, EstimatorConfig, PoseEstimate
+from axispose_core.pose_sampling import LMO_K
+from axispose_core.tbm.reader import load_reader
+from axispose_ros.node import AxisPoseNode
+
+
+@pytest.fixture(scope="module")
+def checkpoint(tmp_path_factory):
+    reader = load_reader(SHIPPED_READER)
+    cfg = EstimatorConfig(
+        agm=AGMConfig(denoiser=DenoiserConfig(channels=8, multipliers=(1, 2), groups=4)),
+        reader=reader.config,
+        objects=tuple(lmo_objects()[:2]),  # ape (1), can (5)
+        ddim_steps=1,
+    )
+    path = tmp_path_factory.mktemp("ckpt") / "tiny.safetensors"
+    Estimator(cfg, AxisGenerator(cfg.agm), reader).save(path)
+    return path
+
+
+class Harness:
+    """The node under test plus a peer node, spun by one executor in a private Context."""
+
+    def __init__(self, checkpoint, **params):
+        self.ctx = rclpy.Context()
+        rclpy.init(context=self.ctx)
+        overrides = [Parameter("checkpoint", value=str(checkpoint)), Parameter("num_threads", value=1)]
+        overrides += [Parameter(k, value=v) for k, v in params.items()]
+        self.node = AxisPoseNode(context=self.ctx, parameter_overrides=overrides)
+        self.peer = rclpy.create_node("peer", context=self.ctx)
+        self.exe = SingleThreadedExecutor(context=self.ctx)
+        self.exe.add_node(self.node)
+        self.exe.add_node(self.peer)
+        self.got: dict[str, list] = {"pose": [], "array": [], "debug": [], "diag": [], "ape": []}
+        self.pub_image = self.peer.create_publisher(Image, "image", 10)
+        self.pub_info = self.peer.create_publisher(CameraInfo, "camera_info", 10)
+        self.pub_roi = self.peer.create_publisher(RegionOfInterest, "/axispose/roi/ape", 10)
+        self.peer.create_subscription(PoseStamped, "/axispose/pose", self.got["pose"].append, 10)
+        self.peer.create_subscription(PoseStamped, "/axispose/poses/ape", self.got["ape"].append, 10)
+        self.peer.create_subscription(PoseArray, "/axispose/pose_array", self.got["array"].append, 10)
+        self.peer.create_subscription(DiagnosticArray, "/diagnostics", self.got["diag"].append, 10)
+
+    def subscribe_debug(self):
+        self.peer.create_subscription(Image, "/axispose/debug/axis_image", self.got["debug"].append, 10)
+
+    def spin_until(self, cond, timeout=20.0):
+        end = time.monotonic() + timeout
+        while time.monotonic() < end:
+            self.exe.spin_once(timeout_sec=0.05)
+            if cond():
+                return True
+        return False
+
+    def frame(self, sec=1, encoding="rgb8", K=LMO_K, size=(640, 480), info_size=(640, 480), with_info=True):
+        w, h = size
+        img = Image(height=h, width=w, encoding=encoding, step=w * 3)
+        img.header.frame_id = "cam"
+        img.header.stamp.sec = sec
+        img.data = np.random.default_rng(sec).integers(0, 255, h * w * 3, dtype=np.uint8).tobytes()
+        if with_info:
+            info = CameraInfo(width=info_size[0], height=info_size[1])
+            info.header = img.header
+            info.k = [float(v) for v in np.asarray(K).ravel()]
+            self.pub_info.publish(info)
+        self.pub_image.publish(img)
+        return img
+
+    def roi(self):
+        self.pub_roi.publish(RegionOfInterest(x_offset=280, y_offset=200, width=80, height=90))
+
+    def close(self):
+        self.exe.shutdown()
+        self.node.destroy_node()
+        self.peer.destroy_node()
+        rclpy.shutdown(context=self.ctx)
+
+
+@pytest.fixture
+def harness(checkpoint):
+    h = Harness(checkpoint)
+    h.spin_until(lambda: h.pub_image.get_subscription_count() > 0 and h.pub_roi.get_subscription_count() > 0, 5.0)
+    yield h
+    h.close()
+
+
+def test_pose_array_keeps_the_image_header_and_is_empty_without_boxes(harness):
+    sent = harness.frame(sec=3)
+    assert harness.spin_until(lambda: harness.got["array"])
+    msg = harness.got["array"][0]
+    assert msg.header.stamp.sec == sent.header.stamp.sec and msg.header.frame_id == "cam"
+    assert msg.poses == []
+
+
+def test_pose_stamped_for_a_box_with_the_same_header(harness):
+    real = harness.node.estimator.estimate
+
+    def succeed(*args, **kwargs):  # the random checkpoint draws noise: fix the pose, keep the plumbing
+        out = real(*args, **kwargs)
+        return [
+            PoseEstimate(e.obj_id, np.eye(3), np.array([0.0, 0.0, 0.8]), True, "", e.axis_image, e.K_patch, e.center, e.side) for e in out
+        ]
+
+    harness.node.estimator.estimate = succeed
+    harness.roi()
+    harness.spin_until(lambda: 1 in harness.node._rois, 5.0)
+    sent = harness.frame(sec=5)
+    assert harness.spin_until(lambda: harness.got["ape"])
+    got = harness.got["ape"][0]
+    assert (got.header.stamp.sec, got.header.frame_id) == (sent.header.stamp.sec, "cam")
+    assert got.pose.position.z == pytest.approx(0.8) and got.pose.orientation.w == pytest.approx(1.0)
+    assert harness.got["pose"] and len(harness.spin_until(lambda: harness.got["array"]) and harness.got["array"][-1].poses) == 1
+    assert harness.got["debug"] == []  # nobody subscribed: no debug image built
+
+
+def test_debug_image_only_when_subscribed(harness):
+    harness.subscribe_debug()
+    harness.spin_until(lambda: harness.node.pub_debug.get_subscription_count() > 0, 5.0)
+    harness.roi()
+    harness.spin_until(lambda: 1 in harness.node._rois, 5.0)
+    harness.frame(sec=7)
+    assert harness.spin_until(lambda: harness.got["debug"])
+    assert harness.got["debug"][0].header.stamp.sec == 7 and harness.got["debug"][0].encoding == "rgb8"
+
+
+@pytest.mark.parametrize(
+    "kwargs, counter",
+    [
+        ({"encoding": "16UC1"}, "dropped_encoding:16UC1"),
+        ({"K": np.full((3, 3), np.nan)}, "dropped_camera_info_k"),
+        ({"K": np.zeros((3, 3))}, "dropped_camera_info_k"),
+        ({"info_size": (640, 400)}, "dropped_camera_info_mismatch"),
+    ],
+)
+def test_bad_input_is_dropped_and_counted(harness, kwargs, counter):
+    harness.frame(sec=9, **kwargs)
+    assert harness.spin_until(lambda: harness.node.counts[counter] >= 1)
+    harness.frame(sec=11)  # still alive and processing
+    assert harness.spin_until(lambda: harness.node.counts["frames_processed"] >= 1)
+
+
+def test_image_without_camera_info_is_dropped(harness):
+    harness.frame(sec=20, with_info=False)
+    harness.frame(sec=21)  # its CameraInfo is later than the first image + slop
+    assert harness.spin_until(lambda: harness.node.counts["dropped_no_camera_info"] >= 1)
+
+
+def test_image_scaled_uniformly_from_camera_info_is_handled(harness):
+    harness.frame(sec=30, size=(320, 240), info_size=(640, 480))
+    assert harness.spin_until(lambda: harness.node.counts["frames_processed"] >= 1)
+
+
+def test_diagnostics_report_counts(harness):
+    harness.frame(sec=40)
+    assert harness.spin_until(lambda: any(s.values for d in harness.got["diag"] for s in d.status if "processed" in s.message), 10.0)
+
+
+def test_parameters_are_validated_at_start_and_at_run_time(checkpoint, tmp_path):
+    with pytest.raises(CheckpointError, match="not found"):
+        Harness(tmp_path / "missing.safetensors")
+    with pytest.raises(ValueError, match="not in the checkpoint"):
+        Harness(checkpoint, objects=["teapot"])
+    with pytest.raises(rclpy.exceptions.InvalidParameterValueException):
+        Harness(checkpoint, ddim_steps=0)
+    h = Harness(checkpoint, objects=["ape"])
+    try:
+        assert h.node.set_parameters([Parameter("ddim_steps", value=0)])[0].successful is False
+        assert h.node.set_parameters([Parameter("ddim_steps", value=8)])[0].successful
+        assert h.node.get_parameter("ddim_steps").value == 8
+        assert h.node.set_parameters([Parameter("checkpoint", value="x")])[0].successful is False
+        assert h.node.set_parameters([Parameter("object_scales.ape", value=-1.0)])[0].successful is False
+        assert h.node.set_parameters([Parameter("object_scales.ape", value=0.06)])[0].successful
+        assert h.node._scales() == {1: 0.06}
+        assert set(h.node.pub_object) == {1}  # only 'ape' is published
+    finally:
+        h.close()
+
+
+def test_burst_of_300_frames_stays_bounded(harness):
+    def rss_mb():
+        with open("/proc/self/statm") as f:
+            return int(f.read().split()[1]) * os.sysconf("SC_PAGE_SIZE") / 2**20
+
+    harness.frame(sec=50)
+    harness.spin_until(lambda: harness.node.counts["frames_processed"] >= 1)
+    start = rss_mb()
+    for k in range(300):
+        harness.frame(sec=100 + k)
+        harness.exe.spin_once(timeout_sec=0.0)
+    harness.spin_until(lambda: harness.node.counts["frames_in"] >= 250, 30.0)
+    assert len(harness.node.sync.images) <= harness.node.sync.max_images
+    assert harness.node._slot is None or isinstance(harness.node._slot.image, Image)
+    assert harness.node.counts["dropped_stale"] > 0  # inference is slower than the stream: old frames are dropped
+    assert rss_mb() - start < 200
+
+
+def test_clean_shutdown_with_frames_in_flight(checkpoint):
+    h = Harness(checkpoint)
+    for k in range(5):
+        h.frame(sec=200 + k)
+        h.exe.spin_once(timeout_sec=0.01)
+    h.close()
+    assert not h.node._worker.is_alive()
