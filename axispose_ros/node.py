@@ -62,7 +62,10 @@ class AxisPoseNode(Node):
     def __init__(self, **kwargs) -> None:
         super().__init__("axispose", **kwargs)
         self._declare()
-        self.estimator = Estimator.load(self.get_parameter("checkpoint").value, self.get_parameter("device").value)
+        checkpoint = self.get_parameter("checkpoint").value
+        if not checkpoint:
+            raise CheckpointError("parameter 'checkpoint' is empty: pass -p checkpoint:=/path/to/estimator.safetensors")
+        self.estimator = Estimator.load(checkpoint, self.get_parameter("device").value)
         self.names = {o.obj_id: o.name for o in self.estimator.config.objects}
         try:
             wanted = list(self.get_parameter("objects").value or [])
@@ -118,7 +121,6 @@ class AxisPoseNode(Node):
         self.declare_parameter("object_scale", 0.0, desc("λ_O in m for every object (0: checkpoint's)", floats=(0.0, 10.0)))
         self.declare_parameter("device", "cpu", desc("cpu, cuda or auto"))
         self.declare_parameter("objects", Parameter.Type.STRING_ARRAY, desc("object names to publish (empty: all)"))
-        self.declare_parameter("score_threshold", 0.0, desc("minimum score to publish a pose", floats=(0.0, 1.0)))
         self.declare_parameter("use_rectified", False, desc("use P instead of K (images already rectified)"))
         self.declare_parameter("sync_slop", 0.02, desc("largest Image/CameraInfo stamp difference in s", floats=(0.0, 1.0)))
         self.declare_parameter("num_threads", 2, desc("torch CPU threads for inference", ints=(1, 64)))
