@@ -205,10 +205,17 @@ def test_burst_of_300_frames_stays_bounded(harness):
     for k in range(300):
         harness.frame(sec=100 + k)
         harness.exe.spin_once(timeout_sec=0.0)
-    harness.spin_until(lambda: harness.node.counts["frames_in"] >= 250, 30.0)
-    assert len(harness.node.sync.images) <= harness.node.sync.max_images
-    assert harness.node._slot is None or isinstance(harness.node._slot.image, Image)
-    assert harness.node.counts["dropped_stale"] > 0  # inference is slower than the stream: old frames are dropped
+    node = harness.node
+
+    def accounted() -> bool:
+        """Every frame that came in was processed, dropped with a reason, or still waits in a bounded place."""
+        c = node.counts
+        dropped = sum(v for k, v in c.items() if k.startswith("dropped_"))
+        # Sensor-data QoS (best effort, depth 5) lets DDS itself discard part of a burst: fewer than 300 arrive.
+        return c["frames_in"] >= 30 and c["frames_in"] == c["frames_processed"] + dropped + len(node.sync.images)
+
+    assert harness.spin_until(accounted, 60.0), dict(node.counts)
+    assert len(node.sync.images) <= node.sync.max_images and node._slot is None
     assert rss_mb() - start < 200
 
 
