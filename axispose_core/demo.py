@@ -22,9 +22,7 @@ from axispose_core.pose_sampling import sample_patch
 from axispose_core.tbm.backproject import backproject
 from axispose_core.tbm.keypoints import AxisKeypoints
 from axispose_core.tbm.line_fit import fit_axis_keypoints
-from axispose_core.tbm.reader import KeypointReader, load_reader
-
-SHIPPED_READER = Path(__file__).parent / "models" / "tbm_reader.safetensors"
+from axispose_core.tbm.reader import SHIPPED_READER, KeypointReader, load_reader
 
 
 @dataclass(frozen=True)

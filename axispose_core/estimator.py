@@ -13,8 +13,10 @@ import torch
 
 from axispose_core.agm.guidance import self_consistency_target
 from axispose_core.agm.model import AGMConfig, AxisGenerator
-from axispose_core.camera import crop_image, crop_intrinsics, square_around_box, validate_intrinsics
+from axispose_core.axis_image import AxisSpec
+from axispose_core.camera import validate_intrinsics
 from axispose_core.checkpoint import load_state, read_checkpoint, save_checkpoint
+from axispose_core.data.crops import instance_crop
 from axispose_core.data.objects import ObjectSpec
 from axispose_core.tbm.backproject import backproject
 from axispose_core.tbm.reader import KeypointReader, ReaderConfig
@@ -101,18 +103,13 @@ class Estimator:
         steps = steps or self.config.ddim_steps
         scale = self.config.guidance_scale if guidance_scale is None else guidance_scale
         S = self.size
-        crops, Kp, geo = [], [], []
-        for _, box in boxes:
-            center, side = square_around_box(box, self.config.crop_pad)
-            crops.append(crop_image(image_rgb, center, side, S))
-            Kp.append(crop_intrinsics(K, center, side, S))
-            geo.append((center, side))
+        cuts = [instance_crop(image_rgb, K, box, S, pad=self.config.crop_pad) for _, box in boxes]
+        Kp = [c.K_patch for c in cuts]
         lengths = []
         for obj_id, _ in boxes:
             spec = self.objects[obj_id]
-            lam = (scales or {}).get(obj_id, spec.scale)
-            lengths.append(lam * np.array([1.0, spec.ratio_b, spec.ratio_c]))
-        x = torch.from_numpy(np.stack(crops).astype(np.float32) / 127.5 - 1).permute(0, 3, 1, 2).to(self.device)
+            lengths.append(AxisSpec((scales or {}).get(obj_id, spec.scale), spec.ratio_b, spec.ratio_c).lengths)
+        x = torch.from_numpy(np.stack([c.patch for c in cuts]).astype(np.float32) / 127.5 - 1).permute(0, 3, 1, 2).to(self.device)
 
         def guidance(x0: torch.Tensor):
             return self_consistency_target(x0, self.reader, np.stack(Kp), np.stack(lengths))
@@ -123,11 +120,11 @@ class Estimator:
         images = ((axes + 1) * 0.5).clamp(0, 1)
         readings = self.reader.read(images)
         out = []
-        for (obj_id, _), kp, K_p, (center, side), L, img in zip(boxes, readings, Kp, geo, lengths, images, strict=True):
+        for (obj_id, _), kp, cut, L, img in zip(boxes, readings, cuts, lengths, images, strict=True):
             axis_image = img.permute(1, 2, 0).cpu().numpy()
             if not kp.ok:
-                out.append(PoseEstimate(obj_id, np.eye(3), np.zeros(3), False, kp.reason, axis_image, K_p, center, side))
+                out.append(PoseEstimate(obj_id, np.eye(3), np.zeros(3), False, kp.reason, axis_image, cut.K_patch, cut.center, cut.side))
                 continue
-            res = backproject(K_p, kp.origin, kp.endpoints, L, refine=True)
-            out.append(PoseEstimate(obj_id, res.R, res.t, res.ok, res.reason, axis_image, K_p, center, side))
+            res = backproject(cut.K_patch, kp.origin, kp.endpoints, L, refine=True)
+            out.append(PoseEstimate(obj_id, res.R, res.t, res.ok, res.reason, axis_image, cut.K_patch, cut.center, cut.side))
         return out

@@ -17,8 +17,10 @@ import cv2
 import numpy as np
 from tqdm import tqdm
 
+from axispose_core.camera import crop_image, crop_intrinsics, square_around_box
 from axispose_core.data.bop import BopFormatError, BopScene, load_ply, model_path
 from axispose_core.data.objects import ObjectSpec
+from axispose_core.data.synth.preview import draw_axes
 from axispose_core.metrics import ADD_THRESHOLDS, REPROJ_THRESHOLDS, pose_scores
 from axispose_core.train.dataset import scene_dirs
 
@@ -169,9 +171,6 @@ def _box_corners(spec: ObjectSpec, points: np.ndarray) -> np.ndarray:
 
 def plot_grid(records: list[Record], objects: list[ObjectSpec], models_dir: str | Path, out_dir: str | Path, count: int = 24) -> Path:
     """Crops around the GT box with the GT (green) and predicted (red) 3D boxes and axes, worst cases last."""
-    from axispose_core.camera import crop_image, crop_intrinsics, square_around_box
-    from axispose_core.data.synth.preview import draw_axes
-
     specs = {o.obj_id: o for o in objects}
     corners = {i: _box_corners(specs[i], load_ply(model_path(models_dir, i)).vertices) for i in specs}
     edges = [(0, 1), (0, 2), (1, 3), (2, 3), (4, 5), (4, 6), (5, 7), (6, 7), (0, 4), (1, 5), (2, 6), (3, 7)]

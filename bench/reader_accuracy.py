@@ -18,11 +18,10 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from axispose_core.demo import SHIPPED_READER
 from axispose_core.metrics import re
 from axispose_core.tbm.backproject import backproject
 from axispose_core.tbm.line_fit import fit_axis_keypoints
-from axispose_core.tbm.reader import load_reader, synth_batch
+from axispose_core.tbm.reader import SHIPPED_READER, load_reader, synth_batch
 
 
 def main() -> None:

@@ -11,10 +11,9 @@ from axispose_core.agm.scheduler import DDIMScheduler, SchedulerConfig
 from axispose_core.axis_image import axis_keypoints, render_axis_keypoints
 from axispose_core.checkpoint import CheckpointError, save_checkpoint
 from axispose_core.data.objects import lmo_objects
-from axispose_core.demo import SHIPPED_READER
 from axispose_core.estimator import Estimator, EstimatorConfig
 from axispose_core.pose_sampling import sample_patch
-from axispose_core.tbm.reader import load_reader
+from axispose_core.tbm.reader import SHIPPED_READER, load_reader
 
 TINY = DenoiserConfig(size=64, channels=8, multipliers=(1, 2), groups=4)
 

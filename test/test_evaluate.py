@@ -76,9 +76,8 @@ def test_low_visibility_instances_are_skipped(scenes, lmo_dir):
 def test_eval_cli_writes_the_report(scenes, lmo_dir, tmp_path):
     from axispose_core.agm.denoiser import DenoiserConfig
     from axispose_core.agm.model import AGMConfig, AxisGenerator
-    from axispose_core.demo import SHIPPED_READER
     from axispose_core.estimator import Estimator, EstimatorConfig
-    from axispose_core.tbm.reader import load_reader
+    from axispose_core.tbm.reader import SHIPPED_READER, load_reader
 
     reader = load_reader(SHIPPED_READER)
     cfg = EstimatorConfig(

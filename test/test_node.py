@@ -16,10 +16,9 @@ from axispose_core.agm.denoiser import DenoiserConfig
 from axispose_core.agm.model import AGMConfig, AxisGenerator
 from axispose_core.checkpoint import CheckpointError
 from axispose_core.data.objects import lmo_objects
-from axispose_core.demo import SHIPPED_READER
 from axispose_core.estimator import Estimator, EstimatorConfig, PoseEstimate
 from axispose_core.pose_sampling import LMO_K
-from axispose_core.tbm.reader import load_reader
+from axispose_core.tbm.reader import SHIPPED_READER, load_reader
 from axispose_ros.node import AxisPoseNode
 
 

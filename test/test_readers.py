@@ -7,12 +7,11 @@ import torch.nn.functional as F
 
 from axispose_core.axis_image import axis_keypoints, render_axis_keypoints
 from axispose_core.checkpoint import CheckpointError, save_checkpoint
-from axispose_core.demo import SHIPPED_READER
 from axispose_core.metrics import re
 from axispose_core.pose_sampling import sample_patch
 from axispose_core.tbm.backproject import backproject
 from axispose_core.tbm.line_fit import fit_axis_keypoints
-from axispose_core.tbm.reader import KeypointReader, ReaderConfig, degrade, load_reader, synth_batch
+from axispose_core.tbm.reader import SHIPPED_READER, KeypointReader, ReaderConfig, degrade, load_reader, synth_batch
 
 
 @pytest.fixture(scope="module")

@@ -38,10 +38,11 @@ def instance_crop(
     size: int,
     rng: np.random.Generator | None = None,
     jitter: CropJitter = CropJitter(),
+    pad: float = 1.25,
 ) -> InstanceCrop:
-    """Cut the size x size crop around a box; with `rng`, jitter it as `jitter` says (else pad 1.25, centred)."""
+    """Cut the size x size crop around a box; with `rng`, jitter it as `jitter` says (else `pad`, centred)."""
     if rng is None:
-        center, side = square_around_box(box_xywh, pad=1.25)
+        center, side = square_around_box(box_xywh, pad=pad)
     else:
         center, side = square_around_box(box_xywh, pad=float(rng.uniform(*jitter.pad)))
         center = (center[0] + rng.uniform(-jitter.shift, jitter.shift) * side, center[1] + rng.uniform(-jitter.shift, jitter.shift) * side)

@@ -27,6 +27,8 @@ from axispose_core.pose_sampling import sample_patch
 from axispose_core.tbm.keypoints import AxisKeypoints
 
 KIND = "tbm_reader"
+SHIPPED_READER = Path(__file__).resolve().parents[1] / "models" / "tbm_reader.safetensors"
+"""The reader trained by `axispose train-reader --size 64 --steps 3000 --seed 0`, installed with the package."""
 
 
 @dataclass(frozen=True)

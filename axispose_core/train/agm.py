@@ -31,7 +31,7 @@ from axispose_core.data.synth.config import SynthConfig
 from axispose_core.estimator import Estimator, EstimatorConfig
 from axispose_core.metrics import re
 from axispose_core.tbm.backproject import backproject
-from axispose_core.tbm.reader import KeypointReader, load_reader
+from axispose_core.tbm.reader import SHIPPED_READER, KeypointReader, load_reader
 from axispose_core.train.dataset import AxisCropDataset
 
 
@@ -104,7 +104,7 @@ def train_agm(
     out.parent.mkdir(parents=True, exist_ok=True)
     torch.manual_seed(cfg.seed + rank)
     objects = dataset_objects(data[0])
-    reader = load_reader(reader_path) if reader_path else load_reader(Path(__file__).parents[1] / "models" / "tbm_reader.safetensors")
+    reader = load_reader(reader_path or SHIPPED_READER)
     if reader.config.size != cfg.agm.denoiser.size:
         raise ValueError(f"the keypoint reader reads {reader.config.size}px images; the AGM is configured for {cfg.agm.denoiser.size}px")
     train_set = AxisCropDataset(data, objects, cfg.agm.denoiser.size, cfg.min_visib, seed=cfg.seed)
@@ -143,6 +143,9 @@ def train_agm(
     bar = tqdm(total=cfg.steps, initial=step, desc="train agm", disable=not progress or rank != 0)
     epoch = step * cfg.batch // max(1, len(train_set))
     gen = torch.Generator().manual_seed(cfg.seed * 1000 + step + rank)
+
+    def out_of_time() -> bool:
+        return max_minutes is not None and time.time() - start > 60 * max_minutes
 
     def save() -> None:
         if rank != 0:
@@ -215,11 +218,10 @@ def train_agm(
                     log.flush()
                 if step % cfg.save_every == 0:
                     save()
-                out_of_time = max_minutes is not None and time.time() - start > 60 * max_minutes
-                if step >= cfg.steps or out_of_time:
+                if step >= cfg.steps or out_of_time():
                     break
             epoch += 1
-            if max_minutes is not None and time.time() - start > 60 * max_minutes:
+            if out_of_time():
                 break
         save()
     finally:
