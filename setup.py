@@ -38,7 +38,7 @@ setup(
     },
     entry_points={
         "console_scripts": [
-            "axispose = axispose_core.cli:main",
+            "axispose = axispose_ros.cli:main",
             "axispose_node = axispose_ros.node:main",
         ],
     },

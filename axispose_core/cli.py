@@ -96,7 +96,7 @@ def _eval(args: argparse.Namespace) -> int:
     import torch
 
     from axispose_core.estimator import Estimator
-    from axispose_core.evaluate import Prediction, evaluate, plot_cdfs, plot_grid, summarize, write_report
+    from axispose_core.evaluate import Prediction, evaluate, format_table, plot_cdfs, plot_grid, summarize, write_report
 
     torch.set_num_threads(args.threads)
     est = Estimator.load(args.checkpoint)
@@ -110,10 +110,7 @@ def _eval(args: argparse.Namespace) -> int:
               "guidance": est.config.guidance_scale if args.guidance is None else args.guidance, "crops": args.crops}  # fmt: skip
     report = summarize(records, objects, config)
     write_report(report, args.report)
-    print(f"{'object':<12} {'n':>4} {'ADD0.1d':>8} {'ADD0.2d':>8} {'Rep5px':>8} {'Rep15px':>8} {'rot med':>8}")
-    for e in report["objects"].values():
-        cells = " ".join(f"{e[k]:8.3f}" for k in ("add_0.1d", "add_0.2d", "reproj_5px", "reproj_15px"))
-        print(f"{e['name']:<12} {e['n']:4d} {cells} {e['rot_err_median_deg']:8.1f}")
+    print(format_table(report))
     if args.plots:
         print(f"plots: {plot_cdfs(records, objects, args.plots)}, {plot_grid(records, objects, args.models, args.plots)}")
     print(f"report: {args.report}")

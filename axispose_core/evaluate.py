@@ -52,7 +52,7 @@ class Record:
     t: np.ndarray
     ok: bool
     K: np.ndarray
-    rgb_path: Path
+    rgb_path: Path | None
     box: tuple[int, int, int, int]
 
 
@@ -127,6 +127,19 @@ def summarize(records: list[Record], objects: list[ObjectSpec], config: dict) ->
         "ms_per_object": {"median": float(np.median(ms)), "p90": float(np.percentile(ms, 90))},
         "config": config,
     }
+
+
+def format_table(report: dict) -> str:
+    """The report's per-object rows and their mean, as a fixed-width table."""
+    keys = ("add_0.1d", "add_0.2d", "reproj_5px", "reproj_15px")
+    lines = [f"{'object':<12} {'n':>4} {'ADD0.1d':>8} {'ADD0.2d':>8} {'Rep5px':>8} {'Rep15px':>8} {'rot med':>8} {'t med mm':>9}"]
+    rows = [(e["name"], str(e["n"]), e) for e in report["objects"].values()]
+    if report["mean"]:
+        rows.append(("mean", "", report["mean"]))
+    for name, n, e in rows:
+        cells = " ".join(f"{e[k]:8.3f}" for k in keys)
+        lines.append(f"{name:<12} {n:>4} {cells} {e['rot_err_median_deg']:8.1f} {e['trans_err_median_mm']:9.1f}")
+    return "\n".join(lines)
 
 
 def write_report(report: dict, path: str | Path) -> None:

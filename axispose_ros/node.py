@@ -87,6 +87,7 @@ class AxisPoseNode(Node):
         self._slot_lock = threading.Lock()
         self._wake = threading.Event()
         self._stop = threading.Event()
+        self._busy = False
         self._rois: dict[int, tuple[RegionOfInterest, float]] = {}
         self._warned: set[str] = set()
         self.sync = StampSynchronizer(float(self.get_parameter("sync_slop").value), self._on_pair, self._on_drop)
@@ -158,6 +159,11 @@ class AxisPoseNode(Node):
     def _on_roi(self, obj_id: int, msg: RegionOfInterest) -> None:
         self._rois[obj_id] = (msg, time.monotonic())
 
+    def latest_roi(self, obj_id: int) -> RegionOfInterest | None:
+        """The last box received for an object (None before any)."""
+        entry = self._rois.get(obj_id)
+        return entry[0] if entry else None
+
     def _on_drop(self, _: Image, reason: str) -> None:
         self.counts[f"dropped_{reason}"] += 1
         self.get_logger().warning(f"dropped a frame: {reason}", throttle_duration_sec=5.0)
@@ -177,6 +183,7 @@ class AxisPoseNode(Node):
             with self._slot_lock:
                 frame, self._slot = self._slot, None
                 self._wake.clear()
+                self._busy = frame is not None
             if frame is None:
                 continue
             try:
@@ -190,6 +197,18 @@ class AxisPoseNode(Node):
             except Exception as err:
                 self.counts["dropped_error"] += 1
                 self.get_logger().error(f"inference failed on a frame: {err!r}", throttle_duration_sec=5.0)
+            finally:
+                with self._slot_lock:
+                    self._busy = False
+
+    def frames_done(self) -> int:
+        """Frames that left the node: processed, or dropped for a reason."""
+        return self.counts["frames_processed"] + sum(v for k, v in self.counts.items() if k.startswith("dropped_"))
+
+    def idle(self) -> bool:
+        """No frame waits for, or is in, inference (frames still waiting for their CameraInfo do not count)."""
+        with self._slot_lock:
+            return self._slot is None and not self._busy
 
     def _boxes(self, width: int, height: int) -> list[tuple[int, tuple[float, float, float, float]]]:
         now, timeout = time.monotonic(), float(self.get_parameter("roi_timeout").value)
@@ -198,7 +217,7 @@ class AxisPoseNode(Node):
             if now - seen > timeout or roi.width == 0 or roi.height == 0:
                 continue
             if roi.x_offset + roi.width > width or roi.y_offset + roi.height > height:
-                self.counts["dropped_roi_outside"] += 1
+                self.counts["roi_outside"] += 1
                 continue
             boxes.append((obj_id, (roi.x_offset, roi.y_offset, roi.width, roi.height)))
         return boxes
