@@ -6,7 +6,8 @@ import dataclasses
 import json
 import subprocess
 from pathlib import Path
-from typing import Any, TypeVar, get_args, get_origin, get_type_hints
+from types import UnionType
+from typing import Any, TypeVar, Union, get_args, get_origin, get_type_hints
 
 import torch
 from safetensors import SafetensorError, safe_open
@@ -47,8 +48,12 @@ def config_from_dict(cls: type[C], data: dict[str, Any], source: str = "config")
         value = data[name]
         ftype = hints.get(name)
         item = get_args(ftype)[0] if get_origin(ftype) is tuple and get_args(ftype) else None
+        union = get_args(ftype) if get_origin(ftype) in (Union, UnionType) else ()
+        optional = [a for a in union if isinstance(a, type) and dataclasses.is_dataclass(a)]
         if isinstance(ftype, type) and dataclasses.is_dataclass(ftype):
             value = config_from_dict(ftype, value, f"{source}.{name}")
+        elif optional and isinstance(value, dict):  # `SomeConfig | None` holding a config
+            value = config_from_dict(optional[0], value, f"{source}.{name}")
         elif isinstance(item, type) and dataclasses.is_dataclass(item) and isinstance(value, list):
             value = tuple(config_from_dict(item, v, f"{source}.{name}[{k}]") for k, v in enumerate(value))
         elif isinstance(value, list):

@@ -1,11 +1,14 @@
 """One call from an image, K and object boxes to metric poses: crop -> AGM -> axis image -> reader -> TBM.
 
+The boxes come from the caller (an external detector, ROIs, GT boxes) or from the localiser the checkpoint
+may carry (`detect`).
+
 The node, `axispose eval` and the demos all go through `Estimator`, so what is measured is what runs.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -15,9 +18,11 @@ from axispose_core.agm.guidance import self_consistency_target
 from axispose_core.agm.model import AGMConfig, AxisGenerator
 from axispose_core.axis_image import AxisSpec
 from axispose_core.camera import validate_intrinsics
-from axispose_core.checkpoint import load_state, read_checkpoint, save_checkpoint
+from axispose_core.checkpoint import CheckpointError, load_state, read_checkpoint, save_checkpoint
 from axispose_core.data.crops import instance_crop
 from axispose_core.data.objects import ObjectSpec
+from axispose_core.detect.decode import Detection
+from axispose_core.detect.model import Localiser, LocaliserConfig
 from axispose_core.tbm.backproject import backproject
 from axispose_core.tbm.reader import KeypointReader, ReaderConfig
 
@@ -36,6 +41,8 @@ class EstimatorConfig:
     guidance_scale: float = 0.0
     training: dict = field(default_factory=dict)
     """Provenance: data recipe, steps, wall time, hardware."""
+    localiser: LocaliserConfig | None = None
+    """The 2D localiser's config when the checkpoint carries one."""
 
 
 @dataclass
@@ -55,13 +62,20 @@ class PoseEstimate:
 class Estimator:
     """Holds the AGM and the keypoint reader; `estimate(image, K, boxes)` returns one pose per box."""
 
-    def __init__(self, config: EstimatorConfig, agm: AxisGenerator, reader: KeypointReader, device: str = "cpu") -> None:
+    def __init__(
+        self, config: EstimatorConfig, agm: AxisGenerator, reader: KeypointReader, device: str = "cpu", localiser: Localiser | None = None
+    ) -> None:
         if agm.config.denoiser.size != reader.config.size:
             raise ValueError(f"AGM draws {agm.config.denoiser.size}px axis images, the reader reads {reader.config.size}px")
+        if (localiser is None) != (config.localiser is None) or (localiser is not None and localiser.config != config.localiser):
+            raise ValueError("the localiser and config.localiser must be given together and agree")
+        if localiser is not None and not set(localiser.config.obj_ids) <= {o.obj_id for o in config.objects}:
+            raise ValueError(f"the localiser finds objects {localiser.config.obj_ids}, not all known to the estimator")
         self.config = config
         self.device = torch.device(device)
         self.agm = agm.to(self.device).eval()
         self.reader = reader.to(self.device).eval()
+        self.localiser = localiser.to(self.device).eval() if localiser is not None else None
         self.objects = {o.obj_id: o for o in config.objects}
 
     @property
@@ -69,7 +83,18 @@ class Estimator:
         return self.config.agm.denoiser.size
 
     def save(self, path: str | Path) -> None:
-        save_checkpoint(path, KIND, self.config, {"agm": self.agm.denoiser, "reader": self.reader})
+        modules = {"agm": self.agm.denoiser, "reader": self.reader} | ({"localiser": self.localiser} if self.localiser else {})
+        save_checkpoint(path, KIND, self.config, modules)
+
+    def with_localiser(self, localiser: Localiser) -> Estimator:
+        """This estimator carrying `localiser` (replacing any it had), so one checkpoint serves the node."""
+        return Estimator(replace(self.config, localiser=localiser.config), self.agm, self.reader, str(self.device), localiser)
+
+    def detect(self, image_rgb: np.ndarray, threshold: float | None = None) -> list[Detection]:
+        """Objects found in a full frame by the checkpoint's localiser (none found: an empty list)."""
+        if self.localiser is None:
+            raise ValueError("this checkpoint has no localiser: pass boxes, or attach one with `axispose train-detector --attach`")
+        return self.localiser.detect(image_rgb, threshold)
 
     @classmethod
     def load(cls, path: str | Path, device: str = "cpu") -> Estimator:
@@ -78,7 +103,13 @@ class Estimator:
         load_state(agm.denoiser, states.get("agm", {}), f"{path} (agm)")
         reader = KeypointReader(config.reader)
         load_state(reader, states.get("reader", {}), f"{path} (reader)")
-        return cls(config, agm, reader, device)
+        localiser = None
+        if config.localiser is not None:
+            localiser = Localiser(config.localiser)
+            load_state(localiser, states.get("localiser", {}), f"{path} (localiser)")
+        elif "localiser" in states:
+            raise CheckpointError(f"{path}: holds localiser weights but no localiser config")
+        return cls(config, agm, reader, device, localiser)
 
     def estimate(
         self,

@@ -21,6 +21,7 @@ from axispose_core.camera import crop_image, crop_intrinsics, square_around_box
 from axispose_core.data.bop import BopFormatError, BopScene, load_ply, model_path
 from axispose_core.data.objects import ObjectSpec
 from axispose_core.data.synth.preview import draw_axes
+from axispose_core.detect.decode import Detection, match
 from axispose_core.metrics import ADD_THRESHOLDS, REPROJ_THRESHOLDS, pose_scores
 from axispose_core.train.dataset import scene_dirs
 
@@ -63,8 +64,15 @@ def evaluate(
     objects: list[ObjectSpec],
     limit: int | None = None,
     progress: bool = True,
+    detector: Callable[[np.ndarray], list[Detection]] | None = None,
+    detection_counts: dict[int, dict[str, int]] | None = None,
 ) -> list[Record]:
-    """Run `predict` on every frame's GT boxes (one batch per frame) and score each instance."""
+    """Run `predict` on every frame's boxes (one batch per frame) and score each instance.
+
+    The boxes are the GT boxes, or with `detector` the detections matched to the GT instances (same object,
+    IoU >= 0.5, greedy by score); an instance no detection matches counts as a pose failure, and per object
+    `detection_counts` (filled in) gets the true positives, false positives and instances.
+    """
     specs = {o.obj_id: o for o in objects}
     points = {i: load_ply(model_path(models_dir, i)).vertices for i in specs}
     records: list[Record] = []
@@ -88,9 +96,28 @@ def evaluate(
         if bgr is None:
             raise BopFormatError(f"{scene.rgb_path(im_id)}: unreadable image")
         K = scene.cameras[im_id]
+        rgb = cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB)
         start = time.perf_counter()
-        preds = predict(cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB), K, [(g.obj_id, info.bbox_obj) for g, info in insts])
+        boxes = [(g.obj_id, info.bbox_obj) for g, info in insts]
+        if detector is not None:
+            dets = detector(rgb)
+            everyone = [(g.obj_id, info.bbox_obj) for g, info in zip(scene.gt[im_id], scene.gt_info[im_id], strict=True)]
+            hits = match(dets, everyone)  # detections of barely visible instances are neither hits nor false alarms
+            found = dict(zip(map(id, scene.gt[im_id]), hits, strict=True))
+            boxes = [(g.obj_id, dets[found[id(g)]].box) for g, _ in insts if found[id(g)] is not None]
+            if detection_counts is not None:
+                for g, _ in insts:
+                    c = detection_counts.setdefault(g.obj_id, {"tp": 0, "fp": 0, "n": 0})
+                    c["n"] += 1
+                    c["tp"] += found[id(g)] is not None
+                claimed = {k for k in hits if k is not None}
+                for k, d in enumerate(dets):
+                    if k not in claimed and d.obj_id in specs:
+                        detection_counts.setdefault(d.obj_id, {"tp": 0, "fp": 0, "n": 0})["fp"] += 1
+        preds_found = iter(predict(rgb, K, boxes) if boxes else [])
         per_object = (time.perf_counter() - start) / len(insts)
+        missed = Prediction(np.eye(3), np.zeros(3), False)
+        preds = [next(preds_found) if detector is None or found[id(g)] is not None else missed for g, _ in insts]
         for (g, info), p in zip(insts, preds, strict=True):
             spec = specs[g.obj_id]
             if p.ok:
@@ -105,8 +132,10 @@ def evaluate(
     return records
 
 
-def summarize(records: list[Record], objects: list[ObjectSpec], config: dict) -> dict:
-    """The report JSON: per object, mean over objects, latency, config."""
+def summarize(
+    records: list[Record], objects: list[ObjectSpec], config: dict, detection_counts: dict[int, dict[str, int]] | None = None
+) -> dict:
+    """The report JSON: per object, mean over objects, latency, config; detection precision/recall when given."""
     per: dict[str, dict[str, float]] = {}
     for o in objects:
         rs = [r for r in records if r.obj_id == o.obj_id]
@@ -117,8 +146,14 @@ def summarize(records: list[Record], objects: list[ObjectSpec], config: dict) ->
             entry[k] = float(np.mean([r.scores[k] for r in rs]))
         entry["rot_err_median_deg"] = float(np.median([r.scores["rot_err_deg"] for r in rs]))
         entry["trans_err_median_mm"] = float(np.median([r.scores["trans_err_mm"] for r in rs]))
+        if detection_counts is not None:
+            c = detection_counts.get(o.obj_id, {"tp": 0, "fp": 0, "n": 0})
+            entry["det_recall"] = c["tp"] / c["n"] if c["n"] else float("nan")
+            entry["det_precision"] = c["tp"] / (c["tp"] + c["fp"]) if c["tp"] + c["fp"] else float("nan")
         per[str(o.obj_id)] = entry
-    keys = [*SUMMARY_KEYS, "rot_err_median_deg", "trans_err_median_mm"]
+    keys = [*SUMMARY_KEYS, "rot_err_median_deg", "trans_err_median_mm"] + (
+        ["det_recall", "det_precision"] if detection_counts is not None else []
+    )
     mean = {k: float(np.mean([e[k] for e in per.values()])) for k in keys} if per else {}
     ms = np.array([1000 * r.seconds for r in records]) if records else np.zeros(1)
     return {

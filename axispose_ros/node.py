@@ -126,6 +126,7 @@ class AxisPoseNode(Node):
         self.declare_parameter("sync_slop", 0.02, desc("largest Image/CameraInfo stamp difference in s", floats=(0.0, 1.0)))
         self.declare_parameter("num_threads", 2, desc("torch CPU threads for inference", ints=(1, 64)))
         self.declare_parameter("roi_timeout", 1.0, desc("age in s after which an ROI is ignored", floats=(0.0, 3600.0)))
+        self.declare_parameter("score_threshold", 0.3, desc("least localiser score of an instance", floats=(0.0, 1.0)))
         dev = self.get_parameter("device").value
         if dev not in ("cpu", "cuda", "auto"):
             raise ValueError(f"parameter 'device' must be cpu, cuda or auto, got {dev!r}")
@@ -235,6 +236,10 @@ class AxisPoseNode(Node):
         rgb = image_to_rgb(frame.image)
         camera = camera_for_image(camera_from_info(frame.info, bool(self.get_parameter("use_rectified").value)), rgb.shape[1], rgb.shape[0])
         boxes = self._boxes(rgb.shape[1], rgb.shape[0])
+        scores = [1.0] * len(boxes)
+        if not boxes and self.estimator.localiser is not None:
+            dets = [d for d in self.estimator.detect(rgb, float(self.get_parameter("score_threshold").value)) if d.obj_id in self.names]
+            boxes, scores = [(d.obj_id, d.box) for d in dets], [d.score for d in dets]
         estimates = self.estimator.estimate(
             rgb,
             camera.K,
@@ -246,7 +251,8 @@ class AxisPoseNode(Node):
         header = frame.image.header
         array = PoseArray(header=header)
         markers = MarkerArray()
-        for est in estimates:
+        best: dict[int, tuple[float, PoseStamped]] = {}
+        for est, score in zip(estimates, scores, strict=True):
             if not est.ok:
                 self.counts["pose_refused"] += 1
                 continue
@@ -254,9 +260,12 @@ class AxisPoseNode(Node):
             array.poses.append(pose)
             if est.obj_id in self.published:
                 stamped = PoseStamped(header=header, pose=pose)
-                self.pub_pose.publish(stamped)
                 self.pub_object[est.obj_id].publish(stamped)
+                if est.obj_id not in best or score > best[est.obj_id][0]:
+                    best[est.obj_id] = (score, stamped)
                 markers.markers.extend(_axis_markers(header, est, self.names[est.obj_id], self.estimator.objects[est.obj_id].axes.lengths))
+        for _, stamped in best.values():
+            self.pub_pose.publish(stamped)
         self.pub_array.publish(array)
         if markers.markers:
             self.pub_markers.publish(markers)

@@ -16,6 +16,7 @@ from axispose_core.agm.denoiser import DenoiserConfig
 from axispose_core.agm.model import AGMConfig, AxisGenerator
 from axispose_core.checkpoint import CheckpointError
 from axispose_core.data.objects import lmo_objects
+from axispose_core.detect.model import Localiser, LocaliserConfig
 from axispose_core.estimator import Estimator, EstimatorConfig, PoseEstimate
 from axispose_core.pose_sampling import LMO_K
 from axispose_core.tbm.reader import SHIPPED_READER, load_reader
@@ -225,3 +226,27 @@ def test_clean_shutdown_with_frames_in_flight(checkpoint):
         h.exe.spin_once(timeout_sec=0.01)
     h.close()
     assert not h.node._worker.is_alive()
+
+
+def test_without_rois_the_checkpoints_localiser_finds_the_objects(tmp_path):
+    """An untrained localiser at threshold 0 yields max_per_object detections per object: every one is estimated
+    (published or refused); at threshold 1, set at run time, none is and the PoseArray is empty."""
+    reader = load_reader(SHIPPED_READER)
+    localiser = Localiser(LocaliserConfig(obj_ids=(1, 5), input_size=(160, 128), channels=(8, 16, 24, 32), max_per_object=2))
+    cfg = EstimatorConfig(
+        agm=AGMConfig(denoiser=DenoiserConfig(channels=8, multipliers=(1, 2), groups=4)), reader=reader.config,
+        objects=tuple(lmo_objects()[:2]), ddim_steps=1,
+    )  # fmt: skip
+    Estimator(cfg, AxisGenerator(cfg.agm), reader).with_localiser(localiser).save(tmp_path / "loc.safetensors")
+    h = Harness(tmp_path / "loc.safetensors", score_threshold=0.0)
+    try:
+        h.spin_until(lambda: h.pub_image.get_subscription_count() > 0, 5.0)
+        h.frame(sec=11)
+        assert h.spin_until(lambda: h.got["array"])
+        assert len(h.got["array"][0].poses) + h.node.counts["pose_refused"] == 4
+        assert h.node.set_parameters([Parameter("score_threshold", value=1.0)])[0].successful
+        h.frame(sec=12)
+        assert h.spin_until(lambda: len(h.got["array"]) == 2)
+        assert h.got["array"][1].poses == []
+    finally:
+        h.close()

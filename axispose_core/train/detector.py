@@ -1,0 +1,266 @@
+"""`axispose train-detector`: the CenterNet localiser on synthetic BOP frames, with the AGM trainer's conventions
+(AdamW, warm-up + cosine, clipping, EMA weights in the checkpoint, seeded, resumable from OUT.state.pt, CSV log
+with periodic validation recall, `--max-minutes`).
+
+Boxes are bbox_obj (the whole object, occluded parts included: the square the AGM's crops are cut around) of
+instances with visib_fract >= `min_visib`. Frames are zoomed and shifted at random (boxes follow) and
+colour-jittered on top of the data's own randomisation.
+"""
+
+from __future__ import annotations
+
+import copy
+import csv
+import dataclasses
+import math
+import platform
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import cv2
+import numpy as np
+import torch
+import torch.nn.functional as F
+from torch.utils.data import DataLoader, Dataset, RandomSampler
+from tqdm import tqdm
+
+from axispose_core.checkpoint import load_state, read_checkpoint, save_checkpoint
+from axispose_core.data.bop import BopFormatError, BopScene
+from axispose_core.detect.decode import draw_targets, focal_loss, match
+from axispose_core.detect.model import STRIDE, Localiser, LocaliserConfig
+from axispose_core.train.dataset import scene_dirs
+
+KIND = "localiser"
+
+
+@dataclass(frozen=True)
+class DetectorTrainConfig:
+    localiser: LocaliserConfig = field(default_factory=LocaliserConfig)
+    steps: int = 4000
+    batch: int = 16
+    lr: float = 2e-3
+    weight_decay: float = 1e-4
+    warmup: int = 100
+    grad_clip: float = 5.0
+    ema_decay: float = 0.99
+    seed: int = 0
+    workers: int = 1
+    min_visib: float = 0.1
+    size_weight: float = 0.1
+    offset_weight: float = 1.0
+    save_every: int = 200
+    val_every: int = 500
+    val_frames: int = 40
+
+
+class DetectionDataset(Dataset):
+    """Resized frames in [-1,1] with heatmap/size/offset targets; randomness depends on (seed, epoch, index)."""
+
+    def __init__(self, roots: list[str | Path], config: LocaliserConfig, min_visib: float, augment: bool = True, seed: int = 0) -> None:
+        self.config, self.augment, self.seed, self.epoch = config, augment, seed, 0
+        self.classes = {o: k for k, o in enumerate(config.obj_ids)}
+        self.frames: list[tuple[BopScene, int]] = []
+        for root in roots:
+            for sd in scene_dirs(root):
+                scene = BopScene(sd)
+                if scene.gt_info is None:
+                    raise BopFormatError(f"{sd}: scene_gt_info.json is needed for training boxes")
+                self.frames += [(scene, im_id) for im_id in scene.image_ids]
+        self.min_visib = min_visib
+
+    def __len__(self) -> int:
+        return len(self.frames)
+
+    def boxes(self, i: int) -> list[tuple[int, tuple[float, float, float, float]]]:
+        """(class index, bbox_obj) of the frame's instances the localiser should find."""
+        scene, im_id = self.frames[i]
+        return [
+            (self.classes[g.obj_id], tuple(float(v) for v in info.bbox_obj))
+            for g, info in zip(scene.gt[im_id], scene.gt_info[im_id], strict=True)
+            if g.obj_id in self.classes and info.visib_fract >= self.min_visib
+        ]
+
+    def __getitem__(self, i: int) -> dict[str, torch.Tensor]:
+        scene, im_id = self.frames[i]
+        rng = np.random.default_rng([self.seed, self.epoch, i])
+        bgr = cv2.imread(str(scene.rgb_path(im_id)), cv2.IMREAD_COLOR)
+        if bgr is None:
+            raise BopFormatError(f"{scene.rgb_path(im_id)}: unreadable image")
+        rgb = cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB)
+        w, h = self.config.input_size
+        sx, sy = w / rgb.shape[1], h / rgb.shape[0]
+        A = np.array([[sx, 0, 0], [0, sy, 0]], np.float64)
+        if self.augment:  # zoom about the centre and shift; boxes follow the same affine map
+            z = rng.uniform(0.8, 1.25)
+            tx, ty = rng.uniform(-0.1, 0.1) * w, rng.uniform(-0.1, 0.1) * h
+            A = np.array([[z, 0, (1 - z) * w / 2 + tx], [0, z, (1 - z) * h / 2 + ty]]) @ np.vstack([A, [0, 0, 1]])
+        image = cv2.warpAffine(rgb, A, (w, h), flags=cv2.INTER_AREA, borderMode=cv2.BORDER_REFLECT101).astype(np.float32) / 255
+        if self.augment:
+            image = np.clip(image * rng.uniform(0.7, 1.3, 3) + rng.uniform(-0.1, 0.1), 0, 1)
+        boxes = [(c, (A[0, 0] * x + A[0, 2], A[1, 1] * y + A[1, 2], A[0, 0] * bw, A[1, 1] * bh)) for c, (x, y, bw, bh) in self.boxes(i)]
+        heat, log_size, offset, mask = draw_targets(boxes, len(self.classes), (h // STRIDE, w // STRIDE), STRIDE)
+        return {
+            "image": torch.from_numpy(image * 2 - 1).permute(2, 0, 1).float(),
+            "heat": torch.from_numpy(heat),
+            "log_size": torch.from_numpy(log_size),
+            "offset": torch.from_numpy(offset),
+            "mask": torch.from_numpy(mask),
+        }
+
+
+def detector_loss(model: Localiser, batch: dict[str, torch.Tensor], cfg: DetectorTrainConfig) -> torch.Tensor:
+    heat, log_size, offset = model(batch["image"])
+    mask = batch["mask"][:, None]
+    n = mask.sum().clamp(min=1)
+    size_loss = (F.l1_loss(log_size, batch["log_size"], reduction="none") * mask).sum() / n
+    off_loss = (F.l1_loss(offset, batch["offset"], reduction="none") * mask).sum() / n
+    return focal_loss(heat, batch["heat"]) + cfg.size_weight * size_loss + cfg.offset_weight * off_loss
+
+
+def detection_scores(
+    model: Localiser, data: list[str | Path], min_visib: float = 0.3, limit: int | None = None, progress: bool = False
+) -> dict:
+    """Recall and precision at IoU 0.5 per object on BOP frames (GT: bbox_obj with visib_fract >= min_visib;
+    detections of less visible instances are neither hits nor false positives), and ms per frame."""
+    ids = model.config.obj_ids
+    tp, fp, n_gt = dict.fromkeys(ids, 0), dict.fromkeys(ids, 0), dict.fromkeys(ids, 0)
+    times = []
+    scenes = [BopScene(sd) for root in data for sd in scene_dirs(root)]
+    frames = [(scene, im_id) for scene in scenes for im_id in scene.image_ids]
+    for scene, im_id in tqdm(frames[:limit], desc="detect", disable=not progress):
+        rgb = cv2.cvtColor(cv2.imread(str(scene.rgb_path(im_id)), cv2.IMREAD_COLOR), cv2.COLOR_BGR2RGB)
+        start = time.perf_counter()
+        dets = model.detect(rgb)
+        times.append(time.perf_counter() - start)
+        insts = [(g.obj_id, info.bbox_obj, info.visib_fract) for g, info in zip(scene.gt[im_id], scene.gt_info[im_id], strict=True)]
+        insts = [i for i in insts if i[0] in tp]
+        hits = match(dets, [(o, b) for o, b, _ in insts])
+        for (o, _, v), k in zip(insts, hits, strict=True):
+            if v >= min_visib:
+                n_gt[o] += 1
+                tp[o] += k is not None
+        claimed = {k for k in hits if k is not None}
+        for k, d in enumerate(dets):
+            fp[d.obj_id] += k not in claimed
+    per = {
+        str(o): {"n": n_gt[o], "recall": tp[o] / n_gt[o] if n_gt[o] else float("nan"),
+                 "precision": tp[o] / (tp[o] + fp[o]) if tp[o] + fp[o] else float("nan")}
+        for o in ids
+    }  # fmt: skip
+    ms = 1000 * np.array(times or [0.0])
+    total_gt, total_tp = sum(n_gt.values()), sum(tp.values())
+    return {
+        "objects": per,
+        "recall": total_tp / total_gt if total_gt else float("nan"),
+        "precision": total_tp / (total_tp + sum(fp.values())) if total_tp + sum(fp.values()) else float("nan"),
+        "ms_per_frame": {"median": float(np.median(ms)), "p90": float(np.percentile(ms, 90))},
+    }
+
+
+def load_localiser(path: str | Path, device: str = "cpu") -> Localiser:
+    """A trained localiser from its own checkpoint, in eval mode."""
+    config, states, _ = read_checkpoint(path, KIND, LocaliserConfig)
+    model = Localiser(config)
+    load_state(model, states.get("localiser", {}), str(path))
+    return model.to(device).eval()
+
+
+def _lr(step: int, cfg: DetectorTrainConfig) -> float:
+    if step < cfg.warmup:
+        return (step + 1) / cfg.warmup
+    return 0.5 * (1 + math.cos(math.pi * min(1.0, (step - cfg.warmup) / max(1, cfg.steps - cfg.warmup))))
+
+
+def train_detector(
+    cfg: DetectorTrainConfig,
+    data: list[str | Path],
+    out: str | Path,
+    val_data: list[str | Path] | None = None,
+    resume: str | Path | None = None,
+    device: str = "auto",
+    max_minutes: float | None = None,
+    progress: bool = True,
+) -> int:
+    """Train (or continue) the localiser; OUT holds the EMA weights with their config. Returns the step reached."""
+    dev = torch.device("cuda" if device == "auto" and torch.cuda.is_available() else ("cpu" if device == "auto" else device))
+    out = Path(out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    torch.manual_seed(cfg.seed)
+    train_set = DetectionDataset(data, cfg.localiser, cfg.min_visib, seed=cfg.seed)
+    if not len(train_set):
+        raise ValueError(f"no frames in {data}")
+    model = Localiser(cfg.localiser).to(dev)
+    ema = copy.deepcopy(model).eval()
+    opt = torch.optim.AdamW(model.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
+    sched = torch.optim.lr_scheduler.LambdaLR(opt, lambda s: _lr(s, cfg))
+    step = 0
+    state_path = out.with_suffix(out.suffix + ".state.pt")
+    if resume:
+        state = torch.load(resume, map_location="cpu", weights_only=False)
+        if state["config"] != dataclasses.asdict(cfg):
+            raise ValueError(f"{resume}: saved by a run with another configuration; resume with the same --config")
+        model.load_state_dict(state["model"])
+        ema.load_state_dict(state["ema"])
+        opt.load_state_dict(state["opt"])
+        sched.load_state_dict(state["sched"])
+        step = state["step"]
+        torch.set_rng_state(state["torch_rng"])
+    log = open(out.with_suffix(".csv"), "a", newline="")
+    writer = csv.writer(log)
+    if step == 0:
+        writer.writerow(["step", "loss", "lr", "seconds", "val_recall", "val_precision"])
+    start = time.time()
+
+    def save() -> None:
+        provenance = {"data": [str(d) for d in data], "steps": step, "seconds": time.time() - start, "device": str(dev),
+                      "host": platform.processor() or platform.machine()}  # fmt: skip
+        save_checkpoint(out, KIND, cfg.localiser, {"localiser": ema}, extra={"training": provenance})
+        tmp = state_path.with_suffix(".tmp")
+        torch.save({"config": dataclasses.asdict(cfg), "model": model.state_dict(), "ema": ema.state_dict(), "opt": opt.state_dict(),
+                    "sched": sched.state_dict(), "step": step, "torch_rng": torch.get_rng_state()}, tmp)  # fmt: skip
+        tmp.replace(state_path)
+
+    def out_of_time() -> bool:
+        return max_minutes is not None and time.time() - start > 60 * max_minutes
+
+    bar = tqdm(total=cfg.steps, initial=step, desc="train detector", disable=not progress)
+    epoch = step * cfg.batch // len(train_set)
+    try:
+        while step < cfg.steps and not out_of_time():
+            train_set.epoch = epoch
+            sampler = RandomSampler(train_set, generator=torch.Generator().manual_seed(cfg.seed + epoch))
+            loader = DataLoader(train_set, batch_size=cfg.batch, sampler=sampler, num_workers=cfg.workers, drop_last=True)
+            for batch in loader:
+                model.train()
+                loss = detector_loss(model, {k: v.to(dev) for k, v in batch.items()}, cfg)
+                opt.zero_grad(set_to_none=True)
+                loss.backward()
+                torch.nn.utils.clip_grad_norm_(model.parameters(), cfg.grad_clip)
+                opt.step()
+                sched.step()
+                with torch.no_grad():
+                    for pe, pm in zip(ema.parameters(), model.parameters(), strict=True):
+                        pe.lerp_(pm, 1 - cfg.ema_decay)
+                    for be, bm in zip(ema.buffers(), model.buffers(), strict=True):
+                        be.copy_(bm)
+                step += 1
+                bar.update(1)
+                bar.set_postfix(loss=f"{loss.item():.3f}")
+                val = {}
+                if val_data and step % cfg.val_every == 0:
+                    val = detection_scores(ema, val_data, limit=cfg.val_frames)
+                if step % 10 == 0 or val:
+                    writer.writerow([step, f"{loss.item():.4f}", f"{sched.get_last_lr()[0]:.2e}", f"{time.time() - start:.1f}",
+                                     val.get("recall", ""), val.get("precision", "")])  # fmt: skip
+                    log.flush()
+                if step % cfg.save_every == 0:
+                    save()
+                if step >= cfg.steps or out_of_time():
+                    break
+            epoch += 1
+        save()
+    finally:
+        bar.close()
+        log.close()
+    return step

@@ -1,0 +1,169 @@
+"""The 2D localiser: decoding hand-made maps, targets round trip, matching, training, the estimator and eval."""
+
+import json
+
+import numpy as np
+import pytest
+import torch
+
+from axispose_core.agm.denoiser import DenoiserConfig
+from axispose_core.agm.model import AGMConfig, AxisGenerator
+from axispose_core.camera import crop_transform, project
+from axispose_core.checkpoint import CheckpointError
+from axispose_core.cli import main
+from axispose_core.data.bop import BopScene
+from axispose_core.data.crops import instance_crop
+from axispose_core.data.objects import objects_from_models
+from axispose_core.data.synth.config import SynthConfig
+from axispose_core.data.synth.generate import generate
+from axispose_core.detect.decode import Detection, decode, draw_targets, iou, match
+from axispose_core.detect.model import STRIDE, Localiser, LocaliserConfig
+from axispose_core.estimator import Estimator, EstimatorConfig
+from axispose_core.tbm.reader import SHIPPED_READER, load_reader
+from axispose_core.train.detector import DetectorTrainConfig, detection_scores, load_localiser, train_detector
+
+TINY = LocaliserConfig(obj_ids=(1, 5), input_size=(160, 128), channels=(8, 16, 24, 32))
+
+
+def test_decode_finds_peaks_with_nms_threshold_offset_and_size():
+    heat = torch.zeros(1, 2, 10, 12)
+    heat[0, 0, 2, 3] = 0.9
+    heat[0, 0, 2, 4] = 0.8  # a neighbour of a higher peak: suppressed
+    heat[0, 0, 7, 9] = 0.6
+    heat[0, 1, 5, 5] = 0.2  # below the threshold
+    size = torch.zeros(1, 2, 10, 12)
+    size[0, :, 2, 3] = torch.log(torch.tensor([40.0, 20.0]))
+    offset = torch.zeros(1, 2, 10, 12)
+    offset[0, :, 2, 3] = torch.tensor([0.25, -0.5])
+    (dets,) = decode(heat, size, offset, [1, 5], stride=8, threshold=0.3)
+    assert [(d.obj_id, round(d.score, 3)) for d in dets] == [(1, 0.9), (1, 0.6)]
+    assert dets[0].center == pytest.approx(((3 + 0.5 + 0.25) * 8, (2 + 0.5 - 0.5) * 8))
+    assert dets[0].size == pytest.approx((40.0, 20.0))
+    assert dets[0].box == pytest.approx((30 - 20, 16 - 10, 40, 20))
+    assert decode(torch.zeros(1, 2, 4, 4), torch.zeros(1, 2, 4, 4), torch.zeros(1, 2, 4, 4), [1, 5], 8) == [[]]
+    with pytest.raises(ValueError, match="heatmap"):
+        decode(heat, size, offset, [1], stride=8)
+
+
+def test_targets_decode_back_to_their_boxes():
+    boxes = [(0, (33.0, 21.0, 40.0, 24.0)), (1, (90.5, 60.0, 22.0, 30.0))]
+    heat, log_size, offset, mask = draw_targets(boxes, 2, (16, 20), STRIDE)
+    assert mask.sum() == 2 and heat.max() == 1.0
+    (dets,) = decode(*(torch.from_numpy(a)[None] for a in (heat, log_size, offset)), [1, 5], STRIDE, threshold=0.99)
+    got = {d.obj_id: d.box for d in dets}
+    assert got[1] == pytest.approx(boxes[0][1], abs=1e-4) and got[5] == pytest.approx(boxes[1][1], abs=1e-4)
+
+
+def test_match_takes_detections_by_score_and_iou():
+    assert iou((0, 0, 10, 10), (5, 0, 10, 10)) == pytest.approx(50 / 150)
+    gts = [(1, (0, 0, 10, 10)), (1, (100, 100, 10, 10)), (5, (0, 0, 10, 10))]
+    dets = [Detection(1, 0.5, (5, 5), (10, 10)), Detection(1, 0.9, (6, 5), (10, 10)), Detection(5, 0.7, (40, 40), (10, 10))]
+    assert match(dets, gts) == [1, None, None]  # the better-scoring duplicate wins; the far "5" is a false alarm
+    assert match([], gts) == [None, None, None]
+
+
+@pytest.fixture(scope="module")
+def frames(tmp_path_factory, lmo_dir):
+    out = tmp_path_factory.mktemp("detdata")
+    generate(SynthConfig(seed=33, scenes=1, images_per_scene=4, objects=(1, 5)), lmo_dir / "models", out, progress=False)
+    return out
+
+
+@pytest.fixture(scope="module")
+def trained(frames, tmp_path_factory):
+    torch.manual_seed(0)
+    before = Localiser(TINY).eval()
+    cfg = DetectorTrainConfig(localiser=TINY, steps=150, batch=4, lr=3e-3, warmup=10, workers=0, save_every=1000, ema_decay=0.9)
+    out = tmp_path_factory.mktemp("det") / "det.safetensors"
+    train_detector(cfg, [frames], out, progress=False)
+    return before, out
+
+
+def test_training_on_a_tiny_set_increases_recall(frames, trained):
+    before, path = trained
+    after = load_localiser(path)
+    r0 = detection_scores(before, [frames], min_visib=0.3)["recall"]
+    r1 = detection_scores(after, [frames], min_visib=0.3)
+    assert r1["recall"] > r0 and r1["recall"] >= 0.5
+    assert set(r1["objects"]) == {"1", "5"} and r1["ms_per_frame"]["median"] > 0
+
+
+def test_a_frame_without_objects_gives_no_detections(trained):
+    localiser = load_localiser(trained[1])
+    assert localiser.detect(np.full((480, 640, 3), 90, np.uint8)) == []
+    with pytest.raises(ValueError, match="uint8"):
+        localiser.detect(np.zeros((480, 640), np.float32))
+
+
+def test_detected_crop_intrinsics_project_the_gt_origin_consistently(frames, trained):
+    """A crop cut around a detection: its K' sends the GT origin where the crop's pixel map sends the full-frame pixel,
+    and that pixel of the crop shows what the frame shows there."""
+    localiser = load_localiser(trained[1])
+    scene = BopScene(frames / "000000")
+    im_id = scene.image_ids[0]
+    import cv2
+
+    rgb = cv2.cvtColor(cv2.imread(str(scene.rgb_path(im_id))), cv2.COLOR_BGR2RGB)
+    dets = localiser.detect(rgb, threshold=0.05)
+    assert dets
+    K = scene.cameras[im_id]
+    for d in dets[:3]:
+        g = next(g for g in scene.gt[im_id] if g.obj_id == d.obj_id)
+        crop = instance_crop(rgb, K, d.box, 64)
+        uv_full = project(K, g.t[None])[0]
+        expected = (crop_transform(crop.center, crop.side, 64) @ np.append(uv_full, 1.0))[:2]
+        np.testing.assert_allclose(project(crop.K_patch, g.t[None])[0], expected, atol=1e-6)
+        u, v = np.round(expected).astype(int)
+        x, y = np.round(uv_full).astype(int)
+        if 2 <= u < 62 and 2 <= v < 62 and 0 <= x < 640 and 0 <= y < 480:
+            patch_mean = crop.patch[v - 1 : v + 2, u - 1 : u + 2].reshape(-1, 3).mean(0)
+            half = max(1, round(crop.side / 64))
+            frame_mean = rgb[y - 2 * half : y + 2 * half + 1, x - 2 * half : x + 2 * half + 1].reshape(-1, 3).mean(0)
+            assert np.abs(patch_mean - frame_mean).max() < 40
+
+
+@pytest.fixture(scope="module")
+def estimator_with_localiser(frames, trained, tmp_path_factory):
+    reader = load_reader(SHIPPED_READER)
+    objects = objects_from_models(frames, [1, 5], names={1: "ape", 5: "can"})
+    cfg = EstimatorConfig(agm=AGMConfig(denoiser=DenoiserConfig(channels=8, multipliers=(1, 2), groups=4)), reader=reader.config,
+                          objects=tuple(objects), ddim_steps=1)  # fmt: skip
+    path = tmp_path_factory.mktemp("est") / "est.safetensors"
+    Estimator(cfg, AxisGenerator(cfg.agm), reader).with_localiser(load_localiser(trained[1])).save(path)
+    return path
+
+
+def test_estimator_checkpoint_carries_the_localiser(estimator_with_localiser, frames):
+    est = Estimator.load(estimator_with_localiser)
+    assert est.localiser is not None and est.config.localiser.obj_ids == (1, 5)
+    blank = np.zeros((480, 640, 3), np.uint8)
+    assert est.detect(blank) == []
+    bare = Estimator(EstimatorConfig(agm=est.config.agm, reader=est.config.reader, objects=est.config.objects), est.agm, est.reader)
+    with pytest.raises(ValueError, match="no localiser"):
+        bare.detect(blank)
+    with pytest.raises(ValueError, match="together"):
+        Estimator(est.config, est.agm, est.reader)
+
+
+def test_a_checkpoint_with_localiser_weights_but_no_config_is_refused(estimator_with_localiser, tmp_path):
+    from safetensors import safe_open
+    from safetensors.torch import save_file
+
+    with safe_open(str(estimator_with_localiser), framework="pt") as f:
+        meta = f.metadata()
+        tensors = {k: f.get_tensor(k) for k in f.keys()}
+    cfg = json.loads(meta["config"])
+    cfg["localiser"] = None
+    save_file(tensors, str(tmp_path / "bad.safetensors"), metadata=meta | {"config": json.dumps(cfg)})
+    with pytest.raises(CheckpointError, match="no localiser config"):
+        Estimator.load(tmp_path / "bad.safetensors")
+
+
+def test_eval_with_detected_crops_reports_detection_scores(estimator_with_localiser, frames, lmo_dir, tmp_path):
+    code = main(["eval", "--checkpoint", str(estimator_with_localiser), "--data", str(frames), "--models", str(lmo_dir / "models_eval"),
+                 "--crops", "detect", "--report", str(tmp_path / "r.json"), "--threads", "1"])  # fmt: skip
+    assert code == 0
+    report = json.loads((tmp_path / "r.json").read_text())
+    for entry in report["objects"].values():
+        assert 0 <= entry["det_recall"] <= 1 and "det_precision" in entry and entry["n"] > 0
+    assert report["config"]["crops"] == "detect"
