@@ -37,6 +37,7 @@ def _replay(args: argparse.Namespace) -> int:
         result = replay(
             args.bag, args.checkpoint, args.out, rate=None if args.as_fast_as_possible else args.rate, params=params,
             image_topic=args.image_topic, info_topic=args.camera_info_topic, storage=args.format, overlays=args.overlays,
+            use_rois=not args.ignore_rois,
         )  # fmt: skip
     except BagError as err:
         print(f"axispose replay: {err}", file=sys.stderr)
@@ -56,6 +57,11 @@ def _replay(args: argparse.Namespace) -> int:
         print("the bag has no /gt/<object> poses and /gt/models/<object> points: no metrics", file=sys.stderr)
     for path in result.overlays:
         print(f"overlay: {path}")
+    print(
+        "\nrun the node live on a camera:\n"
+        f"  axispose_node --ros-args -p checkpoint:={Path(args.checkpoint).resolve()} "
+        "-r image:=/camera/color/image_raw -r camera_info:=/camera/color/camera_info"
+    )
     return 0
 
 
@@ -87,6 +93,9 @@ def build_ros_parser() -> argparse.ArgumentParser:
     rp.add_argument("--format", choices=["sqlite3", "mcap"], default="mcap", help="storage of the output bag")
     rp.add_argument("--image-topic", default=None, help="Image topic in the bag (default: its only one)")
     rp.add_argument("--camera-info-topic", default=None, help="CameraInfo topic in the bag (default: its only one)")
+    rp.add_argument(
+        "--ignore-rois", action="store_true", help="do not play the bag's /roi/<name> boxes: the checkpoint's localiser finds the objects"
+    )
     rp.add_argument("--threads", type=int, default=2)
     rp.set_defaults(func=_replay)
     return parser

@@ -105,9 +105,11 @@ def replay(
     overlay_count: int = 3,
     frame_timeout: float = 120.0,
     progress: bool = True,
+    use_rois: bool = True,
 ) -> ReplayResult:
     """Run the node on `bag` (module docstring). Raises BagError for an unreadable bag; what was recorded until
-    then stays a valid bag at `out_bag`."""
+    then stays a valid bag at `out_bag`. With `use_rois` False the bag's boxes are not played, so the node
+    finds the objects with the checkpoint's localiser."""
     if rate is not None and not rate > 0:
         raise ValueError(f"rate must be > 0, got {rate}")
     if storage not in FORMATS:
@@ -140,7 +142,20 @@ def replay(
         exe.add_node(node)
         exe.add_node(player)
         return _run(
-            bag, node, player, exe, out_bag, storage, image_topic, info_topic, rate, overlays, overlay_count, frame_timeout, progress
+            bag,
+            node,
+            player,
+            exe,
+            out_bag,
+            storage,
+            image_topic,
+            info_topic,
+            rate,
+            overlays,
+            overlay_count,
+            frame_timeout,
+            progress,
+            use_rois,
         )
     finally:
         if node is not None:
@@ -152,14 +167,14 @@ def replay(
 
 def _run(
     bag, node: AxisPoseNode, player, exe, out_bag: Path, storage: str, image_topic: str, info_topic: str,
-    rate: float | None, overlays, overlay_count: int, frame_timeout: float, progress: bool,
+    rate: float | None, overlays, overlay_count: int, frame_timeout: float, progress: bool, use_rois: bool,
 ) -> ReplayResult:  # fmt: skip
     reliable = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
     pubs = {
         image_topic: player.create_publisher(Image, image_topic, reliable),
         info_topic: player.create_publisher(CameraInfo, info_topic, reliable),
     }
-    by_name = {o.name: o for o in node.estimator.config.objects}
+    by_name = {o.name: o for o in node.estimator.config.objects} if use_rois else {}
     for name in by_name:
         pubs[ROI_PREFIX + name] = player.create_publisher(RegionOfInterest, node.resolve_topic_name(f"~/roi/{name}"), 10)
 

@@ -1,0 +1,93 @@
+"""Latency on this machine: the AGM sampler by conditioning, steps, objects per frame and threads; the full
+crop -> AGM -> reader -> TBM path of a checkpoint; the localiser per frame.
+
+Part 1 times `AxisGenerator.sample` for both conditionings at the same network size (the paper's `concat`,
+which runs the crop through the UNet at every step, against `encoder`, which encodes the crop once), with
+random weights (timing does not depend on them). Part 2 times `Estimator.estimate` of a trained checkpoint on
+a real frame (TBM cost depends on what the reader sees). Part 3 times the checkpoint's localiser, if any.
+
+    python bench/agm_latency.py --checkpoint runs/main/agm.safetensors --json bench/results/agm_latency.json
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import platform
+import time
+from pathlib import Path
+
+import cv2
+import numpy as np
+import torch
+
+from axispose_core.agm.model import AxisGenerator
+from axispose_core.data.bop import BopScene
+from axispose_core.estimator import Estimator
+from axispose_core.train.dataset import scene_dirs
+
+
+def _median_ms(fn, repeats: int) -> float:
+    fn()
+    times = []
+    for _ in range(repeats):
+        start = time.perf_counter()
+        fn()
+        times.append(time.perf_counter() - start)
+    return 1000 * float(np.median(times))
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--checkpoint", required=True)
+    ap.add_argument("--data", default="data/lmo_val", help="a BOP folder with a frame for part 2")
+    ap.add_argument("--steps", type=int, nargs="+", default=[1, 2, 4, 8])
+    ap.add_argument("--objects", type=int, nargs="+", default=[1, 3, 8])
+    ap.add_argument("--threads", type=int, nargs="+", default=[1, 2])
+    ap.add_argument("--repeats", type=int, default=10)
+    ap.add_argument("--json", default="bench/results/agm_latency.json")
+    args = ap.parse_args()
+    est = Estimator.load(args.checkpoint)
+    size = est.size
+    sampler_rows, path_rows, localiser_rows = [], [], []
+    print("part 1: AGM sampler, ms per call (batch = objects)")
+    for conditioning in ("concat", "encoder"):
+        cfg = dataclasses.replace(est.config.agm, denoiser=dataclasses.replace(est.config.agm.denoiser, conditioning=conditioning))
+        agm = AxisGenerator(cfg).eval()
+        for threads in args.threads:
+            torch.set_num_threads(threads)
+            for n in args.objects:
+                crops = torch.rand(n, 3, size, size) * 2 - 1
+                for steps in args.steps:
+                    with torch.inference_mode():
+                        ms = _median_ms(lambda agm=agm, crops=crops, steps=steps: agm.sample(crops, steps), args.repeats)
+                    sampler_rows.append({"conditioning": conditioning, "threads": threads, "objects": n, "steps": steps, "ms": ms})
+                    print(f"  {conditioning:<8} threads {threads} objects {n} steps {steps:>2}: {ms:7.1f} ms ({ms / n:6.1f} per object)")
+    scene = BopScene(scene_dirs(args.data)[0])
+    im_id = scene.image_ids[0]
+    rgb = cv2.cvtColor(cv2.imread(str(scene.rgb_path(im_id))), cv2.COLOR_BGR2RGB)
+    K = scene.cameras[im_id]
+    boxes = [(g.obj_id, info.bbox_obj) for g, info in zip(scene.gt[im_id], scene.gt_info[im_id], strict=True) if g.obj_id in est.objects]
+    print(f"part 2: full path of {args.checkpoint} ({est.config.agm.denoiser.conditioning}), ms per frame")
+    for threads in args.threads:
+        torch.set_num_threads(threads)
+        for n in args.objects:
+            frame_boxes = (boxes * n)[:n]
+            for steps in args.steps:
+                ms = _median_ms(lambda b=frame_boxes, s=steps: est.estimate(rgb, K, b, steps=s), args.repeats)
+                path_rows.append({"threads": threads, "objects": n, "steps": steps, "ms_per_frame": ms, "ms_per_object": ms / n})
+                print(f"  threads {threads} objects {n} steps {steps:>2}: {ms:7.1f} ms per frame, {ms / n:6.1f} per object")
+        if est.localiser is not None:
+            ms = _median_ms(lambda: est.detect(rgb), args.repeats)
+            localiser_rows.append({"threads": threads, "ms_per_frame": ms, "frame": list(rgb.shape[:2])})
+            print(f"part 3: localiser, threads {threads}: {ms:.1f} ms per {rgb.shape[1]}x{rgb.shape[0]} frame")
+    out = {"machine": platform.processor() or platform.machine(), "date": time.strftime("%Y-%m-%d"), "checkpoint": args.checkpoint,
+           "sampler": sampler_rows, "full_path": path_rows, "localiser": localiser_rows}  # fmt: skip
+    Path(args.json).parent.mkdir(parents=True, exist_ok=True)
+    Path(args.json).write_text(json.dumps(out, indent=1))
+    print(f"wrote {args.json}")
+
+
+if __name__ == "__main__":
+    main()
