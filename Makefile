@@ -10,8 +10,11 @@ $(STAMP): setup.py
 	$(PY) -m pip install -q -e ".[ros,dev]"
 	touch $(STAMP)
 
+# The shipped checkpoint on the shipped sample bag, through the real node (axispose replay).
 demo: $(STAMP)
-	$(VENV)/bin/axispose demo --out out/demo
+	rm -rf out/demo/replay_bag
+	$(VENV)/bin/axispose replay demo/lmo_sample_bag --checkpoint axispose_core/models/axispose_lmo.safetensors \
+		--out out/demo/replay_bag --report out/demo/report.json --overlays out/demo/overlays
 
 lint: $(STAMP)
 	$(VENV)/bin/ruff check .
