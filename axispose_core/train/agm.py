@@ -12,7 +12,6 @@ from __future__ import annotations
 import copy
 import csv
 import dataclasses
-import math
 import os
 import platform
 import time
@@ -33,6 +32,7 @@ from axispose_core.metrics import re
 from axispose_core.tbm.backproject import backproject
 from axispose_core.tbm.reader import SHIPPED_READER, KeypointReader, load_reader
 from axispose_core.train.dataset import AxisCropDataset
+from axispose_core.train.schedule import ema_update, warmup_cosine
 
 
 @dataclass(frozen=True)
@@ -59,12 +59,6 @@ def dataset_objects(root: str | Path) -> list[ObjectSpec]:
     synth = Path(root) / "synth_config.json"
     ids = list(SynthConfig.load(synth).objects) if synth.exists() else None
     return objects_from_models(root, ids or None, names=LMO_NAMES)
-
-
-def _lr(step: int, cfg: TrainConfig) -> float:
-    if step < cfg.warmup:
-        return (step + 1) / cfg.warmup
-    return 0.5 * (1 + math.cos(math.pi * min(1.0, (step - cfg.warmup) / max(1, cfg.steps - cfg.warmup))))
 
 
 def validate(
@@ -113,7 +107,7 @@ def train_agm(
     model = AxisGenerator(cfg.agm).to(dev)
     ema = copy.deepcopy(model).eval()
     opt = torch.optim.AdamW(model.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
-    sched = torch.optim.lr_scheduler.LambdaLR(opt, lambda s: _lr(s, cfg))
+    sched = torch.optim.lr_scheduler.LambdaLR(opt, lambda s: warmup_cosine(s, cfg.warmup, cfg.steps))
     step = 0
     state_path = out.with_suffix(out.suffix + ".state.pt")
     if resume:
@@ -199,11 +193,7 @@ def train_agm(
                 torch.nn.utils.clip_grad_norm_(model.parameters(), cfg.grad_clip)
                 opt.step()
                 sched.step()
-                with torch.no_grad():
-                    for pe, pm in zip(ema.parameters(), model.parameters(), strict=True):
-                        pe.lerp_(pm, 1 - cfg.ema_decay)
-                    for be, bm in zip(ema.buffers(), model.buffers(), strict=True):
-                        be.copy_(bm)
+                ema_update(ema, model, cfg.ema_decay)
                 step += 1
                 bar.update(1)
                 bar.set_postfix(loss=f"{loss.item():.4f}")

@@ -12,7 +12,6 @@ from __future__ import annotations
 import copy
 import csv
 import dataclasses
-import math
 import platform
 import time
 from dataclasses import dataclass, field
@@ -30,6 +29,7 @@ from axispose_core.data.bop import BopFormatError, BopScene
 from axispose_core.detect.decode import draw_targets, focal_loss, match
 from axispose_core.detect.model import STRIDE, Localiser, LocaliserConfig
 from axispose_core.train.dataset import scene_dirs
+from axispose_core.train.schedule import ema_update, warmup_cosine
 
 KIND = "localiser"
 
@@ -166,12 +166,6 @@ def load_localiser(path: str | Path, device: str = "cpu") -> Localiser:
     return model.to(device).eval()
 
 
-def _lr(step: int, cfg: DetectorTrainConfig) -> float:
-    if step < cfg.warmup:
-        return (step + 1) / cfg.warmup
-    return 0.5 * (1 + math.cos(math.pi * min(1.0, (step - cfg.warmup) / max(1, cfg.steps - cfg.warmup))))
-
-
 def train_detector(
     cfg: DetectorTrainConfig,
     data: list[str | Path],
@@ -193,7 +187,7 @@ def train_detector(
     model = Localiser(cfg.localiser).to(dev)
     ema = copy.deepcopy(model).eval()
     opt = torch.optim.AdamW(model.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
-    sched = torch.optim.lr_scheduler.LambdaLR(opt, lambda s: _lr(s, cfg))
+    sched = torch.optim.lr_scheduler.LambdaLR(opt, lambda s: warmup_cosine(s, cfg.warmup, cfg.steps))
     step = 0
     state_path = out.with_suffix(out.suffix + ".state.pt")
     if resume:
@@ -239,11 +233,7 @@ def train_detector(
                 torch.nn.utils.clip_grad_norm_(model.parameters(), cfg.grad_clip)
                 opt.step()
                 sched.step()
-                with torch.no_grad():
-                    for pe, pm in zip(ema.parameters(), model.parameters(), strict=True):
-                        pe.lerp_(pm, 1 - cfg.ema_decay)
-                    for be, bm in zip(ema.buffers(), model.buffers(), strict=True):
-                        be.copy_(bm)
+                ema_update(ema, model, cfg.ema_decay)
                 step += 1
                 bar.update(1)
                 bar.set_postfix(loss=f"{loss.item():.3f}")
