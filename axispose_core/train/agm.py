@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import copy
 import csv
-import dataclasses
 import os
 import platform
 import time
@@ -32,6 +31,7 @@ from axispose_core.metrics import re
 from axispose_core.tbm.backproject import backproject
 from axispose_core.tbm.reader import SHIPPED_READER, KeypointReader, load_reader
 from axispose_core.train.dataset import AxisCropDataset
+from axispose_core.train.resume import load_run_state, save_run_state, state_path
 from axispose_core.train.schedule import ema_update, warmup_cosine
 
 
@@ -109,17 +109,8 @@ def train_agm(
     opt = torch.optim.AdamW(model.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
     sched = torch.optim.lr_scheduler.LambdaLR(opt, lambda s: warmup_cosine(s, cfg.warmup, cfg.steps))
     step = 0
-    state_path = out.with_suffix(out.suffix + ".state.pt")
     if resume:
-        state = torch.load(resume, map_location="cpu", weights_only=False)
-        if state["config"] != dataclasses.asdict(cfg):
-            raise ValueError(f"{resume}: saved by a run with another configuration; resume with the same --config")
-        model.load_state_dict(state["model"])
-        ema.load_state_dict(state["ema"])
-        opt.load_state_dict(state["opt"])
-        sched.load_state_dict(state["sched"])
-        step = state["step"]
-        torch.set_rng_state(state["torch_rng"])
+        step = load_run_state(resume, cfg, model, ema, opt, sched)
     net = torch.nn.parallel.DistributedDataParallel(model) if distributed else model
     val_batch, val_lengths = None, None
     if val_data and rank == 0:
@@ -158,20 +149,7 @@ def train_agm(
             },
         )
         Estimator(est_cfg, ema, reader, "cpu" if dev.type == "cpu" else str(dev)).save(out)
-        tmp = state_path.with_suffix(".tmp")
-        torch.save(
-            {
-                "config": dataclasses.asdict(cfg),
-                "model": model.state_dict(),
-                "ema": ema.state_dict(),
-                "opt": opt.state_dict(),
-                "sched": sched.state_dict(),
-                "step": step,
-                "torch_rng": torch.get_rng_state(),
-            },
-            tmp,
-        )
-        tmp.replace(state_path)
+        save_run_state(state_path(out), cfg, model, ema, opt, sched, step)
 
     try:
         while step < cfg.steps:

@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import copy
 import csv
-import dataclasses
 import platform
 import time
 from dataclasses import dataclass, field
@@ -29,6 +28,7 @@ from axispose_core.data.bop import BopFormatError, BopScene
 from axispose_core.detect.decode import draw_targets, focal_loss, match
 from axispose_core.detect.model import STRIDE, Localiser, LocaliserConfig
 from axispose_core.train.dataset import scene_dirs
+from axispose_core.train.resume import load_run_state, save_run_state, state_path
 from axispose_core.train.schedule import ema_update, warmup_cosine
 
 KIND = "localiser"
@@ -189,17 +189,8 @@ def train_detector(
     opt = torch.optim.AdamW(model.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
     sched = torch.optim.lr_scheduler.LambdaLR(opt, lambda s: warmup_cosine(s, cfg.warmup, cfg.steps))
     step = 0
-    state_path = out.with_suffix(out.suffix + ".state.pt")
     if resume:
-        state = torch.load(resume, map_location="cpu", weights_only=False)
-        if state["config"] != dataclasses.asdict(cfg):
-            raise ValueError(f"{resume}: saved by a run with another configuration; resume with the same --config")
-        model.load_state_dict(state["model"])
-        ema.load_state_dict(state["ema"])
-        opt.load_state_dict(state["opt"])
-        sched.load_state_dict(state["sched"])
-        step = state["step"]
-        torch.set_rng_state(state["torch_rng"])
+        step = load_run_state(resume, cfg, model, ema, opt, sched)
     log = open(out.with_suffix(".csv"), "a", newline="")
     writer = csv.writer(log)
     if step == 0:
@@ -210,10 +201,7 @@ def train_detector(
         provenance = {"data": [str(d) for d in data], "steps": step, "seconds": time.time() - start, "device": str(dev),
                       "host": platform.processor() or platform.machine()}  # fmt: skip
         save_checkpoint(out, KIND, cfg.localiser, {"localiser": ema}, extra={"training": provenance})
-        tmp = state_path.with_suffix(".tmp")
-        torch.save({"config": dataclasses.asdict(cfg), "model": model.state_dict(), "ema": ema.state_dict(), "opt": opt.state_dict(),
-                    "sched": sched.state_dict(), "step": step, "torch_rng": torch.get_rng_state()}, tmp)  # fmt: skip
-        tmp.replace(state_path)
+        save_run_state(state_path(out), cfg, model, ema, opt, sched, step)
 
     def out_of_time() -> bool:
         return max_minutes is not None and time.time() - start > 60 * max_minutes

@@ -1,0 +1,45 @@
+"""The resume state both trainers (AGM, localiser) keep beside their checkpoint: OUT.state.pt, read by --resume."""
+
+from __future__ import annotations
+
+import dataclasses
+from pathlib import Path
+from typing import Any
+
+import torch
+
+
+def state_path(out: Path) -> Path:
+    """Where the resume state of checkpoint `out` lives."""
+    return out.with_suffix(out.suffix + ".state.pt")
+
+
+def save_run_state(path: Path, cfg: Any, model: torch.nn.Module, ema: torch.nn.Module, opt, sched, step: int) -> None:
+    """Model, EMA, optimiser, LR schedule, step and RNG with the run's config, written atomically."""
+    tmp = path.with_suffix(".tmp")
+    torch.save(
+        {
+            "config": dataclasses.asdict(cfg),
+            "model": model.state_dict(),
+            "ema": ema.state_dict(),
+            "opt": opt.state_dict(),
+            "sched": sched.state_dict(),
+            "step": step,
+            "torch_rng": torch.get_rng_state(),
+        },
+        tmp,
+    )
+    tmp.replace(path)
+
+
+def load_run_state(path: str | Path, cfg: Any, model: torch.nn.Module, ema: torch.nn.Module, opt, sched) -> int:
+    """Restore a saved run into the given objects and return its step; a run with another config is refused."""
+    state = torch.load(path, map_location="cpu", weights_only=False)
+    if state["config"] != dataclasses.asdict(cfg):
+        raise ValueError(f"{path}: saved by a run with another configuration; resume with the same --config")
+    model.load_state_dict(state["model"])
+    ema.load_state_dict(state["ema"])
+    opt.load_state_dict(state["opt"])
+    sched.load_state_dict(state["sched"])
+    torch.set_rng_state(state["torch_rng"])
+    return state["step"]
