@@ -7,6 +7,9 @@ import dataclasses
 import sys
 from collections.abc import Sequence
 from pathlib import Path
+from typing import TypeVar
+
+C = TypeVar("C")
 
 
 def _demo(args: argparse.Namespace) -> int:
@@ -77,17 +80,24 @@ def _synth_preview(args: argparse.Namespace) -> int:
     return 0
 
 
-def _train(args: argparse.Namespace) -> int:
-    import torch
+def _config(cls: type[C], path: str | None) -> C:
+    """A training config dataclass from a YAML of its fields, or its defaults without one."""
+    if not path:
+        return cls()
     import yaml
 
     from axispose_core.checkpoint import config_from_dict
+
+    return config_from_dict(cls, yaml.safe_load(Path(path).read_text()) or {}, path)
+
+
+def _train(args: argparse.Namespace) -> int:
+    import torch
+
     from axispose_core.train.agm import TrainConfig, train_agm
 
     torch.set_num_threads(args.threads)
-    cfg = TrainConfig()
-    if args.config:
-        cfg = config_from_dict(TrainConfig, yaml.safe_load(Path(args.config).read_text()) or {}, args.config)
+    cfg = _config(TrainConfig, args.config)
     step = train_agm(cfg, args.data, args.out, val_data=args.val, resume=args.resume, device=args.device, max_minutes=args.max_minutes)
     print(f"stopped at step {step} of {cfg.steps}; checkpoint {args.out}")
     return 0
@@ -95,17 +105,13 @@ def _train(args: argparse.Namespace) -> int:
 
 def _train_detector(args: argparse.Namespace) -> int:
     import torch
-    import yaml
 
-    from axispose_core.checkpoint import config_from_dict
     from axispose_core.estimator import Estimator
     from axispose_core.train.agm import dataset_objects
     from axispose_core.train.detector import DetectorTrainConfig, detection_scores, load_localiser, train_detector
 
     torch.set_num_threads(args.threads)
-    cfg = DetectorTrainConfig()
-    if args.config:
-        cfg = config_from_dict(DetectorTrainConfig, yaml.safe_load(Path(args.config).read_text()) or {}, args.config)
+    cfg = _config(DetectorTrainConfig, args.config)
     if not cfg.localiser.obj_ids:  # default: the objects the data shows
         ids = tuple(o.obj_id for o in dataset_objects(args.data[0]))
         cfg = dataclasses.replace(cfg, localiser=dataclasses.replace(cfg.localiser, obj_ids=ids))
