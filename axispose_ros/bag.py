@@ -14,6 +14,7 @@ Only `rosbags` and NumPy are used here: writing a bag needs no ROS installation.
 from __future__ import annotations
 
 from collections.abc import Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -188,34 +189,32 @@ class BagMessage:
     raw: bytes
 
 
-def read_bag(path: str | Path, topics: list[str] | None = None) -> Iterator[BagMessage]:
-    """Messages of a rosbag2 (sqlite3 or mcap) in time order, as raw CDR; errors of a damaged bag become BagError."""
-    path = Path(path)
+@contextmanager
+def _reading(path: Path) -> Iterator[Reader]:
+    """An open rosbag2 reader; every failure to read it, on opening or later, becomes a BagError naming the bag."""
     if not path.exists():
         raise BagError(f"{path}: no such bag")
     try:
         with Reader(path) as reader:
-            conns = [c for c in reader.connections if topics is None or c.topic in topics]
-            for conn, stamp, raw in reader.messages(connections=conns):
-                yield BagMessage(conn.topic, conn.msgtype, stamp, bytes(raw))
+            yield reader
     except ReaderError as err:
         raise BagError(f"{path}: cannot read the bag ({err})") from err
     except Exception as err:  # sqlite3/mcap decoding errors of a truncated file surface as many types
         raise BagError(f"{path}: the bag is truncated or corrupt ({type(err).__name__}: {err})") from err
 
 
+def read_bag(path: str | Path, topics: list[str] | None = None) -> Iterator[BagMessage]:
+    """Messages of a rosbag2 (sqlite3 or mcap) in time order, as raw CDR; errors of a damaged bag become BagError."""
+    with _reading(Path(path)) as reader:
+        conns = [c for c in reader.connections if topics is None or c.topic in topics]
+        for conn, stamp, raw in reader.messages(connections=conns):
+            yield BagMessage(conn.topic, conn.msgtype, stamp, bytes(raw))
+
+
 def bag_topics(path: str | Path) -> dict[str, str]:
     """topic -> message type of a bag."""
-    path = Path(path)
-    if not path.exists():
-        raise BagError(f"{path}: no such bag")
-    try:
-        with Reader(path) as reader:
-            return {c.topic: c.msgtype for c in reader.connections}
-    except ReaderError as err:
-        raise BagError(f"{path}: cannot read the bag ({err})") from err
-    except Exception as err:
-        raise BagError(f"{path}: the bag is truncated or corrupt ({type(err).__name__}: {err})") from err
+    with _reading(Path(path)) as reader:
+        return {c.topic: c.msgtype for c in reader.connections}
 
 
 def deserialize(msg: BagMessage):
