@@ -132,14 +132,16 @@ def _eval(args: argparse.Namespace) -> int:
     import torch
 
     from axispose_core.estimator import Estimator
-    from axispose_core.evaluate import Prediction, evaluate, format_table, plot_cdfs, plot_grid, summarize, write_report
+    from axispose_core.evaluate import Prediction, evaluate, format_table, plot_cdfs, plot_grid, plot_spread, summarize, write_report
+    from axispose_core.stress import PERTURBATIONS
 
     torch.set_num_threads(args.threads)
     est = Estimator.load(args.checkpoint)
     objects = [o for o in est.config.objects if not args.objects or o.obj_id in args.objects]
 
     def predict(image, K, boxes):
-        return [Prediction(p.R, p.t, p.ok) for p in est.estimate(image, K, boxes, steps=args.steps, guidance_scale=args.guidance)]
+        poses = est.estimate(image, K, boxes, steps=args.steps, guidance_scale=args.guidance, hypotheses=args.hypotheses)
+        return [Prediction(p.R, p.t, p.ok, p.spread_deg) for p in poses]
 
     detector, counts = None, None
     if args.crops == "detect":
@@ -149,14 +151,22 @@ def _eval(args: argparse.Namespace) -> int:
             )
             return 2
         detector, counts = est.detect, {}
-    records = evaluate(predict, args.data, args.models, objects, limit=args.limit, detector=detector, detection_counts=counts)
+    perturb = PERTURBATIONS[args.perturb] if args.perturb else None
+    records = evaluate(predict, args.data, args.models, objects, limit=args.limit, detector=detector, detection_counts=counts,
+                       visib=tuple(args.visib), perturb=perturb)  # fmt: skip
     config = {"checkpoint": str(args.checkpoint), "data": str(args.data), "steps": args.steps or est.config.ddim_steps,
-              "guidance": est.config.guidance_scale if args.guidance is None else args.guidance, "crops": args.crops}  # fmt: skip
+              "guidance": est.config.guidance_scale if args.guidance is None else args.guidance, "crops": args.crops,
+              "hypotheses": args.hypotheses, "visib": list(args.visib), "perturb": args.perturb}  # fmt: skip
     report = summarize(records, objects, config, counts)
     write_report(report, args.report)
     print(format_table(report))
+    if "spread" in report:
+        q = report["spread"]
+        print(f"spread vs rotation error: Spearman {q['spearman_spread_vs_rot_err']:.2f}; Reproj@15px {q['reproj_15px_all_posed']:.3f} "
+              f"for all posed, {q['reproj_15px_least_spread_half']:.3f} for the least-spread half")  # fmt: skip
     if args.plots:
-        print(f"plots: {plot_cdfs(records, objects, args.plots)}, {plot_grid(records, objects, args.models, args.plots)}")
+        plots = [plot_cdfs(records, objects, args.plots), plot_grid(records, objects, args.models, args.plots), plot_spread(records, args.plots)]
+        print("plots: " + ", ".join(str(p) for p in plots if p))
     print(f"report: {args.report}")
     return 0
 
@@ -208,7 +218,7 @@ def build_parser() -> argparse.ArgumentParser:
     tn.add_argument("--val", nargs="*", default=None, help="held-out BOP folders for periodic validation")
     tn.add_argument("--out", required=True, help="estimator checkpoint to write (.safetensors); OUT.state.pt holds the resume state")
     tn.add_argument("--config", help="YAML with TrainConfig fields (e.g. config/train_agm.yaml)")
-    tn.add_argument("--resume", help="OUT.state.pt of an earlier run with the same config")
+    tn.add_argument("--resume", help="OUT.state.pt of an earlier run with the same config (steps, save_every, val_every may differ: a longer run extends it)")
     tn.add_argument("--device", default="auto", choices=["cpu", "cuda", "auto"])
     tn.add_argument("--max-minutes", type=float, default=None, help="stop (and save) after this much wall time")
     tn.add_argument("--threads", type=int, default=2)
@@ -219,7 +229,7 @@ def build_parser() -> argparse.ArgumentParser:
     td.add_argument("--val", nargs="*", default=None, help="held-out BOP folders for validation recall")
     td.add_argument("--out", required=True, help="localiser checkpoint to write (.safetensors); OUT.state.pt holds the resume state")
     td.add_argument("--config", help="YAML with DetectorTrainConfig fields (e.g. config/train_detector.yaml)")
-    td.add_argument("--resume", help="OUT.state.pt of an earlier run with the same config")
+    td.add_argument("--resume", help="OUT.state.pt of an earlier run with the same config (steps, save_every, val_every may differ: a longer run extends it)")
     td.add_argument("--attach", help="estimator checkpoint to add the trained localiser to (rewritten in place)")
     td.add_argument("--device", default="auto", choices=["cpu", "cuda", "auto"])
     td.add_argument("--max-minutes", type=float, default=None, help="stop (and save) after this much wall time")
@@ -239,6 +249,10 @@ def build_parser() -> argparse.ArgumentParser:
         default="gt",
         help="gt: square around the GT box (the paper's protocol); detect: the localiser's",
     )
+    ev.add_argument("--hypotheses", type=int, default=1, help="AGM samples per instance; >= 2: consensus pose and spread")
+    ev.add_argument("--visib", type=float, nargs=2, default=[0.1, 1.0], metavar=("LO", "HI"),
+                    help="visibility band of the instances scored (heavy occlusion: 0.1 0.5)")  # fmt: skip
+    ev.add_argument("--perturb", choices=["low_light", "motion_blur"], default=None, help="degrade every frame (stress test)")
     ev.add_argument("--limit", type=int, default=None, help="stop after this many instances")
     ev.add_argument("--report", required=True, help="JSON to write")
     ev.add_argument("--plots", default=None, help="folder for error CDFs")

@@ -19,6 +19,7 @@ from axispose_core.agm.model import AGMConfig, AxisGenerator
 from axispose_core.axis_image import AxisSpec
 from axispose_core.camera import validate_intrinsics
 from axispose_core.checkpoint import CheckpointError, load_state, read_checkpoint, save_checkpoint
+from axispose_core.consensus import consensus
 from axispose_core.data.crops import instance_crop
 from axispose_core.data.objects import ObjectSpec
 from axispose_core.detect.decode import Detection
@@ -57,6 +58,14 @@ class PoseEstimate:
     K_patch: np.ndarray
     center: tuple[float, float]
     side: float
+    samples: int = 1
+    """AGM samples drawn for this box (`hypotheses`)."""
+    samples_ok: int = 1
+    """Samples that gave a pose; with two or more, spread and covariance are filled in."""
+    spread_deg: float = float("nan")
+    spread_m: float = float("nan")
+    covariance: np.ndarray | None = None
+    """(6, 6) pose covariance (x, y, z, rx, ry, rz; camera frame) from the samples' scatter; see consensus.py."""
 
 
 class Estimator:
@@ -120,11 +129,16 @@ class Estimator:
         guidance_scale: float | None = None,
         seed: int = 0,
         scales: dict[int, float] | None = None,
+        hypotheses: int = 1,
     ) -> list[PoseEstimate]:
         """Poses for (obj_id, (x, y, w, h)) boxes in an RGB uint8 image; all crops go through the AGM as one batch.
 
-        `scales` overrides λ_O per object id (metres), e.g. from the node's object_scale parameters.
+        `scales` overrides λ_O per object id (metres), e.g. from the node's object_scale parameters. With
+        `hypotheses` K > 1 each crop is sampled K times in the same batch and the pose is the samples' consensus,
+        with their spread and covariance.
         """
+        if hypotheses < 1:
+            raise ValueError(f"hypotheses must be >= 1, got {hypotheses}")
         K = validate_intrinsics(K)
         unknown = [o for o, _ in boxes if o not in self.objects]
         if unknown:
@@ -141,9 +155,11 @@ class Estimator:
             spec = self.objects[obj_id]
             lengths.append(AxisSpec((scales or {}).get(obj_id, spec.scale), spec.ratio_b, spec.ratio_c).lengths)
         x = torch.from_numpy(np.stack([c.patch for c in cuts]).astype(np.float32) / 127.5 - 1).permute(0, 3, 1, 2).to(self.device)
+        x = x.repeat_interleave(hypotheses, dim=0)
+        Kp_all, lengths_all = np.repeat(np.stack(Kp), hypotheses, axis=0), np.repeat(np.stack(lengths), hypotheses, axis=0)
 
         def guidance(x0: torch.Tensor):
-            return self_consistency_target(x0, self.reader, np.stack(Kp), np.stack(lengths))
+            return self_consistency_target(x0, self.reader, Kp_all, lengths_all)
 
         gen = torch.Generator().manual_seed(seed)
         with torch.inference_mode(scale <= 0):
@@ -151,11 +167,22 @@ class Estimator:
         images = ((axes + 1) * 0.5).clamp(0, 1)
         readings = self.reader.read(images)
         out = []
-        for (obj_id, _), kp, cut, L, img in zip(boxes, readings, cuts, lengths, images, strict=True):
-            axis_image = img.permute(1, 2, 0).cpu().numpy()
-            if not kp.ok:
-                out.append(PoseEstimate(obj_id, np.eye(3), np.zeros(3), False, kp.reason, axis_image, cut.K_patch, cut.center, cut.side))
+        for i, ((obj_id, _), cut, L) in enumerate(zip(boxes, cuts, lengths, strict=True)):
+            poses, reasons = [], []
+            for k in range(i * hypotheses, (i + 1) * hypotheses):
+                kp = readings[k]
+                res = backproject(cut.K_patch, kp.origin, kp.endpoints, L, refine=True) if kp.ok else None
+                if res is not None and res.ok:
+                    poses.append((k, res.R, res.t))
+                else:
+                    reasons.append(kp.reason if res is None else res.reason)
+            pick = dict(obj_id=obj_id, K_patch=cut.K_patch, center=cut.center, side=cut.side, samples=hypotheses, samples_ok=len(poses))
+            if not poses:
+                axis_image = images[i * hypotheses].permute(1, 2, 0).cpu().numpy()
+                out.append(PoseEstimate(R=np.eye(3), t=np.zeros(3), ok=False, reason=reasons[0], axis_image=axis_image, **pick))
                 continue
-            res = backproject(cut.K_patch, kp.origin, kp.endpoints, L, refine=True)
-            out.append(PoseEstimate(obj_id, res.R, res.t, res.ok, res.reason, axis_image, cut.K_patch, cut.center, cut.side))
+            c = consensus(np.stack([p[1] for p in poses]), np.stack([p[2] for p in poses]), float(L.max()))
+            axis_image = images[poses[c.medoid][0]].permute(1, 2, 0).cpu().numpy()
+            spread = dict(spread_deg=c.spread_deg, spread_m=c.spread_m, covariance=c.covariance) if len(poses) > 1 else {}
+            out.append(PoseEstimate(R=c.R, t=c.t, ok=True, reason="", axis_image=axis_image, **pick, **spread))
         return out

@@ -3,12 +3,16 @@
 Protocol (BOP19 / LM-O): instances with visib_fract < 0.1 are skipped (visibility from scene_gt_info.json);
 ADD-S replaces ADD for symmetric objects under the same keys; a pose the estimator cannot give counts as wrong
 at every threshold. With `--crops gt` the crop is the square around the GT box (the paper's protocol).
+
+Stress: `visib` narrows the instances to a visibility band (heavy occlusion: 0.1-0.5) and `perturb` degrades
+each frame before detection and estimation (low light, motion blur; see stress.py), seeded per frame.
 """
 
 from __future__ import annotations
 
 import json
 import time
+import zlib
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
@@ -34,6 +38,8 @@ class Prediction:
     R: np.ndarray
     t: np.ndarray
     ok: bool
+    spread_deg: float = float("nan")
+    """Rotation spread of the estimator's samples (multi-hypothesis), NaN for a single sample."""
 
 
 Predictor = Callable[[np.ndarray, np.ndarray, list[tuple[int, tuple[float, float, float, float]]]], list[Prediction]]
@@ -55,6 +61,7 @@ class Record:
     K: np.ndarray
     rgb_path: Path | None
     box: tuple[int, int, int, int]
+    spread_deg: float = float("nan")
 
 
 def evaluate(
@@ -66,13 +73,20 @@ def evaluate(
     progress: bool = True,
     detector: Callable[[np.ndarray], list[Detection]] | None = None,
     detection_counts: dict[int, dict[str, int]] | None = None,
+    visib: tuple[float, float] = (MIN_VISIB, 1.0),
+    perturb: Callable[[np.ndarray, np.random.Generator], np.ndarray] | None = None,
 ) -> list[Record]:
     """Run `predict` on every frame's boxes (one batch per frame) and score each instance.
+
+    Instances count when their visib_fract lies in `visib` (lower bound at least MIN_VISIB); `perturb`, seeded
+    by scene and frame, degrades each RGB frame first.
 
     The boxes are the GT boxes, or with `detector` the detections matched to the GT instances (same object,
     IoU >= 0.5, greedy by score); an instance no detection matches counts as a pose failure, and per object
     `detection_counts` (filled in) gets the true positives, false positives and instances.
     """
+    if not MIN_VISIB <= visib[0] <= visib[1]:
+        raise ValueError(f"visib must be a band ({MIN_VISIB} <= low <= high), got {visib}")
     specs = {o.obj_id: o for o in objects}
     points = {i: load_ply(model_path(models_dir, i)).vertices for i in specs}
     records: list[Record] = []
@@ -86,7 +100,7 @@ def evaluate(
         insts = [
             (g, info)
             for g, info in zip(scene.gt[im_id], scene.gt_info[im_id], strict=True)
-            if g.obj_id in specs and info.visib_fract >= MIN_VISIB
+            if g.obj_id in specs and visib[0] <= info.visib_fract <= visib[1]
         ]
         if not insts:
             continue
@@ -97,6 +111,8 @@ def evaluate(
             raise BopFormatError(f"{scene.rgb_path(im_id)}: unreadable image")
         K = scene.cameras[im_id]
         rgb = cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB)
+        if perturb is not None:
+            rgb = perturb(rgb, np.random.default_rng([zlib.crc32(scene.root.name.encode()), im_id]))
         start = time.perf_counter()
         boxes = [(g.obj_id, info.bbox_obj) for g, info in insts]
         if detector is not None:
@@ -126,7 +142,8 @@ def evaluate(
                 scores = {k: 0.0 for k in SUMMARY_KEYS} | {"rot_err_deg": 180.0, "trans_err_mm": float("inf")}
             records.append(
                 Record(
-                    g.obj_id, scene.root.name, im_id, scores, per_object, g.R, g.t, p.R, p.t, p.ok, K, scene.rgb_path(im_id), info.bbox_obj
+                    g.obj_id, scene.root.name, im_id, scores, per_object, g.R, g.t, p.R, p.t, p.ok, K, scene.rgb_path(im_id), info.bbox_obj,
+                    p.spread_deg,
                 )
             )
     return records
@@ -156,12 +173,68 @@ def summarize(
     )
     mean = {k: float(np.mean([e[k] for e in per.values()])) for k in keys} if per else {}
     ms = np.array([1000 * r.seconds for r in records]) if records else np.zeros(1)
-    return {
+    report = {
         "objects": per,
         "mean": mean,
         "ms_per_object": {"median": float(np.median(ms)), "p90": float(np.percentile(ms, 90))},
         "config": config,
     }
+    quality = spread_quality(records)
+    return report | ({"spread": quality} if quality else {})
+
+
+def _certain(records: list[Record]) -> tuple[list[Record], np.ndarray]:
+    """Records with a pose and a spread, and their spreads."""
+    rs = [r for r in records if r.ok and np.isfinite(r.spread_deg)]
+    return rs, np.array([r.spread_deg for r in rs])
+
+
+def spread_quality(records: list[Record]) -> dict | None:
+    """Does the multi-hypothesis spread predict the error? Rank correlation of spread and rotation error, and
+    the accuracy of all poses against that of the half with the smallest spread (None without spreads)."""
+    from scipy.stats import spearmanr
+
+    rs, spread = _certain(records)
+    if len(rs) < 4:
+        return None
+    rot = np.array([r.scores["rot_err_deg"] for r in rs])
+    half = np.argsort(spread, kind="stable")[: len(rs) // 2]
+    out: dict[str, float] = {"n": len(rs), "spearman_spread_vs_rot_err": float(spearmanr(spread, rot).statistic)}
+    for key in ("add_0.2d", "reproj_15px"):
+        score = np.array([r.scores[key] for r in rs])
+        out[f"{key}_all_posed"] = float(score.mean())
+        out[f"{key}_least_spread_half"] = float(score[half].mean())
+    return out
+
+
+def plot_spread(records: list[Record], out_dir: str | Path) -> Path | None:
+    """Rotation error against the samples' spread, and accuracy when only the least-spread fraction is kept."""
+    rs, spread = _certain(records)
+    if len(rs) < 4:
+        return None
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    rot = np.array([r.scores["rot_err_deg"] for r in rs])
+    order = np.argsort(spread, kind="stable")
+    kept = np.arange(1, len(rs) + 1) / len(rs)
+    out = Path(out_dir) / "error_vs_spread.png"
+    out.parent.mkdir(parents=True, exist_ok=True)
+    fig, (a1, a2) = plt.subplots(1, 2, figsize=(11, 4))
+    a1.scatter(np.maximum(spread, 1e-2), rot, s=6, alpha=0.5)
+    a1.set(xscale="log", xlabel="spread of the samples (deg, RMS)", ylabel="rotation error (deg)", ylim=(0, 180),
+           title="error vs spread")  # fmt: skip
+    for key, label in (("reproj_15px", "Reproj@15px"), ("add_0.2d", "ADD(-S)@0.2d")):
+        score = np.array([r.scores[key] for r in rs])[order]
+        a2.plot(kept, np.cumsum(score) / np.arange(1, len(rs) + 1), label=label)
+    a2.set(xlabel="fraction kept (least spread first)", ylabel="accuracy of the kept poses", xlim=(0, 1), title="sparsification")
+    a2.legend()
+    fig.tight_layout()
+    fig.savefig(out, dpi=100)
+    plt.close(fig)
+    return out
 
 
 def format_table(report: dict) -> str:

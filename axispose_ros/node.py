@@ -3,8 +3,10 @@
 Inputs: `image` (sensor_msgs/Image) and `camera_info`, paired by stamp within `sync_slop`; the boxes to
 estimate come from `~/roi/<object_name>` (sensor_msgs/RegionOfInterest, the latest one per object within
 `roi_timeout` seconds), for users with their own detector. Outputs keep the image header: `~/pose` (each
-object's pose in turn, for simple consumers), `~/poses/<object_name>`, `~/pose_array` (every frame, empty
-when nothing was estimated), `~/markers`, `~/debug/axis_image` (only built while subscribed), `/diagnostics`.
+object's pose in turn, for simple consumers), `~/pose_cov` (the same poses with the covariance of the AGM's
+`hypotheses` samples, when two or more of them gave a pose), `~/poses/<object_name>`, `~/pose_array` (every
+frame, empty when nothing was estimated), `~/markers`, `~/debug/axis_image` (only built while subscribed),
+`/diagnostics`.
 
 Inference runs on a worker thread fed by a latest-frame-wins slot, so the executor never blocks and stale
 frames are dropped and counted instead of queueing.
@@ -24,7 +26,7 @@ import numpy as np
 import rclpy
 import rclpy.executors
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
-from geometry_msgs.msg import Point, Pose, PoseArray, PoseStamped
+from geometry_msgs.msg import Point, Pose, PoseArray, PoseStamped, PoseWithCovarianceStamped
 from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor, SetParametersResult
 from rclpy.exceptions import ParameterUninitializedException
 from rclpy.node import Node
@@ -97,6 +99,7 @@ class AxisPoseNode(Node):
         for obj_id, name in self.names.items():
             self.create_subscription(RegionOfInterest, f"~/roi/{name}", lambda m, i=obj_id: self._on_roi(i, m), 10)
         self.pub_pose = self.create_publisher(PoseStamped, "~/pose", 10)
+        self.pub_pose_cov = self.create_publisher(PoseWithCovarianceStamped, "~/pose_cov", 10)
         self.pub_object = {i: self.create_publisher(PoseStamped, f"~/poses/{n}", 10) for i, n in self.published.items()}
         self.pub_array = self.create_publisher(PoseArray, "~/pose_array", 10)
         self.pub_markers = self.create_publisher(MarkerArray, "~/markers", 10)
@@ -118,6 +121,7 @@ class AxisPoseNode(Node):
 
         self.declare_parameter("checkpoint", str(DEFAULT_CHECKPOINT), desc("AxisPose estimator checkpoint (.safetensors)"))
         self.declare_parameter("ddim_steps", 4, desc("DDIM steps per estimate", ints=(1, 1000)))
+        self.declare_parameter("hypotheses", 4, desc("AGM samples per object; >= 2 fills ~/pose_cov", ints=(1, 64)))
         self.declare_parameter("guidance_scale", 0.0, desc("run-time geometric guidance (0: off)", floats=(0.0, 100.0)))
         self.declare_parameter("object_scale", 0.0, desc("λ_O in m for every object (0: checkpoint's)", floats=(0.0, 10.0)))
         self.declare_parameter("device", "cpu", desc("cpu, cuda or auto"))
@@ -247,11 +251,12 @@ class AxisPoseNode(Node):
             steps=int(self.get_parameter("ddim_steps").value),
             guidance_scale=float(self.get_parameter("guidance_scale").value),
             scales=self._scales(),
+            hypotheses=int(self.get_parameter("hypotheses").value),
         )
         header = frame.image.header
         array = PoseArray(header=header)
         markers = MarkerArray()
-        best: dict[int, tuple[float, PoseStamped]] = {}
+        best: dict[int, tuple[float, PoseStamped, np.ndarray | None]] = {}
         for est, score in zip(estimates, scores, strict=True):
             if not est.ok:
                 self.counts["pose_refused"] += 1
@@ -262,10 +267,14 @@ class AxisPoseNode(Node):
                 stamped = PoseStamped(header=header, pose=pose)
                 self.pub_object[est.obj_id].publish(stamped)
                 if est.obj_id not in best or score > best[est.obj_id][0]:
-                    best[est.obj_id] = (score, stamped)
+                    best[est.obj_id] = (score, stamped, est.covariance)
                 markers.markers.extend(_axis_markers(header, est, self.names[est.obj_id], self.estimator.objects[est.obj_id].axes.lengths))
-        for _, stamped in best.values():
+        for _, stamped, cov in best.values():
             self.pub_pose.publish(stamped)
+            if cov is not None:
+                msg = PoseWithCovarianceStamped(header=header)
+                msg.pose.pose, msg.pose.covariance = stamped.pose, [float(v) for v in cov.ravel()]
+                self.pub_pose_cov.publish(msg)
         self.pub_array.publish(array)
         if markers.markers:
             self.pub_markers.publish(markers)

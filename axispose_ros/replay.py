@@ -25,7 +25,7 @@ import cv2
 import numpy as np
 import rclpy
 from diagnostic_msgs.msg import DiagnosticArray
-from geometry_msgs.msg import PoseArray, PoseStamped
+from geometry_msgs.msg import PoseArray, PoseStamped, PoseWithCovarianceStamped
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.parameter import Parameter
 from rclpy.qos import QoSProfile, ReliabilityPolicy
@@ -211,6 +211,9 @@ def _run(
             PoseArray, f"{ns}/pose_array", recorder(f"{ns}/pose_array", "geometry_msgs/msg/PoseArray", on_array), 100
         )
         player.create_subscription(PoseStamped, f"{ns}/pose", recorder(f"{ns}/pose", "geometry_msgs/msg/PoseStamped"), 100)
+        player.create_subscription(
+            PoseWithCovarianceStamped, f"{ns}/pose_cov", recorder(f"{ns}/pose_cov", "geometry_msgs/msg/PoseWithCovarianceStamped"), 100
+        )
         for name in node.published.values():
             topic = f"{ns}/poses/{name}"
             hook = (lambda n: lambda m: poses[_stamp_ns(m.header)][n].append(_pose_rt(m.pose)))(name)

@@ -10,7 +10,8 @@ from axispose_core.data.bop import BopScene
 from axispose_core.data.objects import objects_from_models
 from axispose_core.data.synth.config import SynthConfig
 from axispose_core.data.synth.generate import generate
-from axispose_core.evaluate import Prediction, evaluate, plot_cdfs, plot_grid, summarize, write_report
+from axispose_core.evaluate import Prediction, evaluate, plot_cdfs, plot_grid, plot_spread, summarize, write_report
+from axispose_core.stress import low_light, motion_blur
 
 KEYS = {"n", "name", "add_0.1d", "add_0.2d", "reproj_5px", "reproj_15px", "rot_err_median_deg", "trans_err_median_mm"}
 
@@ -22,19 +23,29 @@ def scenes(tmp_path_factory, lmo_dir):
     return out
 
 
-def _gt_predictor(scene_dir, scramble=False):
+def _gt_predictor(scene_dir, scramble=False, tilt_deg=None, seen=None):
+    """The GT poses; scrambled (and refused), or tilted about the camera's X by `tilt_deg(k)` degrees for the
+    k-th pose with that tilt as its spread; `seen` collects the images it was given."""
     scene = BopScene(scene_dir)
     frames = {im_id: {g.obj_id: g for g in scene.gt[im_id]} for im_id in scene.image_ids}
     calls = iter(scene.image_ids)
+    count = iter(range(1000))
 
     def predict(image, K, boxes):
+        if seen is not None:
+            seen.append(image)
         im_id = next(calls)
         while not all(o in frames[im_id] for o, _ in boxes):
             im_id = next(calls)
         out = []
         for obj_id, _ in boxes:
             g = frames[im_id][obj_id]
-            out.append(Prediction(g.R, g.t + (0.5 if scramble else 0.0), not scramble))
+            if tilt_deg is None:
+                out.append(Prediction(g.R, g.t + (0.5 if scramble else 0.0), not scramble))
+            else:
+                a = np.radians(tilt_deg(next(count)))
+                Rx = np.array([[1, 0, 0], [0, np.cos(a), -np.sin(a)], [0, np.sin(a), np.cos(a)]])
+                out.append(Prediction(Rx @ g.R, g.t, True, np.degrees(a)))
         return out
 
     return predict
@@ -92,3 +103,63 @@ def test_eval_cli_writes_the_report(scenes, lmo_dir, tmp_path):
     assert main(args) == 0
     report = json.loads((tmp_path / "rep.json").read_text())
     assert report["config"]["steps"] == 1 and report["objects"]
+    stress = args[:-4] + ["--report", str(tmp_path / "stress.json"), "--hypotheses", "2", "--perturb", "motion_blur", "--visib", "0.1", "0.9"]
+    assert main(stress) == 0
+    config = json.loads((tmp_path / "stress.json").read_text())["config"]
+    assert (config["hypotheses"], config["perturb"], config["visib"]) == (2, "motion_blur", [0.1, 0.9])
+
+
+def test_visibility_band_keeps_only_its_instances(scenes, lmo_dir):
+    objects = objects_from_models(scenes)
+    scene = BopScene(scenes / "000000")
+    band = sum(0.1 <= i.visib_fract <= 0.7 for im in scene.image_ids for i in scene.gt_info[im])
+    records = evaluate(_gt_predictor(scenes / "000000"), scenes, lmo_dir / "models_eval", objects, progress=False, visib=(0.1, 0.7))
+    assert len(records) == band
+    with pytest.raises(ValueError, match="visib"):
+        evaluate(_gt_predictor(scenes / "000000"), scenes, lmo_dir / "models_eval", objects, visib=(0.0, 1.0))
+
+
+def test_perturbation_reaches_the_predictor_seeded_per_frame(scenes, lmo_dir):
+    objects = objects_from_models(scenes)
+    runs = []
+    for perturb in (None, low_light, low_light):
+        seen = []
+        evaluate(_gt_predictor(scenes / "000000", seen=seen), scenes, lmo_dir / "models_eval", objects, progress=False, perturb=perturb)
+        runs.append(seen)
+    clean, dim, dim_again = runs
+    assert all(d.mean() < 0.35 * c.mean() for c, d in zip(clean, dim, strict=True))
+    assert all(np.array_equal(a, b) for a, b in zip(dim, dim_again, strict=True))  # reproducible
+
+
+def test_spread_that_tracks_the_error_is_reported_as_predictive(scenes, lmo_dir, tmp_path):
+    objects = objects_from_models(scenes)
+    predict = _gt_predictor(scenes / "000000", tilt_deg=lambda k: [1.0, 40.0, 3.0, 90.0, 2.0, 60.0][k % 6] + 0.01 * k)
+    records = evaluate(predict, scenes, lmo_dir / "models_eval", objects, progress=False)
+    assert len(records) >= 4
+    q = summarize(records, objects, {})["spread"]
+    assert q["spearman_spread_vs_rot_err"] == pytest.approx(1.0)
+    assert q["reproj_15px_least_spread_half"] >= q["reproj_15px_all_posed"]
+    assert plot_spread(records, tmp_path).stat().st_size > 5000
+    assert "spread" not in summarize([r for r in records if False], objects, {})  # no spreads, no entry
+
+
+def test_low_light_darkens_and_adds_noise():
+    rgb = np.full((60, 80, 3), 200, np.uint8)
+    out = low_light(rgb, np.random.default_rng(0))
+    assert out.shape == rgb.shape and out.dtype == np.uint8
+    assert 0.1 * 200 < out.mean() < 0.32 * 200 and out.std() > 1.0
+    assert np.array_equal(out, low_light(rgb, np.random.default_rng(0)))
+
+
+def test_motion_blur_smears_edges_but_keeps_brightness():
+    rgb = np.random.default_rng(0).integers(0, 256, (64, 64, 3)).astype(np.uint8)  # white noise: any streak smooths it
+
+    def edges(im):
+        im = im.astype(int)
+        return np.abs(np.diff(im, axis=0)).mean() + np.abs(np.diff(im, axis=1)).mean()
+
+    for seed in range(5):
+        out = motion_blur(rgb, np.random.default_rng(seed), length=(15, 15))
+        assert out.shape == rgb.shape and out.dtype == np.uint8
+        assert abs(float(out.mean()) - float(rgb.mean())) < 3.0
+        assert edges(out) < 0.6 * edges(rgb)

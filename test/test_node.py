@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 import rclpy
 from diagnostic_msgs.msg import DiagnosticArray
-from geometry_msgs.msg import PoseArray, PoseStamped
+from geometry_msgs.msg import PoseArray, PoseStamped, PoseWithCovarianceStamped
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.parameter import Parameter
 from sensor_msgs.msg import CameraInfo, Image, RegionOfInterest
@@ -50,12 +50,13 @@ class Harness:
         self.exe = SingleThreadedExecutor(context=self.ctx)
         self.exe.add_node(self.node)
         self.exe.add_node(self.peer)
-        self.got: dict[str, list] = {"pose": [], "array": [], "debug": [], "diag": [], "ape": []}
+        self.got: dict[str, list] = {"pose": [], "array": [], "debug": [], "diag": [], "ape": [], "cov": []}
         self.pub_image = self.peer.create_publisher(Image, "image", 10)
         self.pub_info = self.peer.create_publisher(CameraInfo, "camera_info", 10)
         self.pub_roi = self.peer.create_publisher(RegionOfInterest, "/axispose/roi/ape", 10)
         self.peer.create_subscription(PoseStamped, "/axispose/pose", self.got["pose"].append, 10)
         self.peer.create_subscription(PoseStamped, "/axispose/poses/ape", self.got["ape"].append, 10)
+        self.peer.create_subscription(PoseWithCovarianceStamped, "/axispose/pose_cov", self.got["cov"].append, 10)
         self.peer.create_subscription(PoseArray, "/axispose/pose_array", self.got["array"].append, 10)
         self.peer.create_subscription(DiagnosticArray, "/diagnostics", self.got["diag"].append, 10)
 
@@ -130,6 +131,31 @@ def test_pose_stamped_for_a_box_with_the_same_header(harness):
     assert harness.spin_until(lambda: harness.got["pose"] and harness.got["array"])  # published after the per-object topics
     assert len(harness.got["array"][-1].poses) == 1 and harness.got["pose"][0].header == got.header
     assert harness.got["debug"] == []  # nobody subscribed: no debug image built
+    assert harness.got["cov"] == []  # a single-sample pose has no covariance to publish
+
+
+def test_pose_cov_carries_the_covariance_of_the_samples(harness):
+    real = harness.node.estimator.estimate
+    calls = []
+    cov = np.diag([1e-4, 2e-4, 9e-4, 0.01, 0.02, 0.03])
+    cov[0, 5] = cov[5, 0] = 1e-5
+
+    def succeed(*args, **kwargs):
+        calls.append(kwargs["hypotheses"])
+        return [
+            PoseEstimate(e.obj_id, np.eye(3), np.array([0.0, 0.0, 0.8]), True, "", e.axis_image, e.K_patch, e.center, e.side, 4, 4, 3.0, 0.01, cov)
+            for e in real(*args, **kwargs)
+        ]
+
+    harness.node.estimator.estimate = succeed
+    harness.roi()
+    harness.spin_until(lambda: 1 in harness.node._rois, 5.0)
+    sent = harness.frame(sec=6)
+    assert harness.spin_until(lambda: harness.got["cov"])
+    got = harness.got["cov"][0]
+    assert calls == [4]  # the node's default hypotheses
+    assert got.header.stamp.sec == sent.header.stamp.sec and got.pose.pose.position.z == pytest.approx(0.8)
+    np.testing.assert_allclose(np.reshape(got.pose.covariance, (6, 6)), cov)
 
 
 def test_debug_image_only_when_subscribed(harness):

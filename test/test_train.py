@@ -49,11 +49,13 @@ def test_short_run_then_resume(data, tmp_path):
     assert state["step"] == 4
     rows = (tmp_path / "agm.csv").read_text().splitlines()
     assert rows[0].startswith("step,loss") and any(r.split(",")[4] for r in rows[1:])  # validation logged
-    # Resume with more steps is refused (other config); with the same config it continues from step 4.
-    with pytest.raises(ValueError, match="another configuration"):
-        main(["train", "--data", str(data), "--out", str(out), "--config", _config(tmp_path, steps=6), "--resume", str(out) + ".state.pt"])
+    # Another recipe is refused; the same config continues from step 4 (already done); more steps extend the run.
+    with pytest.raises(ValueError, match=r"another configuration \(lr\)"):
+        main(["train", "--data", str(data), "--out", str(out), "--config", _config(tmp_path, lr=5e-4), "--resume", str(out) + ".state.pt"])
     assert main(["train", "--data", str(data), "--out", str(out), "--config", cfg, "--resume", str(out) + ".state.pt"]) == 0
     assert torch.load(str(out) + ".state.pt", weights_only=False)["step"] == 4
+    assert main(["train", "--data", str(data), "--out", str(out), "--config", _config(tmp_path, steps=6), "--resume", str(out) + ".state.pt"]) == 0
+    assert torch.load(str(out) + ".state.pt", weights_only=False)["step"] == 6 and Estimator.load(out).config.training["steps"] == 6
 
 
 def test_torchrun_two_cpu_processes_with_gloo(data, tmp_path):

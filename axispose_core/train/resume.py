@@ -32,11 +32,21 @@ def save_run_state(path: Path, cfg: Any, model: torch.nn.Module, ema: torch.nn.M
     tmp.replace(path)
 
 
+# Fields a resumed run may change: its length (the cosine schedule stretches to the new total, so a finished run
+# can be extended) and how often it saves and validates. Anything else would make the weights a different recipe.
+EXTENDABLE = ("steps", "save_every", "val_every")
+
+
 def load_run_state(path: str | Path, cfg: Any, model: torch.nn.Module, ema: torch.nn.Module, opt, sched) -> int:
-    """Restore a saved run into the given objects and return its step; a run with another config is refused."""
+    """Restore a saved run into the given objects and return its step; a run with another recipe is refused."""
     state = torch.load(path, map_location="cpu", weights_only=False)
-    if state["config"] != dataclasses.asdict(cfg):
-        raise ValueError(f"{path}: saved by a run with another configuration; resume with the same --config")
+    saved, now = dict(state["config"]), dataclasses.asdict(cfg)
+    for key in EXTENDABLE:
+        saved.pop(key, None), now.pop(key, None)
+    if saved != now:
+        changed = sorted(k for k in saved.keys() | now.keys() if saved.get(k) != now.get(k))
+        raise ValueError(f"{path}: saved by a run with another configuration ({', '.join(changed)}); "
+                         f"only {', '.join(EXTENDABLE)} may change on resume")  # fmt: skip
     model.load_state_dict(state["model"])
     ema.load_state_dict(state["ema"])
     opt.load_state_dict(state["opt"])

@@ -1,0 +1,151 @@
+"""Multi-hypothesis poses: the consensus of sampled poses, its spread and covariance, and the estimator's K samples."""
+
+import numpy as np
+import pytest
+import torch
+from scipy.spatial.transform import Rotation
+
+from axispose_core.agm.denoiser import DenoiserConfig
+from axispose_core.agm.model import AGMConfig, AxisGenerator
+from axispose_core.axis_image import render_axis_image
+from axispose_core.camera import project
+from axispose_core.consensus import ROT_FLOOR_RAD, TRANS_FLOOR_M, consensus
+from axispose_core.data.crops import instance_crop
+from axispose_core.data.objects import lmo_objects
+from axispose_core.estimator import Estimator, EstimatorConfig
+from axispose_core.metrics import re
+from axispose_core.tbm.reader import SHIPPED_READER, load_reader
+
+FLOOR = np.diag([TRANS_FLOOR_M**2] * 3 + [ROT_FLOOR_RAD**2] * 3)
+
+
+def _base():
+    R = Rotation.from_euler("xyz", [30, -50, 110], degrees=True).as_matrix()
+    return R, np.array([0.05, -0.02, 0.6])
+
+
+def test_identical_samples_give_themselves_and_the_floor():
+    R, t = _base()
+    c = consensus(np.stack([R] * 4), np.stack([t] * 4), 0.05)
+    np.testing.assert_allclose(c.R, R, atol=1e-12)
+    np.testing.assert_allclose(c.t, t, atol=1e-12)
+    assert c.spread_deg == pytest.approx(0, abs=1e-6) and c.spread_m == pytest.approx(0, abs=1e-12)
+    np.testing.assert_allclose(c.covariance, FLOOR, atol=1e-12)
+    assert c.inliers.all()
+
+
+def test_symmetric_scatter_about_a_camera_axis_has_the_analytic_covariance():
+    R, t = _base()
+    d = np.radians(4.0)
+    Rs = np.stack([Rotation.from_rotvec([s * d, 0, 0]).as_matrix() @ R for s in (1, -1)])  # about the camera's X
+    ts = np.stack([t + [0.0, 0.0, 0.01], t - [0.0, 0.0, 0.01]])
+    c = consensus(Rs, ts, 0.05)
+    assert re(c.R, R) < 1e-6
+    np.testing.assert_allclose(c.t, t, atol=1e-12)
+    assert c.spread_deg == pytest.approx(4.0, rel=1e-6) and c.spread_m == pytest.approx(0.01, rel=1e-9)
+    expected = FLOOR.copy()
+    expected[2, 2] += 0.01**2
+    expected[3, 3] += d**2
+    expected[2, 3] = expected[3, 2] = 0.01 * d  # z and rx move together in this scatter
+    np.testing.assert_allclose(c.covariance, expected, atol=1e-12)
+    assert np.all(np.linalg.eigvalsh(c.covariance) > 0)
+
+
+def test_an_outlier_does_not_move_the_consensus_but_widens_the_spread():
+    R, t = _base()
+    rng = np.random.default_rng(0)
+    good = [Rotation.from_rotvec(rng.normal(0, 0.01, 3)).as_matrix() @ R for _ in range(5)]
+    flipped = Rotation.from_euler("z", 150, degrees=True).as_matrix() @ R
+    Rs, ts = np.stack([*good, flipped]), np.stack([t] * 6)
+    c = consensus(Rs, ts, 0.05)
+    assert c.inliers.tolist() == [True] * 5 + [False]
+    np.testing.assert_allclose(c.R, Rotation.from_matrix(np.stack(good)).mean().as_matrix(), atol=1e-12)
+    assert re(c.R, R) < 2.0
+    clean = consensus(np.stack(good), np.stack([t] * 5), 0.05)
+    assert c.spread_deg > 10 * clean.spread_deg
+    assert c.medoid != 5
+
+
+def test_consensus_rejects_malformed_input():
+    R, t = _base()
+    with pytest.raises(ValueError, match="K >= 1"):
+        consensus(np.zeros((0, 3, 3)), np.zeros((0, 3)), 0.05)
+    with pytest.raises(ValueError, match="K >= 1"):
+        consensus(np.stack([R]), np.stack([t, t]), 0.05)
+    with pytest.raises(ValueError, match="positive"):
+        consensus(np.stack([R]), np.stack([t]), 0.0)
+
+
+class _OracleAGM(AxisGenerator):
+    """Draws the axis image of the true pose tilted by a per-sample random rotation of `sigma_deg`.
+
+    A stand-in for a trained AGM whose samples scatter around the truth, so the estimator's batching,
+    consensus and covariance can be checked against known poses.
+    """
+
+    def __init__(self, config, K_patch, R, t, lengths, sigma_deg):
+        super().__init__(config)
+        self.K_patch, self.R, self.t, self.lengths, self.sigma = K_patch, R, t, lengths, np.radians(sigma_deg)
+        self.batches: list[int] = []
+
+    def sample(self, crops, steps, eta=0.0, generator=None, guidance=None, guidance_scale=0.0):
+        self.batches.append(len(crops))
+        seed = int(torch.randint(0, 2**31 - 1, (1,), generator=generator))
+        rng = np.random.default_rng(seed)
+        S = crops.shape[-1]
+        out = []
+        for _ in range(len(crops)):
+            tilt = Rotation.from_rotvec(rng.normal(0, self.sigma, 3)).as_matrix()
+            out.append(render_axis_image(self.K_patch, tilt @ self.R, self.t, self.lengths, S))
+        return torch.from_numpy(np.stack(out)).permute(0, 3, 1, 2) * 2 - 1
+
+
+@pytest.fixture(scope="module")
+def oracle_setup():
+    reader = load_reader(SHIPPED_READER)
+    spec = lmo_objects()[0]
+    K = np.array([[572.4, 0, 325.3], [0, 573.6, 242.0], [0, 0, 1.0]])
+    R, t = _base()
+    uv = project(K, t[None])[0]
+    r = 0.5 * spec.diameter * K[0, 0] / t[2]
+    box = (uv[0] - r, uv[1] - r, 2 * r, 2 * r)
+    image = np.zeros((480, 640, 3), np.uint8)
+    S = reader.config.size
+    K_patch = instance_crop(image, K, box, S, pad=1.25).K_patch
+    cfg = EstimatorConfig(agm=AGMConfig(denoiser=DenoiserConfig(size=S, channels=8, multipliers=(1,), groups=4)), reader=reader.config,
+                          objects=(spec,), ddim_steps=1)  # fmt: skip
+
+    def make(sigma_deg: float) -> Estimator:
+        return Estimator(cfg, _OracleAGM(cfg.agm, K_patch, R, t, spec.axes.lengths, sigma_deg), reader)
+
+    return make, image, K, box, spec, R, t
+
+
+def test_estimator_samples_every_box_k_times_in_one_batch(oracle_setup):
+    make, image, K, box, spec, R, t = oracle_setup
+    est = make(3.0)
+    (single,) = est.estimate(image, K, [(spec.obj_id, box)], hypotheses=1)
+    assert single.ok and single.covariance is None and np.isnan(single.spread_deg)
+    many = est.estimate(image, K, [(spec.obj_id, box), (spec.obj_id, box)], hypotheses=8, seed=3)
+    assert est.agm.batches == [1, 16]
+    for e in many:
+        assert e.ok and e.samples == 8 and e.samples_ok >= 6
+        assert re(e.R, R) < 3.0
+        assert 0.5 < e.spread_deg < 10.0
+        assert e.covariance.shape == (6, 6) and np.all(np.linalg.eigvalsh(e.covariance) > 0)
+    again = est.estimate(image, K, [(spec.obj_id, box), (spec.obj_id, box)], hypotheses=8, seed=3)
+    np.testing.assert_array_equal(again[0].R, many[0].R)  # deterministic under a seed
+
+
+def test_wider_sample_scatter_gives_a_wider_spread(oracle_setup):
+    make, image, K, box, spec, *_ = oracle_setup
+    tight = make(1.0).estimate(image, K, [(spec.obj_id, box)], hypotheses=8, seed=1)[0]
+    wide = make(8.0).estimate(image, K, [(spec.obj_id, box)], hypotheses=8, seed=1)[0]
+    assert wide.spread_deg > 2 * tight.spread_deg
+    assert np.trace(wide.covariance[3:, 3:]) > np.trace(tight.covariance[3:, 3:])
+
+
+def test_hypotheses_must_be_positive(oracle_setup):
+    make, image, K, box, spec, *_ = oracle_setup
+    with pytest.raises(ValueError, match="hypotheses"):
+        make(1.0).estimate(image, K, [(spec.obj_id, box)], hypotheses=0)
