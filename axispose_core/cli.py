@@ -165,10 +165,13 @@ def _eval(args: argparse.Namespace) -> int:
         print(f"spread vs rotation error: Spearman {q['spearman_spread_vs_rot_err']:.2f}; Reproj@15px {q['reproj_15px_all_posed']:.3f} "
               f"for all posed, {q['reproj_15px_least_spread_half']:.3f} for the least-spread half")  # fmt: skip
     if args.plots:
-        plots = [plot_cdfs(records, objects, args.plots), plot_grid(records, objects, args.models, args.plots), plot_spread(records, args.plots)]
-        print("plots: " + ", ".join(str(p) for p in plots if p))
+        plots = [plot_cdfs(records, objects, args.plots), plot_grid(records, objects, args.models, args.plots)]
+        print("plots: " + ", ".join(str(p) for p in [*plots, plot_spread(records, args.plots)] if p))
     print(f"report: {args.report}")
     return 0
+
+
+RESUME_HELP = "OUT.state.pt of an earlier run with the same config (steps, save_every, val_every may differ: a longer run extends it)"
 
 
 def _ids(text: str) -> list[int]:
@@ -218,7 +221,7 @@ def build_parser() -> argparse.ArgumentParser:
     tn.add_argument("--val", nargs="*", default=None, help="held-out BOP folders for periodic validation")
     tn.add_argument("--out", required=True, help="estimator checkpoint to write (.safetensors); OUT.state.pt holds the resume state")
     tn.add_argument("--config", help="YAML with TrainConfig fields (e.g. config/train_agm.yaml)")
-    tn.add_argument("--resume", help="OUT.state.pt of an earlier run with the same config (steps, save_every, val_every may differ: a longer run extends it)")
+    tn.add_argument("--resume", help=RESUME_HELP)
     tn.add_argument("--device", default="auto", choices=["cpu", "cuda", "auto"])
     tn.add_argument("--max-minutes", type=float, default=None, help="stop (and save) after this much wall time")
     tn.add_argument("--threads", type=int, default=2)
@@ -229,7 +232,7 @@ def build_parser() -> argparse.ArgumentParser:
     td.add_argument("--val", nargs="*", default=None, help="held-out BOP folders for validation recall")
     td.add_argument("--out", required=True, help="localiser checkpoint to write (.safetensors); OUT.state.pt holds the resume state")
     td.add_argument("--config", help="YAML with DetectorTrainConfig fields (e.g. config/train_detector.yaml)")
-    td.add_argument("--resume", help="OUT.state.pt of an earlier run with the same config (steps, save_every, val_every may differ: a longer run extends it)")
+    td.add_argument("--resume", help=RESUME_HELP)
     td.add_argument("--attach", help="estimator checkpoint to add the trained localiser to (rewritten in place)")
     td.add_argument("--device", default="auto", choices=["cpu", "cuda", "auto"])
     td.add_argument("--max-minutes", type=float, default=None, help="stop (and save) after this much wall time")

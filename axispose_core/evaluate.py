@@ -142,7 +142,19 @@ def evaluate(
                 scores = {k: 0.0 for k in SUMMARY_KEYS} | {"rot_err_deg": 180.0, "trans_err_mm": float("inf")}
             records.append(
                 Record(
-                    g.obj_id, scene.root.name, im_id, scores, per_object, g.R, g.t, p.R, p.t, p.ok, K, scene.rgb_path(im_id), info.bbox_obj,
+                    g.obj_id,
+                    scene.root.name,
+                    im_id,
+                    scores,
+                    per_object,
+                    g.R,
+                    g.t,
+                    p.R,
+                    p.t,
+                    p.ok,
+                    K,
+                    scene.rgb_path(im_id),
+                    info.bbox_obj,
                     p.spread_deg,
                 )
             )

@@ -122,7 +122,7 @@ def oracle_setup():
 
 
 def test_estimator_samples_every_box_k_times_in_one_batch(oracle_setup):
-    make, image, K, box, spec, R, t = oracle_setup
+    make, image, K, box, spec, R, _ = oracle_setup
     est = make(3.0)
     (single,) = est.estimate(image, K, [(spec.obj_id, box)], hypotheses=1)
     assert single.ok and single.covariance is None and np.isnan(single.spread_deg)

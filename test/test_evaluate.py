@@ -103,7 +103,8 @@ def test_eval_cli_writes_the_report(scenes, lmo_dir, tmp_path):
     assert main(args) == 0
     report = json.loads((tmp_path / "rep.json").read_text())
     assert report["config"]["steps"] == 1 and report["objects"]
-    stress = args[:-4] + ["--report", str(tmp_path / "stress.json"), "--hypotheses", "2", "--perturb", "motion_blur", "--visib", "0.1", "0.9"]
+    stress = [*args[:-4], "--report", str(tmp_path / "stress.json"), "--hypotheses", "2"]
+    stress += ["--perturb", "motion_blur", "--visib", "0.1", "0.9"]
     assert main(stress) == 0
     config = json.loads((tmp_path / "stress.json").read_text())["config"]
     assert (config["hypotheses"], config["perturb"], config["visib"]) == (2, "motion_blur", [0.1, 0.9])

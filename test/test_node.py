@@ -142,8 +142,9 @@ def test_pose_cov_carries_the_covariance_of_the_samples(harness):
 
     def succeed(*args, **kwargs):
         calls.append(kwargs["hypotheses"])
+        spread = {"samples": 4, "samples_ok": 4, "spread_deg": 3.0, "spread_m": 0.01, "covariance": cov}
         return [
-            PoseEstimate(e.obj_id, np.eye(3), np.array([0.0, 0.0, 0.8]), True, "", e.axis_image, e.K_patch, e.center, e.side, 4, 4, 3.0, 0.01, cov)
+            PoseEstimate(e.obj_id, np.eye(3), np.array([0.0, 0.0, 0.8]), True, "", e.axis_image, e.K_patch, e.center, e.side, **spread)
             for e in real(*args, **kwargs)
         ]
 

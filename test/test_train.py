@@ -54,7 +54,8 @@ def test_short_run_then_resume(data, tmp_path):
         main(["train", "--data", str(data), "--out", str(out), "--config", _config(tmp_path, lr=5e-4), "--resume", str(out) + ".state.pt"])
     assert main(["train", "--data", str(data), "--out", str(out), "--config", cfg, "--resume", str(out) + ".state.pt"]) == 0
     assert torch.load(str(out) + ".state.pt", weights_only=False)["step"] == 4
-    assert main(["train", "--data", str(data), "--out", str(out), "--config", _config(tmp_path, steps=6), "--resume", str(out) + ".state.pt"]) == 0
+    longer = _config(tmp_path, steps=6)
+    assert main(["train", "--data", str(data), "--out", str(out), "--config", longer, "--resume", str(out) + ".state.pt"]) == 0
     assert torch.load(str(out) + ".state.pt", weights_only=False)["step"] == 6 and Estimator.load(out).config.training["steps"] == 6
 
 
