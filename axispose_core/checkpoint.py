@@ -85,8 +85,8 @@ def save_checkpoint(
     tmp.replace(path)
 
 
-def read_metadata(path: str | Path, kind: str) -> dict[str, str]:
-    """The metadata of an AxisPose checkpoint of `kind`, or CheckpointError saying why the file is not one."""
+def read_metadata(path: str | Path, kind: str | None) -> dict[str, str]:
+    """The metadata of an AxisPose checkpoint of `kind` (None: any), or CheckpointError saying why the file is not one."""
     path = Path(path)
     if not path.is_file():
         raise CheckpointError(f"{path}: checkpoint file not found")
@@ -97,7 +97,7 @@ def read_metadata(path: str | Path, kind: str) -> dict[str, str]:
         raise CheckpointError(f"{path}: not a readable safetensors file ({err})") from err
     if meta.get("format") != FORMAT:
         raise CheckpointError(f"{path}: not an AxisPose checkpoint (format {meta.get('format')!r}, expected {FORMAT!r})")
-    if meta.get("kind") != kind:
+    if kind is not None and meta.get("kind") != kind:
         raise CheckpointError(f"{path}: holds a {meta.get('kind')!r} model, expected {kind!r}")
     return meta
 

@@ -103,6 +103,18 @@ def _train(args: argparse.Namespace) -> int:
     return 0
 
 
+def _train_direct(args: argparse.Namespace) -> int:
+    import torch
+
+    from axispose_core.train.direct import DirectTrainConfig, train_direct
+
+    torch.set_num_threads(args.threads)
+    cfg = _config(DirectTrainConfig, args.config)
+    step = train_direct(cfg, args.data, args.out, val_data=args.val, resume=args.resume, device=args.device, max_minutes=args.max_minutes)
+    print(f"stopped at step {step} of {cfg.steps}; direct-regression baseline {args.out}")
+    return 0
+
+
 def _train_detector(args: argparse.Namespace) -> int:
     import torch
 
@@ -131,11 +143,26 @@ def _train_detector(args: argparse.Namespace) -> int:
 def _eval(args: argparse.Namespace) -> int:
     import torch
 
+    from axispose_core.baseline.direct import KIND as DIRECT_KIND
+    from axispose_core.baseline.direct import DirectEstimator
+    from axispose_core.checkpoint import read_metadata
     from axispose_core.estimator import Estimator
-    from axispose_core.evaluate import Prediction, evaluate, format_table, plot_cdfs, plot_grid, plot_spread, summarize, write_report
+    from axispose_core.evaluate import Prediction, evaluate
     from axispose_core.stress import PERTURBATIONS
 
     torch.set_num_threads(args.threads)
+    perturb = PERTURBATIONS[args.perturb] if args.perturb else None
+    if read_metadata(args.checkpoint, None)["kind"] == DIRECT_KIND:  # the direct-regression baseline
+        if args.crops == "detect":
+            print("axispose eval: the direct-regression baseline has no localiser; use --crops gt", file=sys.stderr)
+            return 2
+        direct = DirectEstimator.load(args.checkpoint)
+        objects = [o for o in direct.model.config.objects if not args.objects or o.obj_id in args.objects]
+        records = evaluate(lambda image, K, boxes: [Prediction(p.R, p.t, p.ok) for p in direct.estimate(image, K, boxes)],
+                           args.data, args.models, objects, limit=args.limit, visib=tuple(args.visib), perturb=perturb)  # fmt: skip
+        config = {"checkpoint": str(args.checkpoint), "data": str(args.data), "model": DIRECT_KIND, "crops": args.crops,
+                  "visib": list(args.visib), "perturb": args.perturb}  # fmt: skip
+        return _report(args, records, objects, config, None)
     est = Estimator.load(args.checkpoint)
     objects = [o for o in est.config.objects if not args.objects or o.obj_id in args.objects]
 
@@ -151,12 +178,18 @@ def _eval(args: argparse.Namespace) -> int:
             )
             return 2
         detector, counts = est.detect, {}
-    perturb = PERTURBATIONS[args.perturb] if args.perturb else None
     records = evaluate(predict, args.data, args.models, objects, limit=args.limit, detector=detector, detection_counts=counts,
                        visib=tuple(args.visib), perturb=perturb)  # fmt: skip
     config = {"checkpoint": str(args.checkpoint), "data": str(args.data), "steps": args.steps or est.config.ddim_steps,
               "guidance": est.config.guidance_scale if args.guidance is None else args.guidance, "crops": args.crops,
               "hypotheses": args.hypotheses, "visib": list(args.visib), "perturb": args.perturb}  # fmt: skip
+    return _report(args, records, objects, config, counts)
+
+
+def _report(args: argparse.Namespace, records, objects, config: dict, counts: dict | None) -> int:
+    """Write, print and plot an eval's results."""
+    from axispose_core.evaluate import format_table, plot_cdfs, plot_grid, plot_spread, summarize, write_report
+
     report = summarize(records, objects, config, counts)
     write_report(report, args.report)
     print(format_table(report))
@@ -238,6 +271,17 @@ def build_parser() -> argparse.ArgumentParser:
     td.add_argument("--max-minutes", type=float, default=None, help="stop (and save) after this much wall time")
     td.add_argument("--threads", type=int, default=2)
     td.set_defaults(func=_train_detector)
+
+    tr = sub.add_parser("train-direct", help="train the direct-regression baseline (keypoints from the crop, no diffusion)")
+    tr.add_argument("--data", nargs="+", required=True, help="BOP dataset folders written by `axispose synth`")
+    tr.add_argument("--val", nargs="*", default=None, help="held-out BOP folders for periodic validation")
+    tr.add_argument("--out", required=True, help="regressor checkpoint to write (.safetensors); OUT.state.pt holds the resume state")
+    tr.add_argument("--config", help="YAML with DirectTrainConfig fields (e.g. config/train_direct.yaml)")
+    tr.add_argument("--resume", help=RESUME_HELP)
+    tr.add_argument("--device", default="auto", choices=["cpu", "cuda", "auto"])
+    tr.add_argument("--max-minutes", type=float, default=None, help="stop (and save) after this much wall time")
+    tr.add_argument("--threads", type=int, default=2)
+    tr.set_defaults(func=_train_direct)
 
     ev = sub.add_parser("eval", help="pose metrics of a checkpoint on BOP scenes (JSON report, plots)")
     ev.add_argument("--checkpoint", required=True)

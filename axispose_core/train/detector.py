@@ -9,8 +9,6 @@ colour-jittered on top of the data's own randomisation.
 
 from __future__ import annotations
 
-import copy
-import csv
 import platform
 import time
 from dataclasses import dataclass, field
@@ -20,7 +18,7 @@ import cv2
 import numpy as np
 import torch
 import torch.nn.functional as F
-from torch.utils.data import DataLoader, Dataset, RandomSampler
+from torch.utils.data import Dataset
 from tqdm import tqdm
 
 from axispose_core.checkpoint import load_state, read_checkpoint, save_checkpoint
@@ -28,8 +26,7 @@ from axispose_core.data.bop import BopFormatError, BopScene
 from axispose_core.detect.decode import draw_targets, focal_loss, match
 from axispose_core.detect.model import STRIDE, Localiser, LocaliserConfig
 from axispose_core.train.dataset import scene_dirs
-from axispose_core.train.resume import load_run_state, save_run_state, state_path
-from axispose_core.train.schedule import ema_update, warmup_cosine
+from axispose_core.train.loop import fit
 
 KIND = "localiser"
 
@@ -184,61 +181,17 @@ def train_detector(
     train_set = DetectionDataset(data, cfg.localiser, cfg.min_visib, seed=cfg.seed)
     if not len(train_set):
         raise ValueError(f"no frames in {data}")
-    model = Localiser(cfg.localiser).to(dev)
-    ema = copy.deepcopy(model).eval()
-    opt = torch.optim.AdamW(model.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
-    sched = torch.optim.lr_scheduler.LambdaLR(opt, lambda s: warmup_cosine(s, cfg.warmup, cfg.steps))
-    step = 0
-    if resume:
-        step = load_run_state(resume, cfg, model, ema, opt, sched)
-    log = open(out.with_suffix(".csv"), "a", newline="")
-    writer = csv.writer(log)
-    if step == 0:
-        writer.writerow(["step", "loss", "lr", "seconds", "val_recall", "val_precision"])
-    start = time.time()
 
-    def save() -> None:
-        provenance = {"data": [str(d) for d in data], "steps": step, "seconds": time.time() - start, "device": str(dev),
+    def save(ema: torch.nn.Module, step: int, seconds: float) -> None:
+        provenance = {"data": [str(d) for d in data], "steps": step, "seconds": seconds, "device": str(dev),
                       "host": platform.processor() or platform.machine()}  # fmt: skip
         save_checkpoint(out, KIND, cfg.localiser, {"localiser": ema}, extra={"training": provenance})
-        save_run_state(state_path(out), cfg, model, ema, opt, sched, step)
 
-    def out_of_time() -> bool:
-        return max_minutes is not None and time.time() - start > 60 * max_minutes
+    def validate(ema: torch.nn.Module) -> dict[str, float]:
+        scores = detection_scores(ema, val_data, limit=cfg.val_frames)
+        return {"val_recall": scores["recall"], "val_precision": scores["precision"]}
 
-    bar = tqdm(total=cfg.steps, initial=step, desc="train detector", disable=not progress)
-    epoch = step * cfg.batch // len(train_set)
-    try:
-        while step < cfg.steps and not out_of_time():
-            train_set.epoch = epoch
-            sampler = RandomSampler(train_set, generator=torch.Generator().manual_seed(cfg.seed + epoch))
-            loader = DataLoader(train_set, batch_size=cfg.batch, sampler=sampler, num_workers=cfg.workers, drop_last=True)
-            for batch in loader:
-                model.train()
-                loss = detector_loss(model, {k: v.to(dev) for k, v in batch.items()}, cfg)
-                opt.zero_grad(set_to_none=True)
-                loss.backward()
-                torch.nn.utils.clip_grad_norm_(model.parameters(), cfg.grad_clip)
-                opt.step()
-                sched.step()
-                ema_update(ema, model, cfg.ema_decay)
-                step += 1
-                bar.update(1)
-                bar.set_postfix(loss=f"{loss.item():.3f}")
-                val = {}
-                if val_data and step % cfg.val_every == 0:
-                    val = detection_scores(ema, val_data, limit=cfg.val_frames)
-                if step % 10 == 0 or val:
-                    writer.writerow([step, f"{loss.item():.4f}", f"{sched.get_last_lr()[0]:.2e}", f"{time.time() - start:.1f}",
-                                     val.get("recall", ""), val.get("precision", "")])  # fmt: skip
-                    log.flush()
-                if step % cfg.save_every == 0:
-                    save()
-                if step >= cfg.steps or out_of_time():
-                    break
-            epoch += 1
-        save()
-    finally:
-        bar.close()
-        log.close()
-    return step
+    return fit(
+        cfg, Localiser(cfg.localiser), train_set, lambda model, batch: detector_loss(model, batch, cfg), out, save,
+        validate if val_data else None, ("val_recall", "val_precision"), resume, dev, max_minutes, progress, "train detector",
+    )  # fmt: skip

@@ -1,0 +1,108 @@
+"""The direct-regression baseline: the AGM's crop encoder regresses the origin and three axis endpoints in one
+forward pass (no diffusion, no axis image), and the same TBM back-projection turns them into a pose.
+
+It answers the question the benchmark asks of the method: with the same backbone, data and training budget,
+is generating an axis image worth its cost over regressing the four keypoints it encodes?
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+from axispose_core.agm.denoiser import CropEncoder, DenoiserConfig
+from axispose_core.camera import validate_intrinsics
+from axispose_core.checkpoint import load_state, read_checkpoint, save_checkpoint
+from axispose_core.data.crops import instance_crop
+from axispose_core.data.objects import ObjectSpec
+from axispose_core.tbm.backproject import Backprojection, backproject
+
+KIND = "direct_regressor"
+Box = tuple[int, tuple[float, float, float, float]]
+
+
+@dataclass(frozen=True)
+class DirectConfig:
+    encoder: DenoiserConfig = field(default_factory=DenoiserConfig)
+    """The backbone: the AGM's crop encoder with these widths (only size, channels, multipliers, groups matter)."""
+    objects: tuple[ObjectSpec, ...] = ()
+    crop_pad: float = 1.25
+
+
+class DirectRegressor(nn.Module):
+    """Crop (B,3,S,S) in [-1,1] -> keypoints (B,4,2): origin, end X, end Y, end Z in crop pixels."""
+
+    def __init__(self, config: DirectConfig) -> None:
+        super().__init__()
+        self.config = config
+        enc = config.encoder
+        self.encoder = CropEncoder(enc)
+        c = enc.channels * enc.multipliers[-1]
+        side = enc.size // 2 ** (len(enc.multipliers) - 1) // 2
+        # Keep the layout (where things are) up to the last layer: pooling would throw away the positions it regresses.
+        self.head = nn.Sequential(
+            nn.Conv2d(c, c, 3, stride=2, padding=1), nn.GroupNorm(enc.groups, c), nn.SiLU(), nn.Conv2d(c, 32, 1), nn.SiLU(),
+            nn.Flatten(), nn.Linear(32 * side * side, 256), nn.SiLU(), nn.Linear(256, 8),
+        )  # fmt: skip
+
+    def forward(self, crops: torch.Tensor) -> torch.Tensor:
+        """Keypoints in normalised crop coordinates (-1, 1 at the crop's edges), (B,4,2)."""
+        return self.head(self.encoder(crops)[-1]).view(-1, 4, 2)
+
+    def keypoints(self, crops: torch.Tensor) -> torch.Tensor:
+        """Keypoints in crop pixels (pixel centres at integers), (B,4,2)."""
+        S = self.config.encoder.size
+        return (self(crops) + 1) * 0.5 * S - 0.5
+
+
+def keypoints_to_normalised(kp: torch.Tensor, size: int) -> torch.Tensor:
+    """Crop pixels -> the regressor's output units (inverse of `DirectRegressor.keypoints`)."""
+    return (kp + 0.5) / size * 2 - 1
+
+
+def regression_loss(model: DirectRegressor, batch: dict[str, torch.Tensor]) -> torch.Tensor:
+    """Smooth L1 between the regressed and the true keypoints (normalised units); `batch["keypoints"]` in pixels."""
+    target = keypoints_to_normalised(batch["keypoints"], model.config.encoder.size)
+    return F.smooth_l1_loss(model(batch["crop"]), target, beta=0.02)
+
+
+class DirectEstimator:
+    """`estimate(image, K, boxes)` like `Estimator.estimate`, with the regressor in place of AGM + reader."""
+
+    def __init__(self, model: DirectRegressor) -> None:
+        self.model = model.eval()
+        self.objects = {o.obj_id: o for o in model.config.objects}
+
+    @classmethod
+    def load(cls, path: str | Path) -> DirectEstimator:
+        config, states, _ = read_checkpoint(path, KIND, DirectConfig)
+        model = DirectRegressor(config)
+        load_state(model, states.get("regressor", {}), str(path))
+        return cls(model)
+
+    def save(self, path: str | Path, extra: dict | None = None) -> None:
+        save_checkpoint(path, KIND, self.model.config, {"regressor": self.model}, extra=extra)
+
+    @torch.inference_mode()
+    def estimate(
+        self, image_rgb: np.ndarray, K: np.ndarray, boxes: list[tuple[int, tuple[float, float, float, float]]]
+    ) -> list[Backprojection]:
+        K = validate_intrinsics(K)
+        unknown = [o for o, _ in boxes if o not in self.objects]
+        if unknown:
+            raise ValueError(f"objects {unknown} are not in this checkpoint (it knows {sorted(self.objects)})")
+        if not boxes:
+            return []
+        S = self.model.config.encoder.size
+        cuts = [instance_crop(image_rgb, K, box, S, pad=self.model.config.crop_pad) for _, box in boxes]
+        x = torch.from_numpy(np.stack([c.patch for c in cuts]).astype(np.float32) / 127.5 - 1).permute(0, 3, 1, 2)
+        kps = self.model.keypoints(x).double().numpy()
+        return [
+            backproject(cut.K_patch, kp[0], kp[1:], self.objects[obj_id].axes.lengths, refine=True)
+            for (obj_id, _), cut, kp in zip(boxes, cuts, kps, strict=True)
+        ]

@@ -1,0 +1,94 @@
+"""The single-process training loop the localiser and the direct-regression baseline share.
+
+AdamW, warm-up + cosine, gradient clipping, EMA weights, seeded epoch order, a CSV log with periodic
+validation, atomic saves every `save_every` steps and at the end (OUT via `save`, OUT.state.pt for `--resume`),
+and `max_minutes` for chains of short runs. (The AGM trainer keeps its own loop for DDP and mixed precision.)
+"""
+
+from __future__ import annotations
+
+import copy
+import csv
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import torch
+from torch.utils.data import DataLoader, Dataset, RandomSampler
+from tqdm import tqdm
+
+from axispose_core.train.resume import load_run_state, save_run_state, state_path
+from axispose_core.train.schedule import ema_update, warmup_cosine
+
+
+def fit(
+    cfg: Any,
+    model: torch.nn.Module,
+    train_set: Dataset,
+    loss_fn: Callable[[torch.nn.Module, dict[str, torch.Tensor]], torch.Tensor],
+    out: Path,
+    save: Callable[[torch.nn.Module, int, float], None],
+    validate: Callable[[torch.nn.Module], dict[str, float]] | None = None,
+    val_columns: tuple[str, ...] = (),
+    resume: str | Path | None = None,
+    device: torch.device | str = "cpu",
+    max_minutes: float | None = None,
+    progress: bool = True,
+    desc: str = "train",
+) -> int:
+    """Train `model` for cfg.steps (fields: steps, batch, lr, weight_decay, warmup, grad_clip, ema_decay, seed,
+    workers, save_every, val_every); `save(ema, step, seconds)` writes the checkpoint. Returns the step reached.
+    Seed torch before building `model`, so its initial weights follow cfg.seed too."""
+    model = model.to(device)
+    ema = copy.deepcopy(model).eval()
+    opt = torch.optim.AdamW(model.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
+    sched = torch.optim.lr_scheduler.LambdaLR(opt, lambda s: warmup_cosine(s, cfg.warmup, cfg.steps))
+    step = load_run_state(resume, cfg, model, ema, opt, sched) if resume else 0
+    log = open(out.with_suffix(".csv"), "a", newline="")
+    writer = csv.writer(log)
+    if step == 0:
+        writer.writerow(["step", "loss", "lr", "seconds", *val_columns])
+    start = time.time()
+
+    def checkpoint() -> None:
+        save(ema, step, time.time() - start)
+        save_run_state(state_path(out), cfg, model, ema, opt, sched, step)
+
+    def out_of_time() -> bool:
+        return max_minutes is not None and time.time() - start > 60 * max_minutes
+
+    bar = tqdm(total=cfg.steps, initial=step, desc=desc, disable=not progress)
+    epoch = step * cfg.batch // len(train_set)
+    try:
+        while step < cfg.steps and not out_of_time():
+            train_set.epoch = epoch
+            sampler = RandomSampler(train_set, generator=torch.Generator().manual_seed(cfg.seed + epoch))
+            loader = DataLoader(train_set, batch_size=cfg.batch, sampler=sampler, num_workers=cfg.workers, drop_last=True)
+            for batch in loader:
+                model.train()
+                loss = loss_fn(model, {k: v.to(device) for k, v in batch.items()})
+                opt.zero_grad(set_to_none=True)
+                loss.backward()
+                torch.nn.utils.clip_grad_norm_(model.parameters(), cfg.grad_clip)
+                opt.step()
+                sched.step()
+                ema_update(ema, model, cfg.ema_decay)
+                step += 1
+                bar.update(1)
+                bar.set_postfix(loss=f"{loss.item():.4f}")
+                val = validate(ema) if validate is not None and step % cfg.val_every == 0 else {}
+                if step % 10 == 0 or val:
+                    writer.writerow([step, f"{loss.item():.5f}", f"{sched.get_last_lr()[0]:.2e}", f"{time.time() - start:.1f}",
+                                     *(val.get(c, "") for c in val_columns)])  # fmt: skip
+                    log.flush()
+                if step % cfg.save_every == 0:
+                    checkpoint()
+                if step >= cfg.steps or out_of_time():
+                    break
+            epoch += 1
+        checkpoint()
+    finally:
+        bar.close()
+        log.close()
+    return step
