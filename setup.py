@@ -34,7 +34,7 @@ setup(
     ],
     extras_require={
         "ros": ["ros-jazzy-rclpy[fastrtps]", "ros-jazzy-common-interfaces", "rosbags>=0.10"],
-        "dev": ["pytest>=8", "ruff>=0.6"],
+        "dev": ["pytest>=8", "ruff>=0.6", "pybullet==3.2.7"],  # pybullet: its pybullet_data meshes test the own-object path
     },
     entry_points={
         "console_scripts": [
