@@ -204,7 +204,17 @@ def _report(args: argparse.Namespace, records, objects, config: dict, counts: di
     return 0
 
 
-RESUME_HELP = "OUT.state.pt of an earlier run with the same config (steps, save_every, val_every may differ: a longer run extends it)"
+def _training_args(parser: argparse.ArgumentParser, what: str, config_cls: str, example: str) -> None:
+    """The options every trainer shares (data, output, config, resume, device, time cap, threads)."""
+    parser.add_argument("--data", nargs="+", required=True, help="BOP dataset folders written by `axispose synth`")
+    parser.add_argument("--val", nargs="*", default=None, help="held-out BOP folders for periodic validation")
+    parser.add_argument("--out", required=True, help=f"{what} to write (.safetensors); OUT.state.pt holds the resume state")
+    parser.add_argument("--config", help=f"YAML with {config_cls} fields (e.g. {example})")
+    parser.add_argument("--resume", help="OUT.state.pt of an earlier run with the same config "
+                        "(steps, save_every, val_every may differ: a longer run extends it)")  # fmt: skip
+    parser.add_argument("--device", default="auto", choices=["cpu", "cuda", "auto"])
+    parser.add_argument("--max-minutes", type=float, default=None, help="stop (and save) after this much wall time")
+    parser.add_argument("--threads", type=int, default=2)
 
 
 def _ids(text: str) -> list[int]:
@@ -250,37 +260,16 @@ def build_parser() -> argparse.ArgumentParser:
     sy.set_defaults(func=_synth)
 
     tn = sub.add_parser("train", help="train the AGM (axis generation) on synthetic BOP data")
-    tn.add_argument("--data", nargs="+", required=True, help="BOP dataset folders written by `axispose synth`")
-    tn.add_argument("--val", nargs="*", default=None, help="held-out BOP folders for periodic validation")
-    tn.add_argument("--out", required=True, help="estimator checkpoint to write (.safetensors); OUT.state.pt holds the resume state")
-    tn.add_argument("--config", help="YAML with TrainConfig fields (e.g. config/train_agm.yaml)")
-    tn.add_argument("--resume", help=RESUME_HELP)
-    tn.add_argument("--device", default="auto", choices=["cpu", "cuda", "auto"])
-    tn.add_argument("--max-minutes", type=float, default=None, help="stop (and save) after this much wall time")
-    tn.add_argument("--threads", type=int, default=2)
+    _training_args(tn, "estimator checkpoint", "TrainConfig", "config/train_agm.yaml")
     tn.set_defaults(func=_train)
 
     td = sub.add_parser("train-detector", help="train the 2D localiser (CenterNet) on synthetic BOP frames")
-    td.add_argument("--data", nargs="+", required=True, help="BOP dataset folders written by `axispose synth`")
-    td.add_argument("--val", nargs="*", default=None, help="held-out BOP folders for validation recall")
-    td.add_argument("--out", required=True, help="localiser checkpoint to write (.safetensors); OUT.state.pt holds the resume state")
-    td.add_argument("--config", help="YAML with DetectorTrainConfig fields (e.g. config/train_detector.yaml)")
-    td.add_argument("--resume", help=RESUME_HELP)
+    _training_args(td, "localiser checkpoint", "DetectorTrainConfig", "config/train_detector.yaml")
     td.add_argument("--attach", help="estimator checkpoint to add the trained localiser to (rewritten in place)")
-    td.add_argument("--device", default="auto", choices=["cpu", "cuda", "auto"])
-    td.add_argument("--max-minutes", type=float, default=None, help="stop (and save) after this much wall time")
-    td.add_argument("--threads", type=int, default=2)
     td.set_defaults(func=_train_detector)
 
     tr = sub.add_parser("train-direct", help="train the direct-regression baseline (keypoints from the crop, no diffusion)")
-    tr.add_argument("--data", nargs="+", required=True, help="BOP dataset folders written by `axispose synth`")
-    tr.add_argument("--val", nargs="*", default=None, help="held-out BOP folders for periodic validation")
-    tr.add_argument("--out", required=True, help="regressor checkpoint to write (.safetensors); OUT.state.pt holds the resume state")
-    tr.add_argument("--config", help="YAML with DirectTrainConfig fields (e.g. config/train_direct.yaml)")
-    tr.add_argument("--resume", help=RESUME_HELP)
-    tr.add_argument("--device", default="auto", choices=["cpu", "cuda", "auto"])
-    tr.add_argument("--max-minutes", type=float, default=None, help="stop (and save) after this much wall time")
-    tr.add_argument("--threads", type=int, default=2)
+    _training_args(tr, "regressor checkpoint", "DirectTrainConfig", "config/train_direct.yaml")
     tr.set_defaults(func=_train_direct)
 
     ev = sub.add_parser("eval", help="pose metrics of a checkpoint on BOP scenes (JSON report, plots)")
