@@ -8,6 +8,9 @@ spread is measured over every sample, wrong ones included, so disagreement is re
 The covariance follows geometry_msgs/PoseWithCovariance: order (x, y, z, rotation about X, Y, Z), all in the
 camera frame, the rotation part from the rotation vectors of R_i R_cᵀ. It is the mean outer product of the
 samples' deviations from the consensus plus a small floor, so it stays positive definite for any K.
+
+Symmetric objects: samples that differ by one of the object's symmetries count as disagreeing (the object specs
+carry a symmetry flag, not the symmetry transforms), so their spread over-states the uncertainty.
 """
 
 from __future__ import annotations
