@@ -20,7 +20,7 @@ from axispose_core.axis_image import AxisSpec
 from axispose_core.camera import validate_intrinsics
 from axispose_core.checkpoint import CheckpointError, load_state, read_checkpoint, save_checkpoint
 from axispose_core.consensus import consensus
-from axispose_core.data.crops import instance_crop
+from axispose_core.data.crops import InstanceCrop, instance_crop
 from axispose_core.data.objects import ObjectSpec
 from axispose_core.detect.decode import Detection
 from axispose_core.detect.model import Localiser, LocaliserConfig
@@ -44,6 +44,21 @@ class EstimatorConfig:
     """Provenance: data recipe, steps, wall time, hardware."""
     localiser: LocaliserConfig | None = None
     """The 2D localiser's config when the checkpoint carries one."""
+
+
+def crop_batch(
+    image_rgb: np.ndarray, K: np.ndarray, boxes: list[tuple[int, tuple[float, float, float, float]]], known: dict, size: int, pad: float
+) -> tuple[list[InstanceCrop], torch.Tensor]:
+    """Check K and that every box's object is `known`, then cut the boxes' crops and their (B,3,S,S) batch in
+    [-1,1]: one place, so the estimator and the direct baseline read an image the same way."""
+    K = validate_intrinsics(K)
+    unknown = [o for o, _ in boxes if o not in known]
+    if unknown:
+        raise ValueError(f"objects {unknown} are not in this checkpoint (it knows {sorted(known)})")
+    cuts = [instance_crop(image_rgb, K, box, size, pad=pad) for _, box in boxes]
+    if not cuts:
+        return cuts, torch.zeros((0, 3, size, size))
+    return cuts, torch.from_numpy(np.stack([c.patch for c in cuts]).astype(np.float32) / 127.5 - 1).permute(0, 3, 1, 2)
 
 
 @dataclass
@@ -139,23 +154,17 @@ class Estimator:
         """
         if hypotheses < 1:
             raise ValueError(f"hypotheses must be >= 1, got {hypotheses}")
-        K = validate_intrinsics(K)
-        unknown = [o for o, _ in boxes if o not in self.objects]
-        if unknown:
-            raise ValueError(f"objects {unknown} are not in this checkpoint (it knows {sorted(self.objects)})")
+        cuts, x = crop_batch(image_rgb, K, boxes, self.objects, self.size, self.config.crop_pad)
         if not boxes:
             return []
         steps = steps or self.config.ddim_steps
         scale = self.config.guidance_scale if guidance_scale is None else guidance_scale
-        S = self.size
-        cuts = [instance_crop(image_rgb, K, box, S, pad=self.config.crop_pad) for _, box in boxes]
         Kp = [c.K_patch for c in cuts]
         lengths = []
         for obj_id, _ in boxes:
             spec = self.objects[obj_id]
             lengths.append(AxisSpec((scales or {}).get(obj_id, spec.scale), spec.ratio_b, spec.ratio_c).lengths)
-        x = torch.from_numpy(np.stack([c.patch for c in cuts]).astype(np.float32) / 127.5 - 1).permute(0, 3, 1, 2).to(self.device)
-        x = x.repeat_interleave(hypotheses, dim=0)
+        x = x.to(self.device).repeat_interleave(hypotheses, dim=0)
         Kp_all, lengths_all = np.repeat(np.stack(Kp), hypotheses, axis=0), np.repeat(np.stack(lengths), hypotheses, axis=0)
 
         def guidance(x0: torch.Tensor):

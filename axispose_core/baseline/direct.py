@@ -16,10 +16,9 @@ import torch.nn.functional as F
 from torch import nn
 
 from axispose_core.agm.denoiser import CropEncoder, DenoiserConfig
-from axispose_core.camera import validate_intrinsics
 from axispose_core.checkpoint import load_state, read_checkpoint, save_checkpoint
-from axispose_core.data.crops import instance_crop
 from axispose_core.data.objects import ObjectSpec
+from axispose_core.estimator import crop_batch
 from axispose_core.tbm.backproject import Backprojection, backproject
 
 KIND = "direct_regressor"
@@ -89,18 +88,11 @@ class DirectEstimator:
         save_checkpoint(path, KIND, self.model.config, {"regressor": self.model}, extra=extra)
 
     @torch.inference_mode()
-    def estimate(
-        self, image_rgb: np.ndarray, K: np.ndarray, boxes: list[tuple[int, tuple[float, float, float, float]]]
-    ) -> list[Backprojection]:
-        K = validate_intrinsics(K)
-        unknown = [o for o, _ in boxes if o not in self.objects]
-        if unknown:
-            raise ValueError(f"objects {unknown} are not in this checkpoint (it knows {sorted(self.objects)})")
+    def estimate(self, image_rgb: np.ndarray, K: np.ndarray, boxes: list[Box]) -> list[Backprojection]:
+        """One pose per (obj_id, (x, y, w, h)) box; a refused one says why in `reason`, as the TBM's do."""
+        cuts, x = crop_batch(image_rgb, K, boxes, self.objects, self.model.config.encoder.size, self.model.config.crop_pad)
         if not boxes:
             return []
-        S = self.model.config.encoder.size
-        cuts = [instance_crop(image_rgb, K, box, S, pad=self.model.config.crop_pad) for _, box in boxes]
-        x = torch.from_numpy(np.stack([c.patch for c in cuts]).astype(np.float32) / 127.5 - 1).permute(0, 3, 1, 2)
         kps = self.model.keypoints(x).double().numpy()
         return [
             backproject(cut.K_patch, kp[0], kp[1:], self.objects[obj_id].axes.lengths, refine=True)

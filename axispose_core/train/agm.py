@@ -31,6 +31,7 @@ from axispose_core.metrics import re
 from axispose_core.tbm.backproject import backproject
 from axispose_core.tbm.reader import SHIPPED_READER, KeypointReader, load_reader
 from axispose_core.train.dataset import AxisCropDataset
+from axispose_core.train.loop import training_device
 from axispose_core.train.resume import load_run_state, save_run_state, state_path
 from axispose_core.train.schedule import ema_update, warmup_cosine
 
@@ -91,7 +92,7 @@ def train_agm(
     if distributed and not dist.is_initialized():
         dist.init_process_group("nccl" if torch.cuda.is_available() and device != "cpu" else "gloo")
     rank = dist.get_rank() if distributed else 0
-    dev = torch.device("cuda" if device == "auto" and torch.cuda.is_available() else ("cpu" if device == "auto" else device))
+    dev = training_device(device)
     if dev.type == "cuda" and distributed:
         dev = torch.device("cuda", int(os.environ.get("LOCAL_RANK", 0)))
     out = Path(out)

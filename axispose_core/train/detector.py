@@ -26,7 +26,7 @@ from axispose_core.data.bop import BopFormatError, BopScene
 from axispose_core.detect.decode import draw_targets, focal_loss, match
 from axispose_core.detect.model import STRIDE, Localiser, LocaliserConfig
 from axispose_core.train.dataset import scene_dirs
-from axispose_core.train.loop import fit
+from axispose_core.train.loop import fit, training_device
 
 KIND = "localiser"
 
@@ -174,7 +174,7 @@ def train_detector(
     progress: bool = True,
 ) -> int:
     """Train (or continue) the localiser; OUT holds the EMA weights with their config. Returns the step reached."""
-    dev = torch.device("cuda" if device == "auto" and torch.cuda.is_available() else ("cpu" if device == "auto" else device))
+    dev = training_device(device)
     out = Path(out)
     out.parent.mkdir(parents=True, exist_ok=True)
     torch.manual_seed(cfg.seed)

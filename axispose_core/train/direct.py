@@ -17,7 +17,7 @@ from axispose_core.metrics import re
 from axispose_core.tbm.backproject import backproject
 from axispose_core.train.agm import dataset_objects
 from axispose_core.train.dataset import AxisCropDataset
-from axispose_core.train.loop import fit
+from axispose_core.train.loop import fit, training_device
 
 
 @dataclass(frozen=True)
@@ -60,7 +60,7 @@ def train_direct(
     progress: bool = True,
 ) -> int:
     """Train (or continue) the regressor; OUT holds the EMA weights with their config. Returns the step reached."""
-    dev = torch.device("cuda" if device == "auto" and torch.cuda.is_available() else ("cpu" if device == "auto" else device))
+    dev = training_device(device)
     out = Path(out)
     out.parent.mkdir(parents=True, exist_ok=True)
     objects = dataset_objects(data[0])

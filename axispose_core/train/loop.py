@@ -22,6 +22,13 @@ from axispose_core.train.resume import load_run_state, save_run_state, state_pat
 from axispose_core.train.schedule import ema_update, warmup_cosine
 
 
+def training_device(device: str) -> torch.device:
+    """ "auto": CUDA when there is one, else the CPU; otherwise the named device."""
+    if device == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    return torch.device(device)
+
+
 def fit(
     cfg: Any,
     model: torch.nn.Module,
