@@ -127,7 +127,8 @@ def _train_detector(args: argparse.Namespace) -> int:
     if not cfg.localiser.obj_ids:  # default: the objects the data shows
         ids = tuple(o.obj_id for o in dataset_objects(args.data[0]))
         cfg = dataclasses.replace(cfg, localiser=dataclasses.replace(cfg.localiser, obj_ids=ids))
-    step = train_detector(cfg, args.data, args.out, val_data=args.val, resume=args.resume, device=args.device, max_minutes=args.max_minutes)
+    step = train_detector(cfg, args.data, args.out, val_data=args.val, resume=args.resume, device=args.device, max_minutes=args.max_minutes,
+                          init=args.init)  # fmt: skip
     print(f"stopped at step {step} of {cfg.steps}; localiser {args.out}")
     localiser = load_localiser(args.out)
     if args.val:
@@ -266,6 +267,8 @@ def build_parser() -> argparse.ArgumentParser:
     td = sub.add_parser("train-detector", help="train the 2D localiser (CenterNet) on synthetic BOP frames")
     _training_args(td, "localiser checkpoint", "DetectorTrainConfig", "config/train_detector.yaml")
     td.add_argument("--attach", help="estimator checkpoint to add the trained localiser to (rewritten in place)")
+    td.add_argument("--init", help="trained localiser or estimator checkpoint to start from: weights whose names and shapes "
+                    "match are copied (a wider/deeper localiser or other objects keep the rest fresh)")  # fmt: skip
     td.set_defaults(func=_train_detector)
 
     tr = sub.add_parser("train-direct", help="train the direct-regression baseline (keypoints from the crop, no diffusion)")

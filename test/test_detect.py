@@ -20,7 +20,7 @@ from axispose_core.detect.decode import Detection, decode, draw_targets, iou, ma
 from axispose_core.detect.model import STRIDE, Localiser, LocaliserConfig
 from axispose_core.estimator import Estimator, EstimatorConfig
 from axispose_core.tbm.reader import SHIPPED_READER, load_reader
-from axispose_core.train.detector import DetectorTrainConfig, detection_scores, load_localiser, train_detector
+from axispose_core.train.detector import DetectorTrainConfig, detection_scores, load_localiser, train_detector, warm_start
 
 TINY = LocaliserConfig(obj_ids=(1, 5), input_size=(160, 128), channels=(8, 16, 24, 32))
 
@@ -167,3 +167,32 @@ def test_eval_with_detected_crops_reports_detection_scores(estimator_with_locali
     for entry in report["objects"].values():
         assert 0 <= entry["det_recall"] <= 1 and "det_precision" in entry and entry["n"] > 0
     assert report["config"]["crops"] == "detect"
+
+
+def test_a_fifth_width_adds_a_stride_32_context_stage():
+    deep = Localiser(LocaliserConfig(obj_ids=(1, 5), input_size=(160, 112), channels=(8, 16, 24, 32, 48))).eval()
+    heat, size, offset = deep(torch.zeros(1, 3, 112, 160))  # 112 / 32 is not whole: the stage's map is resized back
+    assert heat.shape == (1, 2, 14, 20) and size.shape == offset.shape == (1, 2, 14, 20)
+    assert any(k.startswith("s32.") for k in deep.state_dict())
+    with pytest.raises(ValueError, match="4 or 5 widths"):
+        Localiser(LocaliserConfig(obj_ids=(1,), channels=(8, 16, 24)))
+
+
+def test_warm_start_copies_what_matches_and_leaves_the_rest_fresh(trained, estimator_with_localiser):
+    source = load_localiser(trained[1]).state_dict()
+    torch.manual_seed(1)
+    deep = Localiser(LocaliserConfig(obj_ids=(1, 5), input_size=(160, 128), channels=(*TINY.channels, 48)))
+    fresh = warm_start(deep, trained[1])
+    assert fresh and all(k.startswith(("s32.", "fuse32.")) for k in fresh)
+    for k, v in deep.state_dict().items():
+        if k not in fresh:
+            assert torch.equal(v, source[k]), k
+    other = Localiser(LocaliserConfig(obj_ids=(5, 1), input_size=(160, 128), channels=TINY.channels))
+    fresh = warm_start(other, estimator_with_localiser)  # the estimator's copy; objects in another order
+    assert fresh and all(k.startswith("heat.") for k in fresh) and "heat.0.0.weight" in fresh
+    assert torch.equal(other.state_dict()["s8.0.0.weight"], source["s8.0.0.weight"])
+
+
+def test_warm_start_from_a_checkpoint_without_a_localiser_is_refused():
+    with pytest.raises(CheckpointError, match="without a localiser"):
+        warm_start(Localiser(TINY), SHIPPED_READER)

@@ -27,7 +27,8 @@ class LocaliserConfig:
     input_size: tuple[int, int] = (320, 240)
     """(width, height) the frame is resized to; both multiples of 16."""
     channels: tuple[int, ...] = (16, 32, 64, 96)
-    """Widths at strides 2, 4, 8, 16."""
+    """Widths at strides 2, 4, 8, 16, and optionally 32: a fifth width adds a stride-32 stage whose context (an
+    object's surroundings and whole silhouette, which tell look-alike objects apart) is fused back into stride 16."""
     threshold: float = 0.3
     """Default score threshold of `detect`."""
     max_per_object: int = 3
@@ -55,11 +56,17 @@ class Localiser(nn.Module):
         if not config.obj_ids or w % 16 or h % 16:
             raise ValueError(f"a localiser needs object ids and an input size in multiples of 16, got {config}")
         self.config = config
-        c2, c4, c8, c16 = config.channels
+        if len(config.channels) not in (4, 5):
+            raise ValueError(f"localiser channels are 4 or 5 widths (strides 2..16 or 2..32), got {config.channels}")
+        c2, c4, c8, c16 = config.channels[:4]
         self.stem = _block(3, c2, 2)
         self.s4 = nn.Sequential(_block(c2, c4, 2), _Residual(c4))
         self.s8 = nn.Sequential(_block(c4, c8, 2), _Residual(c8))
         self.s16 = nn.Sequential(_block(c8, c16, 2), _Residual(c16), _Residual(c16))
+        if len(config.channels) == 5:
+            c32 = config.channels[4]
+            self.s32 = nn.Sequential(_block(c16, c32, 2), _Residual(c32), _Residual(c32))
+            self.fuse32 = _block(c16 + c32, c16, 1)
         self.fuse = nn.Sequential(_block(c8 + c16, c8, 1), _Residual(c8))
         self.heat = nn.Sequential(_block(c8, c8, 1), nn.Conv2d(c8, len(config.obj_ids), 1))
         self.size = nn.Sequential(_block(c8, c8, 1), nn.Conv2d(c8, 2, 1))
@@ -69,6 +76,8 @@ class Localiser(nn.Module):
     def forward(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         f8 = self.s8(self.s4(self.stem(x)))
         f16 = self.s16(f8)
+        if hasattr(self, "s32"):
+            f16 = self.fuse32(torch.cat([f16, F.interpolate(self.s32(f16), size=f16.shape[-2:], mode="nearest")], dim=1))
         f = self.fuse(torch.cat([f8, F.interpolate(f16, size=f8.shape[-2:], mode="nearest")], dim=1))
         return torch.sigmoid(self.heat(f)), self.size(f), self.offset(f)
 

@@ -9,6 +9,7 @@ colour-jittered on top of the data's own randomisation.
 
 from __future__ import annotations
 
+import json
 import platform
 import time
 from dataclasses import dataclass, field
@@ -18,10 +19,11 @@ import cv2
 import numpy as np
 import torch
 import torch.nn.functional as F
+from safetensors.torch import load_file
 from torch.utils.data import Dataset
 from tqdm import tqdm
 
-from axispose_core.checkpoint import load_state, read_checkpoint, save_checkpoint
+from axispose_core.checkpoint import CheckpointError, load_state, read_checkpoint, read_metadata, save_checkpoint
 from axispose_core.data.bop import BopFormatError, BopScene
 from axispose_core.detect.decode import draw_targets, focal_loss, match
 from axispose_core.detect.model import STRIDE, Localiser, LocaliserConfig
@@ -163,6 +165,24 @@ def load_localiser(path: str | Path, device: str = "cpu") -> Localiser:
     return model.to(device).eval()
 
 
+def warm_start(model: Localiser, path: str | Path) -> list[str]:
+    """Copy into `model` the localiser weights of a trained checkpoint (a localiser's own, or an estimator's that
+    carries one) wherever names and shapes match, so a wider or deeper localiser, or one for other objects, need
+    not relearn what the trained one knows. The heatmap head is copied only for the same objects in the same
+    order (its channels are the objects). Returns the tensor names left at their fresh initialisation."""
+    meta = read_metadata(path, None)
+    config = json.loads(meta["config"])
+    source = config if meta["kind"] == KIND else config.get("localiser")
+    if not source:
+        raise CheckpointError(f"{path}: a {meta['kind']!r} checkpoint without a localiser to start from")
+    state = {k.partition(".")[2]: v for k, v in load_file(str(path)).items() if k.startswith("localiser.")}
+    same_objects = tuple(source["obj_ids"]) == model.config.obj_ids
+    own = model.state_dict()
+    take = {k: v for k, v in state.items() if k in own and v.shape == own[k].shape and (same_objects or not k.startswith("heat."))}
+    model.load_state_dict(take, strict=False)
+    return sorted(set(own) - set(take))
+
+
 def train_detector(
     cfg: DetectorTrainConfig,
     data: list[str | Path],
@@ -172,8 +192,10 @@ def train_detector(
     device: str = "auto",
     max_minutes: float | None = None,
     progress: bool = True,
+    init: str | Path | None = None,
 ) -> int:
-    """Train (or continue) the localiser; OUT holds the EMA weights with their config. Returns the step reached."""
+    """Train (or continue) the localiser; OUT holds the EMA weights with their config. Returns the step reached.
+    `init`: a trained checkpoint to start from (`warm_start`); a resumed run restores its own weights instead."""
     dev = training_device(device)
     out = Path(out)
     out.parent.mkdir(parents=True, exist_ok=True)
@@ -184,14 +206,19 @@ def train_detector(
 
     def save(ema: torch.nn.Module, step: int, seconds: float) -> None:
         provenance = {"data": [str(d) for d in data], "steps": step, "seconds": seconds, "device": str(dev),
-                      "host": platform.processor() or platform.machine()}  # fmt: skip
+                      "host": platform.processor() or platform.machine(), "init": str(init) if init else None}  # fmt: skip
         save_checkpoint(out, KIND, cfg.localiser, {"localiser": ema}, extra={"training": provenance})
 
     def validate(ema: torch.nn.Module) -> dict[str, float]:
         scores = detection_scores(ema, val_data, limit=cfg.val_frames)
         return {"val_recall": scores["recall"], "val_precision": scores["precision"]}
 
+    model = Localiser(cfg.localiser)
+    if init and not resume:
+        fresh = warm_start(model, init)
+        shown = ", ".join(fresh[:6]) + (" ..." if len(fresh) > 6 else "")
+        print(f"started from {init}; {len(fresh)} of {len(model.state_dict())} tensors start fresh: {shown}")
     return fit(
-        cfg, Localiser(cfg.localiser), train_set, lambda model, batch: detector_loss(model, batch, cfg), out, save,
+        cfg, model, train_set, lambda model, batch: detector_loss(model, batch, cfg), out, save,
         validate if val_data else None, ("val_recall", "val_precision"), resume, dev, max_minutes, progress, "train detector",
     )  # fmt: skip
