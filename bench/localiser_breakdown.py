@@ -1,0 +1,128 @@
+"""Where a localiser's misses and false alarms come from, on held-out BOP frames.
+
+For each checkpoint (a localiser's own, or an estimator carrying one): recall and precision at IoU 0.5 over a
+sweep of score thresholds (the protocol of `detection_scores`: GT are instances with visib_fract >= 0.3,
+detections of less visible instances are neither hits nor false alarms); at the checkpoint's own threshold,
+recall per visibility band and per box size, and each false alarm's kind: another object's instance
+(IoU >= 0.3 with a GT of a different object), a poorly placed box on its own object (0.1 <= IoU < 0.5), or
+background. Prints tables and writes JSON.
+
+    python bench/localiser_breakdown.py --checkpoint stage1=runs/det_long/localiser.safetensors \\
+        --checkpoint shipped=axispose_core/models/axispose_lmo.safetensors --data data/lmo_val
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime
+import json
+import platform
+from pathlib import Path
+
+import cv2
+import numpy as np
+import torch
+from tqdm import tqdm
+
+from axispose_core.checkpoint import read_metadata
+from axispose_core.data.bop import BopScene
+from axispose_core.detect.decode import iou, match
+from axispose_core.detect.model import Localiser
+from axispose_core.estimator import Estimator
+from axispose_core.train.dataset import scene_dirs
+from axispose_core.train.detector import KIND, load_localiser
+
+THRESHOLDS = (0.05, 0.1, 0.15, 0.2, 0.25, 0.3, 0.4, 0.5)
+VISIB = ((0.3, 0.5), (0.5, 0.8), (0.8, 1.01))
+SIZES = ((0, 60), (60, 100), (100, 160), (160, 10_000))
+
+
+def load(path: str) -> Localiser:
+    if read_metadata(path, None)["kind"] == KIND:
+        return load_localiser(path)
+    localiser = Estimator.load(path).localiser
+    if localiser is None:
+        raise SystemExit(f"{path} carries no localiser")
+    return localiser
+
+
+def breakdown(model: Localiser, frames: list[tuple[BopScene, int]], min_visib: float) -> dict:
+    sweep = {t: [0, 0, 0] for t in THRESHOLDS}  # hits, false alarms, GT
+    at = model.config.threshold
+    found, visib, size = [], [], []
+    alarms = {"other_object": 0, "poor_box": 0, "background": 0}
+    for scene, im_id in tqdm(frames, desc="detect", leave=False):
+        rgb = cv2.cvtColor(cv2.imread(str(scene.rgb_path(im_id)), cv2.IMREAD_COLOR), cv2.COLOR_BGR2RGB)
+        all_dets = model.detect(rgb, threshold=min(THRESHOLDS))
+        insts = [(g.obj_id, tuple(info.bbox_obj), info.visib_fract) for g, info in zip(scene.gt[im_id], scene.gt_info[im_id], strict=True)]
+        insts = [i for i in insts if i[0] in model.config.obj_ids]
+        for t in sorted({*THRESHOLDS, at}):
+            dets = [d for d in all_dets if d.score >= t]
+            hits = match(dets, [(o, b) for o, b, _ in insts])
+            claimed = {k for k in hits if k is not None}
+            scored = [(k is not None) for (_, _, v), k in zip(insts, hits, strict=True) if v >= min_visib]
+            if t in sweep:
+                sweep[t][0] += sum(scored)
+                sweep[t][1] += sum(k not in claimed for k in range(len(dets)))
+                sweep[t][2] += len(scored)
+            if t != at:
+                continue
+            for (_, box, v), k in zip(insts, hits, strict=True):
+                if v >= min_visib:
+                    found.append(k is not None)
+                    visib.append(v)
+                    size.append(max(box[2], box[3]))
+            for k, d in enumerate(dets):
+                if k in claimed:
+                    continue
+                same = max([iou(d.box, b) for o, b, _ in insts if o == d.obj_id], default=0.0)
+                other = max([iou(d.box, b) for o, b, _ in insts if o != d.obj_id], default=0.0)
+                alarms["other_object" if other >= 0.3 and same < 0.1 else "poor_box" if same >= 0.1 else "background"] += 1
+    found_a, visib_a, size_a = np.array(found), np.array(visib), np.array(size)
+
+    def band(values: np.ndarray, lo: float, hi: float) -> dict:
+        sel = (values >= lo) & (values < hi)
+        return {"range": [lo, hi], "n": int(sel.sum()), "recall": float(found_a[sel].mean()) if sel.any() else float("nan")}
+
+    nan = float("nan")
+    curve = [{"threshold": t, "recall": h / n if n else nan, "precision": h / (h + f) if h + f else nan} for t, (h, f, n) in sweep.items()]
+    return {
+        "threshold": at,
+        "sweep": curve,
+        "recall": float(found_a.mean()) if len(found_a) else float("nan"),
+        "by_visibility": [band(visib_a, lo, hi) for lo, hi in VISIB],
+        "by_box_side_px": [band(size_a, lo, hi) for lo, hi in SIZES],
+        "false_alarms": alarms,
+    }
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--checkpoint", action="append", required=True, help="LABEL=PATH (repeatable)")
+    ap.add_argument("--data", required=True, help="held-out BOP folder")
+    ap.add_argument("--min-visib", type=float, default=0.3)
+    ap.add_argument("--threads", type=int, default=2)
+    ap.add_argument("--json", default="bench/results/localiser_breakdown.json")
+    args = ap.parse_args()
+    torch.set_num_threads(args.threads)
+    frames = [(scene, im_id) for sd in scene_dirs(args.data) for scene in [BopScene(sd)] for im_id in scene.image_ids]
+    results = {}
+    for item in args.checkpoint:
+        label, _, path = item.partition("=")
+        r = results[label] = breakdown(load(path), frames, args.min_visib) | {"checkpoint": path}
+        print(f"\n{label} ({path}), {len(frames)} frames; recall {r['recall']:.3f} at its threshold {r['threshold']}")
+        print("threshold  " + "  ".join(f"{s['threshold']:>5}" for s in r["sweep"]))
+        print("recall     " + "  ".join(f"{s['recall']:5.3f}" for s in r["sweep"]))
+        print("precision  " + "  ".join(f"{s['precision']:5.3f}" for s in r["sweep"]))
+        for name, key in (("visib_fract", "by_visibility"), ("box side px", "by_box_side_px")):
+            print(f"{name:<11}" + "  ".join(f"[{b['range'][0]:g},{b['range'][1]:g}) n={b['n']} {b['recall']:.3f}" for b in r[key]))
+        print("false alarms: " + ", ".join(f"{k} {v}" for k, v in r["false_alarms"].items()))
+    meta = {"machine": f"{platform.machine()} {platform.processor()}".strip(), "threads": args.threads,
+            "date": datetime.date.today().isoformat(), "data": args.data, "frames": len(frames)}  # fmt: skip
+    Path(args.json).parent.mkdir(parents=True, exist_ok=True)
+    Path(args.json).write_text(json.dumps(meta | {"results": results}, indent=1))
+    print(f"wrote {args.json}")
+
+
+if __name__ == "__main__":
+    main()
