@@ -12,7 +12,6 @@ from __future__ import annotations
 import copy
 import csv
 import os
-import platform
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -31,9 +30,9 @@ from axispose_core.metrics import re
 from axispose_core.tbm.backproject import backproject
 from axispose_core.tbm.reader import SHIPPED_READER, KeypointReader, load_reader
 from axispose_core.train.dataset import AxisCropDataset
-from axispose_core.train.loop import training_device
+from axispose_core.train.loop import optimizer_step, training_device, training_record
 from axispose_core.train.resume import load_run_state, save_run_state, state_path
-from axispose_core.train.schedule import ema_update, warmup_cosine
+from axispose_core.train.schedule import warmup_cosine
 
 
 @dataclass(frozen=True)
@@ -140,14 +139,7 @@ def train_agm(
             agm=cfg.agm,
             reader=reader.config,
             objects=tuple(objects),
-            training={
-                "data": [str(d) for d in data],
-                "steps": step,
-                "batch": cfg.batch,
-                "seconds": time.time() - start,
-                "device": str(dev),
-                "host": platform.processor() or platform.machine(),
-            },
+            training=training_record(data, step, cfg.batch, time.time() - start, dev),
         )
         Estimator(est_cfg, ema, reader, "cpu" if dev.type == "cpu" else str(dev)).save(out)
         save_run_state(state_path(out), cfg, model, ema, opt, sched, step)
@@ -167,12 +159,7 @@ def train_agm(
                 crops, axes = batch["crop"].to(dev), batch["axes"].to(dev)
                 with torch.autocast(dev.type, dtype=torch.bfloat16, enabled=use_amp):
                     loss = net(crops, axes, gen)
-                opt.zero_grad(set_to_none=True)
-                loss.backward()
-                torch.nn.utils.clip_grad_norm_(model.parameters(), cfg.grad_clip)
-                opt.step()
-                sched.step()
-                ema_update(ema, model, cfg.ema_decay)
+                optimizer_step(loss, model, ema, opt, sched, cfg.grad_clip, cfg.ema_decay)
                 step += 1
                 bar.update(1)
                 bar.set_postfix(loss=f"{loss.item():.4f}")

@@ -10,7 +10,6 @@ colour-jittered on top of the data's own randomisation.
 from __future__ import annotations
 
 import json
-import platform
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -28,7 +27,7 @@ from axispose_core.data.bop import BopFormatError, BopScene
 from axispose_core.detect.decode import draw_targets, focal_loss, match
 from axispose_core.detect.model import STRIDE, Localiser, LocaliserConfig
 from axispose_core.train.dataset import scene_dirs
-from axispose_core.train.loop import fit, training_device
+from axispose_core.train.loop import fit, training_device, training_record
 
 KIND = "localiser"
 
@@ -205,8 +204,7 @@ def train_detector(
         raise ValueError(f"no frames in {data}")
 
     def save(ema: torch.nn.Module, step: int, seconds: float) -> None:
-        provenance = {"data": [str(d) for d in data], "steps": step, "seconds": seconds, "device": str(dev),
-                      "host": platform.processor() or platform.machine(), "init": str(init) if init else None}  # fmt: skip
+        provenance = training_record(data, step, cfg.batch, seconds, dev) | {"init": str(init) if init else None}
         save_checkpoint(out, KIND, cfg.localiser, {"localiser": ema}, extra={"training": provenance})
 
     def validate(ema: torch.nn.Module) -> dict[str, float]:

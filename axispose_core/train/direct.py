@@ -3,7 +3,6 @@ with the localiser's training loop (train/loop.py). Same crops, jitter and colou
 
 from __future__ import annotations
 
-import platform
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -17,7 +16,7 @@ from axispose_core.metrics import re
 from axispose_core.tbm.backproject import backproject
 from axispose_core.train.agm import dataset_objects
 from axispose_core.train.dataset import AxisCropDataset
-from axispose_core.train.loop import fit, training_device
+from axispose_core.train.loop import fit, training_device, training_record
 
 
 @dataclass(frozen=True)
@@ -76,9 +75,7 @@ def train_direct(
         val_batch = {k: torch.stack([it[k] for it in items]) for k in items[0]}
 
     def save(ema: torch.nn.Module, step: int, seconds: float) -> None:
-        provenance = {"data": [str(d) for d in data], "steps": step, "batch": cfg.batch, "seconds": seconds, "device": str(dev),
-                      "host": platform.processor() or platform.machine()}  # fmt: skip
-        DirectEstimator(ema).save(out, extra={"training": provenance})
+        DirectEstimator(ema).save(out, extra={"training": training_record(data, step, cfg.batch, seconds, dev)})
 
     def validate(ema: torch.nn.Module) -> dict[str, float]:
         with torch.inference_mode():

@@ -2,13 +2,15 @@
 
 AdamW, warm-up + cosine, gradient clipping, EMA weights, seeded epoch order, a CSV log with periodic
 validation, atomic saves every `save_every` steps and at the end (OUT via `save`, OUT.state.pt for `--resume`),
-and `max_minutes` for chains of short runs. (The AGM trainer keeps its own loop for DDP and mixed precision.)
+and `max_minutes` for chains of short runs. (The AGM trainer keeps its own loop for DDP and mixed precision,
+but takes its optimisation step and checkpoint training record from here.)
 """
 
 from __future__ import annotations
 
 import copy
 import csv
+import platform
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -27,6 +29,30 @@ def training_device(device: str) -> torch.device:
     if device == "auto":
         return torch.device("cuda" if torch.cuda.is_available() else "cpu")
     return torch.device(device)
+
+
+def training_record(data: list[str | Path], step: int, batch: int, seconds: float, device: torch.device | str) -> dict[str, Any]:
+    """What a checkpoint records of the run that made it: data, progress, hardware."""
+    return {"data": [str(d) for d in data], "steps": step, "batch": batch, "seconds": seconds, "device": str(device),
+            "host": platform.processor() or platform.machine()}  # fmt: skip
+
+
+def optimizer_step(
+    loss: torch.Tensor,
+    model: torch.nn.Module,
+    ema: torch.nn.Module,
+    opt: torch.optim.Optimizer,
+    sched: torch.optim.lr_scheduler.LRScheduler,
+    grad_clip: float,
+    ema_decay: float,
+) -> None:
+    """One training step after the loss, the same in every trainer: backward, clip, AdamW, schedule, EMA."""
+    opt.zero_grad(set_to_none=True)
+    loss.backward()
+    torch.nn.utils.clip_grad_norm_(model.parameters(), grad_clip)
+    opt.step()
+    sched.step()
+    ema_update(ema, model, ema_decay)
 
 
 def fit(
@@ -75,12 +101,7 @@ def fit(
             for batch in loader:
                 model.train()
                 loss = loss_fn(model, {k: v.to(device) for k, v in batch.items()})
-                opt.zero_grad(set_to_none=True)
-                loss.backward()
-                torch.nn.utils.clip_grad_norm_(model.parameters(), cfg.grad_clip)
-                opt.step()
-                sched.step()
-                ema_update(ema, model, cfg.ema_decay)
+                optimizer_step(loss, model, ema, opt, sched, cfg.grad_clip, cfg.ema_decay)
                 step += 1
                 bar.update(1)
                 bar.set_postfix(loss=f"{loss.item():.4f}")
