@@ -98,7 +98,7 @@ def _train(args: argparse.Namespace) -> int:
 
     torch.set_num_threads(args.threads)
     cfg = _config(TrainConfig, args.config)
-    step = train_agm(cfg, args.data, args.out, val_data=args.val, resume=args.resume, device=args.device, max_minutes=args.max_minutes)
+    step = train_agm(cfg, args.data, args.out, **_training_kwargs(args))
     print(f"stopped at step {step} of {cfg.steps}; checkpoint {args.out}")
     return 0
 
@@ -110,7 +110,7 @@ def _train_direct(args: argparse.Namespace) -> int:
 
     torch.set_num_threads(args.threads)
     cfg = _config(DirectTrainConfig, args.config)
-    step = train_direct(cfg, args.data, args.out, val_data=args.val, resume=args.resume, device=args.device, max_minutes=args.max_minutes)
+    step = train_direct(cfg, args.data, args.out, **_training_kwargs(args))
     print(f"stopped at step {step} of {cfg.steps}; direct-regression baseline {args.out}")
     return 0
 
@@ -127,8 +127,7 @@ def _train_detector(args: argparse.Namespace) -> int:
     if not cfg.localiser.obj_ids:  # default: the objects the data shows
         ids = tuple(o.obj_id for o in dataset_objects(args.data[0]))
         cfg = dataclasses.replace(cfg, localiser=dataclasses.replace(cfg.localiser, obj_ids=ids))
-    step = train_detector(cfg, args.data, args.out, val_data=args.val, resume=args.resume, device=args.device, max_minutes=args.max_minutes,
-                          init=args.init)  # fmt: skip
+    step = train_detector(cfg, args.data, args.out, init=args.init, **_training_kwargs(args))
     print(f"stopped at step {step} of {cfg.steps}; localiser {args.out}")
     localiser = load_localiser(args.out)
     if args.val:
@@ -216,6 +215,11 @@ def _training_args(parser: argparse.ArgumentParser, what: str, config_cls: str, 
     parser.add_argument("--device", default="auto", choices=["cpu", "cuda", "auto"])
     parser.add_argument("--max-minutes", type=float, default=None, help="stop (and save) after this much wall time")
     parser.add_argument("--threads", type=int, default=2)
+
+
+def _training_kwargs(args: argparse.Namespace) -> dict:
+    """The keyword arguments every trainer takes from the options `_training_args` declares."""
+    return {"val_data": args.val, "resume": args.resume, "device": args.device, "max_minutes": args.max_minutes}
 
 
 def _ids(text: str) -> list[int]:
