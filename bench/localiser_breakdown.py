@@ -26,11 +26,11 @@ from tqdm import tqdm
 
 from axispose_core.checkpoint import read_metadata
 from axispose_core.data.bop import BopScene
-from axispose_core.detect.decode import iou, match
+from axispose_core.detect.decode import iou
 from axispose_core.detect.model import Localiser
 from axispose_core.estimator import Estimator
 from axispose_core.train.dataset import scene_dirs
-from axispose_core.train.detector import KIND, load_localiser
+from axispose_core.train.detector import KIND, frame_outcome, load_localiser
 
 THRESHOLDS = (0.05, 0.1, 0.15, 0.2, 0.25, 0.3, 0.4, 0.5)
 VISIB = ((0.3, 0.5), (0.5, 0.8), (0.8, 1.01))
@@ -58,23 +58,18 @@ def breakdown(model: Localiser, frames: list[tuple[BopScene, int]], min_visib: f
         insts = [i for i in insts if i[0] in model.config.obj_ids]
         for t in sorted({*THRESHOLDS, at}):
             dets = [d for d in all_dets if d.score >= t]
-            hits = match(dets, [(o, b) for o, b, _ in insts])
-            claimed = {k for k in hits if k is not None}
-            scored = [(k is not None) for (_, _, v), k in zip(insts, hits, strict=True) if v >= min_visib]
+            hits, false_alarms = frame_outcome(dets, insts, min_visib)
             if t in sweep:
-                sweep[t][0] += sum(scored)
-                sweep[t][1] += sum(k not in claimed for k in range(len(dets)))
-                sweep[t][2] += len(scored)
+                sweep[t][0] += sum(hits.values())
+                sweep[t][1] += len(false_alarms)
+                sweep[t][2] += len(hits)
             if t != at:
                 continue
-            for (_, box, v), k in zip(insts, hits, strict=True):
-                if v >= min_visib:
-                    found.append(k is not None)
-                    visib.append(v)
-                    size.append(max(box[2], box[3]))
-            for k, d in enumerate(dets):
-                if k in claimed:
-                    continue
+            for g, hit in hits.items():
+                found.append(hit)
+                visib.append(insts[g][2])
+                size.append(max(insts[g][1][2], insts[g][1][3]))
+            for d in (dets[k] for k in false_alarms):
                 same = max([iou(d.box, b) for o, b, _ in insts if o == d.obj_id], default=0.0)
                 other = max([iou(d.box, b) for o, b, _ in insts if o != d.obj_id], default=0.0)
                 alarms["other_object" if other >= 0.3 and same < 0.1 else "poor_box" if same >= 0.1 else "background"] += 1

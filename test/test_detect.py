@@ -20,7 +20,7 @@ from axispose_core.detect.decode import Detection, decode, draw_targets, iou, ma
 from axispose_core.detect.model import STRIDE, Localiser, LocaliserConfig
 from axispose_core.estimator import Estimator, EstimatorConfig
 from axispose_core.tbm.reader import SHIPPED_READER, load_reader
-from axispose_core.train.detector import DetectorTrainConfig, detection_scores, load_localiser, train_detector, warm_start
+from axispose_core.train.detector import DetectorTrainConfig, detection_scores, frame_outcome, load_localiser, train_detector, warm_start
 
 TINY = LocaliserConfig(obj_ids=(1, 5), input_size=(160, 128), channels=(8, 16, 24, 32))
 
@@ -60,6 +60,14 @@ def test_match_takes_detections_by_score_and_iou():
     dets = [Detection(1, 0.5, (5, 5), (10, 10)), Detection(1, 0.9, (6, 5), (10, 10)), Detection(5, 0.7, (40, 40), (10, 10))]
     assert match(dets, gts) == [1, None, None]  # the better-scoring duplicate wins; the far "5" is a false alarm
     assert match([], gts) == [None, None, None]
+
+
+def test_frame_outcome_scores_visible_instances_and_spares_detections_of_hidden_ones():
+    insts = [(1, (0, 0, 10, 10), 0.9), (1, (100, 100, 10, 10), 0.2), (5, (50, 0, 10, 10), 0.6)]
+    dets = [Detection(1, 0.9, (5, 5), (10, 10)), Detection(1, 0.8, (105, 105), (10, 10)), Detection(5, 0.7, (300, 300), (10, 10))]
+    found, alarms = frame_outcome(dets, insts, min_visib=0.3)
+    assert found == {0: True, 2: False}  # the 0.2-visible instance is not scored...
+    assert alarms == [2]  # ...and the detection that found it is no false alarm
 
 
 @pytest.fixture(scope="module")

@@ -24,7 +24,7 @@ from tqdm import tqdm
 
 from axispose_core.checkpoint import CheckpointError, load_state, read_checkpoint, read_metadata, save_checkpoint
 from axispose_core.data.bop import BopFormatError, BopScene
-from axispose_core.detect.decode import draw_targets, focal_loss, match
+from axispose_core.detect.decode import Detection, draw_targets, focal_loss, match
 from axispose_core.detect.model import STRIDE, Localiser, LocaliserConfig
 from axispose_core.train.dataset import scene_dirs
 from axispose_core.train.loop import fit, training_device, training_record
@@ -116,6 +116,18 @@ def detector_loss(model: Localiser, batch: dict[str, torch.Tensor], cfg: Detecto
     return focal_loss(heat, batch["heat"]) + cfg.size_weight * size_loss + cfg.offset_weight * off_loss
 
 
+def frame_outcome(
+    dets: list[Detection], insts: list[tuple[int, tuple[float, float, float, float], float]], min_visib: float
+) -> tuple[dict[int, bool], list[int]]:
+    """The detection protocol on one frame's (obj_id, bbox_obj, visib_fract) instances: for each instance with
+    visib_fract >= min_visib (by index) whether a detection found it at IoU 0.5, and the indices of the false
+    alarms. A detection that matches a less visible instance is neither a hit nor a false alarm."""
+    hits = match(dets, [(o, b) for o, b, _ in insts])
+    claimed = {k for k in hits if k is not None}
+    found = {g: k is not None for g, ((_, _, v), k) in enumerate(zip(insts, hits, strict=True)) if v >= min_visib}
+    return found, [k for k in range(len(dets)) if k not in claimed]
+
+
 def detection_scores(
     model: Localiser, data: list[str | Path], min_visib: float = 0.3, limit: int | None = None, progress: bool = False
 ) -> dict:
@@ -133,14 +145,12 @@ def detection_scores(
         times.append(time.perf_counter() - start)
         insts = [(g.obj_id, info.bbox_obj, info.visib_fract) for g, info in zip(scene.gt[im_id], scene.gt_info[im_id], strict=True)]
         insts = [i for i in insts if i[0] in tp]
-        hits = match(dets, [(o, b) for o, b, _ in insts])
-        for (o, _, v), k in zip(insts, hits, strict=True):
-            if v >= min_visib:
-                n_gt[o] += 1
-                tp[o] += k is not None
-        claimed = {k for k in hits if k is not None}
-        for k, d in enumerate(dets):
-            fp[d.obj_id] += k not in claimed
+        found, alarms = frame_outcome(dets, insts, min_visib)
+        for g, hit in found.items():
+            n_gt[insts[g][0]] += 1
+            tp[insts[g][0]] += hit
+        for k in alarms:
+            fp[dets[k].obj_id] += 1
     per = {
         str(o): {"n": n_gt[o], "recall": tp[o] / n_gt[o] if n_gt[o] else float("nan"),
                  "precision": tp[o] / (tp[o] + fp[o]) if tp[o] + fp[o] else float("nan")}
