@@ -3,9 +3,11 @@
 For each checkpoint (a localiser's own, or an estimator carrying one): recall and precision at IoU 0.5 over a
 sweep of score thresholds (the protocol of `detection_scores`: GT are instances with visib_fract >= 0.3,
 detections of less visible instances are neither hits nor false alarms); at the checkpoint's own threshold,
-recall per visibility band and per box size, and each false alarm's kind: another object's instance
+recall per visibility band and per box size, each false alarm's kind: another object's instance
 (IoU >= 0.3 with a GT of a different object), a poorly placed box on its own object (0.1 <= IoU < 0.5), or
-background. Prints tables and writes JSON.
+background; and each missed instance's kind: found below the threshold (a detection of its object at IoU >= 0.5
+scoring under it), a poor box (one of its object above it that did not match it, IoU >= 0.1), taken for another object (a
+detection of a different object at IoU >= 0.5 above it), or nothing there. Prints tables and writes JSON.
 
     python bench/localiser_breakdown.py --checkpoint stage1=runs/det_long/localiser.safetensors \\
         --checkpoint shipped=axispose_core/models/axispose_lmo.safetensors --data data/lmo_val
@@ -46,11 +48,25 @@ def load(path: str) -> Localiser:
     return localiser
 
 
+def miss_kind(inst: tuple[int, tuple, float], dets: list, threshold: float) -> str:
+    """Why an instance was missed at `threshold`, judged from all detections down to the sweep's lowest score."""
+    obj, box, _ = inst
+    same = [(d.score, iou(d.box, box)) for d in dets if d.obj_id == obj]
+    if any(s < threshold and o >= 0.5 for s, o in same):
+        return "low_score"
+    if any(s >= threshold and o >= 0.1 for s, o in same):
+        return "poor_box"
+    if any(d.score >= threshold and d.obj_id != obj and iou(d.box, box) >= 0.5 for d in dets):
+        return "other_object"
+    return "nothing"
+
+
 def breakdown(model: Localiser, frames: list[tuple[BopScene, int]], min_visib: float) -> dict:
     sweep = {t: [0, 0, 0] for t in THRESHOLDS}  # hits, false alarms, GT
     at = model.config.threshold
     found, visib, size = [], [], []
     alarms = {"other_object": 0, "poor_box": 0, "background": 0}
+    misses = {"low_score": 0, "poor_box": 0, "other_object": 0, "nothing": 0}
     for scene, im_id in tqdm(frames, desc="detect", leave=False):
         rgb = cv2.cvtColor(cv2.imread(str(scene.rgb_path(im_id)), cv2.IMREAD_COLOR), cv2.COLOR_BGR2RGB)
         all_dets = model.detect(rgb, threshold=min(THRESHOLDS))
@@ -69,6 +85,8 @@ def breakdown(model: Localiser, frames: list[tuple[BopScene, int]], min_visib: f
                 found.append(hit)
                 visib.append(insts[g][2])
                 size.append(max(insts[g][1][2], insts[g][1][3]))
+                if not hit:
+                    misses[miss_kind(insts[g], all_dets, at)] += 1
             for d in (dets[k] for k in false_alarms):
                 same = max([iou(d.box, b) for o, b, _ in insts if o == d.obj_id], default=0.0)
                 other = max([iou(d.box, b) for o, b, _ in insts if o != d.obj_id], default=0.0)
@@ -88,6 +106,7 @@ def breakdown(model: Localiser, frames: list[tuple[BopScene, int]], min_visib: f
         "by_visibility": [band(visib_a, lo, hi) for lo, hi in VISIB],
         "by_box_side_px": [band(size_a, lo, hi) for lo, hi in SIZES],
         "false_alarms": alarms,
+        "misses": misses,
     }
 
 
@@ -112,6 +131,7 @@ def main() -> None:
         for name, key in (("visib_fract", "by_visibility"), ("box side px", "by_box_side_px")):
             print(f"{name:<11}" + "  ".join(f"[{b['range'][0]:g},{b['range'][1]:g}) n={b['n']} {b['recall']:.3f}" for b in r[key]))
         print("false alarms: " + ", ".join(f"{k} {v}" for k, v in r["false_alarms"].items()))
+        print("misses: " + ", ".join(f"{k} {v}" for k, v in r["misses"].items()))
     meta = {"machine": f"{platform.machine()} {platform.processor()}".strip(), "threads": args.threads,
             "date": datetime.date.today().isoformat(), "data": args.data, "frames": len(frames)}  # fmt: skip
     Path(args.json).parent.mkdir(parents=True, exist_ok=True)

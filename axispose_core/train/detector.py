@@ -224,8 +224,8 @@ def train_detector(
     model = Localiser(cfg.localiser)
     if init and not resume:
         fresh = warm_start(model, init)
-        shown = ", ".join(fresh[:6]) + (" ..." if len(fresh) > 6 else "")
-        print(f"started from {init}; {len(fresh)} of {len(model.state_dict())} tensors start fresh: {shown}")
+        shown = (": " + ", ".join(fresh[:6]) + (" ..." if len(fresh) > 6 else "")) if fresh else ""
+        print(f"started from {init}; {len(fresh)} of {len(model.state_dict())} tensors start fresh{shown}")
     return fit(
         cfg, model, train_set, lambda model, batch: detector_loss(model, batch, cfg), out, save,
         validate if val_data else None, ("val_recall", "val_precision"), resume, dev, max_minutes, progress, "train detector",
