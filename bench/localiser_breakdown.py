@@ -5,9 +5,10 @@ sweep of score thresholds (the protocol of `detection_scores`: GT are instances 
 detections of less visible instances are neither hits nor false alarms); at the checkpoint's own threshold,
 recall per visibility band and per box size, each false alarm's kind: another object's instance
 (IoU >= 0.3 with a GT of a different object), a poorly placed box on its own object (0.1 <= IoU < 0.5), or
-background; and each missed instance's kind: found below the threshold (a detection of its object at IoU >= 0.5
-scoring under it), a poor box (one of its object above it that did not match it, IoU >= 0.1), taken for another object (a
-detection of a different object at IoU >= 0.5 above it), or nothing there. Prints tables and writes JSON.
+background; and each missed instance's kind: found below the threshold (a detection of its object at
+IoU >= 0.5 scoring under it), a poor box (one of its object above it that did not match it, IoU >= 0.1), taken
+for another object (a detection of a different object at IoU >= 0.5 above it), or nothing there. Prints tables
+and writes JSON.
 
     python bench/localiser_breakdown.py --checkpoint stage1=runs/det_long/localiser.safetensors \\
         --checkpoint shipped=axispose_core/models/axispose_lmo.safetensors --data data/lmo_val
@@ -28,7 +29,7 @@ from tqdm import tqdm
 
 from axispose_core.checkpoint import read_metadata
 from axispose_core.data.bop import BopScene
-from axispose_core.detect.decode import iou
+from axispose_core.detect.decode import Detection, iou
 from axispose_core.detect.model import Localiser
 from axispose_core.estimator import Estimator
 from axispose_core.train.dataset import scene_dirs
@@ -48,7 +49,7 @@ def load(path: str) -> Localiser:
     return localiser
 
 
-def miss_kind(inst: tuple[int, tuple, float], dets: list, threshold: float) -> str:
+def miss_kind(inst: tuple[int, tuple[float, float, float, float], float], dets: list[Detection], threshold: float) -> str:
     """Why an instance was missed at `threshold`, judged from all detections down to the sweep's lowest score."""
     obj, box, _ = inst
     same = [(d.score, iou(d.box, box)) for d in dets if d.obj_id == obj]
