@@ -106,11 +106,8 @@ def evaluate(
             continue
         if limit is not None and len(records) >= limit:
             break
-        bgr = cv2.imread(str(scene.rgb_path(im_id)), cv2.IMREAD_COLOR)
-        if bgr is None:
-            raise BopFormatError(f"{scene.rgb_path(im_id)}: unreadable image")
         K = scene.cameras[im_id]
-        rgb = cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB)
+        rgb = scene.rgb(im_id)
         if perturb is not None:
             rgb = perturb(rgb, np.random.default_rng([zlib.crc32(scene.root.name.encode()), im_id]))
         start = time.perf_counter()

@@ -24,7 +24,7 @@ from rosbags.typesys import Stores, get_typestore
 from scipy.spatial.transform import Rotation
 from tqdm import tqdm
 
-from axispose_core.data.bop import BopScene, load_ply, model_path
+from axispose_core.data.bop import BopFormatError, BopScene, load_ply, model_path
 from axispose_core.data.objects import ObjectSpec
 
 TYPESTORE = get_typestore(Stores.ROS2_JAZZY)
@@ -155,15 +155,14 @@ def make_bag(
             name = specs[obj_id].name
             pts = _eval_points(Path(models_dir), obj_id, model_points)
             write(MODELS_PREFIX + name, "sensor_msgs/msg/PointCloud2", _cloud(pts, _header(STAMP_ORIGIN_NS, name)), STAMP_ORIGIN_NS)
-        import cv2
 
         for k, im_id in enumerate(tqdm(im_ids, desc="make-bag", disable=not progress)):
             stamp = STAMP_ORIGIN_NS + round(k * 1e9 / fps)
             header = _header(stamp, FRAME_ID)
-            bgr = cv2.imread(str(scene.rgb_path(im_id)), cv2.IMREAD_COLOR)
-            if bgr is None:
-                raise BagError(f"{scene.rgb_path(im_id)}: unreadable image")
-            rgb = cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB)
+            try:
+                rgb = scene.rgb(im_id)
+            except BopFormatError as err:
+                raise BagError(str(err)) from err
             h, w = rgb.shape[:2]
             infos = scene.gt_info[im_id] if scene.gt_info is not None else [None] * len(scene.gt[im_id])
             boxes = scene.boxes(im_id)

@@ -18,7 +18,6 @@ import platform
 import time
 from pathlib import Path
 
-import cv2
 import numpy as np
 import torch
 
@@ -66,7 +65,7 @@ def main() -> None:
                     print(f"  {conditioning:<8} threads {threads} objects {n} steps {steps:>2}: {ms:7.1f} ms ({ms / n:6.1f} per object)")
     scene = BopScene(scene_dirs(args.data)[0])
     im_id = scene.image_ids[0]
-    rgb = cv2.cvtColor(cv2.imread(str(scene.rgb_path(im_id))), cv2.COLOR_BGR2RGB)
+    rgb = scene.rgb(im_id)
     K = scene.cameras[im_id]
     boxes = [(g.obj_id, info.bbox_obj) for g, info in zip(scene.gt[im_id], scene.gt_info[im_id], strict=True) if g.obj_id in est.objects]
     print(f"part 2: full path of {args.checkpoint} ({est.config.agm.denoiser.conditioning}), ms per frame")

@@ -22,31 +22,19 @@ import json
 import platform
 from pathlib import Path
 
-import cv2
 import numpy as np
 import torch
 from tqdm import tqdm
 
-from axispose_core.checkpoint import read_metadata
 from axispose_core.data.bop import BopScene
 from axispose_core.detect.decode import Detection, iou
 from axispose_core.detect.model import Localiser
-from axispose_core.estimator import Estimator
 from axispose_core.train.dataset import scene_dirs
-from axispose_core.train.detector import KIND, frame_outcome, load_localiser
+from axispose_core.train.detector import frame_instances, frame_outcome, load_localiser
 
 THRESHOLDS = (0.05, 0.1, 0.15, 0.2, 0.25, 0.3, 0.4, 0.5)
 VISIB = ((0.3, 0.5), (0.5, 0.8), (0.8, 1.01))
 SIZES = ((0, 60), (60, 100), (100, 160), (160, 10_000))
-
-
-def load(path: str) -> Localiser:
-    if read_metadata(path, None)["kind"] == KIND:
-        return load_localiser(path)
-    localiser = Estimator.load(path).localiser
-    if localiser is None:
-        raise SystemExit(f"{path} carries no localiser")
-    return localiser
 
 
 def miss_kind(inst: tuple[int, tuple[float, float, float, float], float], dets: list[Detection], threshold: float) -> str:
@@ -69,10 +57,8 @@ def breakdown(model: Localiser, frames: list[tuple[BopScene, int]], min_visib: f
     alarms = {"other_object": 0, "poor_box": 0, "background": 0}
     misses = {"low_score": 0, "poor_box": 0, "other_object": 0, "nothing": 0}
     for scene, im_id in tqdm(frames, desc="detect", leave=False):
-        rgb = cv2.cvtColor(cv2.imread(str(scene.rgb_path(im_id)), cv2.IMREAD_COLOR), cv2.COLOR_BGR2RGB)
-        all_dets = model.detect(rgb, threshold=min(THRESHOLDS))
-        insts = [(g.obj_id, tuple(info.bbox_obj), info.visib_fract) for g, info in zip(scene.gt[im_id], scene.gt_info[im_id], strict=True)]
-        insts = [i for i in insts if i[0] in model.config.obj_ids]
+        all_dets = model.detect(scene.rgb(im_id), threshold=min(THRESHOLDS))
+        insts = frame_instances(scene, im_id, model.config.obj_ids)
         for t in sorted({*THRESHOLDS, at}):
             dets = [d for d in all_dets if d.score >= t]
             hits, false_alarms = frame_outcome(dets, insts, min_visib)
@@ -124,7 +110,7 @@ def main() -> None:
     results = {}
     for item in args.checkpoint:
         label, _, path = item.partition("=")
-        r = results[label] = breakdown(load(path), frames, args.min_visib) | {"checkpoint": path}
+        r = results[label] = breakdown(load_localiser(path), frames, args.min_visib) | {"checkpoint": path}
         print(f"\n{label} ({path}), {len(frames)} frames; recall {r['recall']:.3f} at its threshold {r['threshold']}")
         print("threshold  " + "  ".join(f"{s['threshold']:>5}" for s in r["sweep"]))
         print("recall     " + "  ".join(f"{s['recall']:5.3f}" for s in r["sweep"]))

@@ -1,5 +1,6 @@
 import json
 
+import cv2
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
@@ -90,6 +91,22 @@ def test_boxes_from_models_when_gt_info_is_absent(tmp_path, rng):
     assert boxes[1] == bbox_from_model(LMO_K, gt[0][1].R, gt[0][1].t, pts[5])
     with pytest.raises(BopFormatError, match="scene_gt_info"):
         scene.boxes(0)
+
+
+def test_rgb_reads_rgb_and_refuses_an_unreadable_file(tmp_path, rng):
+    _scene(tmp_path, rng)
+    (tmp_path / "rgb").mkdir()
+    bgr = np.zeros((4, 6, 3), np.uint8)
+    bgr[..., 0] = 255  # blue in OpenCV's channel order
+    cv2.imwrite(str(tmp_path / "rgb" / "000000.png"), bgr)
+    (tmp_path / "rgb" / "000001.png").write_bytes(b"not a png")
+    scene = BopScene(tmp_path)
+    rgb = scene.rgb(0)
+    assert rgb.shape == (4, 6, 3) and rgb.dtype == np.uint8 and (rgb[..., 2] == 255).all() and (rgb[..., 0] == 0).all()
+    with pytest.raises(BopFormatError, match=r"000001\.png: unreadable image"):
+        scene.rgb(1)
+    with pytest.raises(BopFormatError, match="no image file for image 2"):
+        scene.rgb(2)
 
 
 def test_models_info_round_trip(tmp_path, lmo_dir):

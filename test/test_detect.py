@@ -201,6 +201,15 @@ def test_warm_start_copies_what_matches_and_leaves_the_rest_fresh(trained, estim
     assert torch.equal(other.state_dict()["s8.0.0.weight"], source["s8.0.0.weight"])
 
 
+def test_load_localiser_reads_an_estimator_checkpoint_and_refuses_one_without_a_localiser(trained, estimator_with_localiser):
+    own, carried = load_localiser(trained[1]), load_localiser(estimator_with_localiser)
+    assert carried.config == own.config and not carried.training
+    for k, v in own.state_dict().items():
+        assert torch.equal(carried.state_dict()[k], v), k
+    with pytest.raises(CheckpointError, match="'tbm_reader' checkpoint without a localiser"):
+        load_localiser(SHIPPED_READER)
+
+
 def test_warm_start_from_a_checkpoint_without_a_localiser_is_refused():
     with pytest.raises(CheckpointError, match="without a localiser"):
         warm_start(Localiser(TINY), SHIPPED_READER)

@@ -11,6 +11,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+import cv2
 import numpy as np
 import plyfile
 
@@ -345,6 +346,14 @@ class BopScene:
             if p.exists():
                 return p
         raise BopFormatError(f"{self.root / 'rgb'}: no image file for image {im_id}")
+
+    def rgb(self, im_id: int) -> np.ndarray:
+        """The image as HxWx3 uint8 RGB; an unreadable file is a BopFormatError, not a None further on."""
+        path = self.rgb_path(im_id)
+        bgr = cv2.imread(str(path), cv2.IMREAD_COLOR)
+        if bgr is None:
+            raise BopFormatError(f"{path}: unreadable image")
+        return cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB)
 
     def boxes(self, im_id: int, model_points: dict[int, np.ndarray] | None = None) -> list[tuple[int, int, int, int]]:
         """bbox_obj of every instance: from scene_gt_info.json, else projected from `model_points` (metres)."""

@@ -5,7 +5,6 @@ from __future__ import annotations
 from dataclasses import dataclass
 from pathlib import Path
 
-import cv2
 import numpy as np
 import torch
 from torch.utils.data import Dataset
@@ -79,10 +78,7 @@ class AxisCropDataset(Dataset):
         ref = self.items[i]
         scene = self.scenes[ref.scene]
         rng = np.random.default_rng([self.seed, self.epoch, i])
-        bgr = cv2.imread(str(scene.rgb_path(ref.im_id)), cv2.IMREAD_COLOR)
-        if bgr is None:
-            raise BopFormatError(f"{scene.rgb_path(ref.im_id)}: unreadable image")
-        rgb = cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB)
+        rgb = scene.rgb(ref.im_id)
         K = scene.cameras[ref.im_id]
         g = scene.gt[ref.im_id][ref.index]
         crop = instance_crop(rgb, K, ref.box, self.size, rng if self.jitter else None, self.jitter or DEFAULT_JITTER)

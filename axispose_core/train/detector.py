@@ -9,7 +9,6 @@ colour-jittered on top of the data's own randomisation.
 
 from __future__ import annotations
 
-import json
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -18,7 +17,6 @@ import cv2
 import numpy as np
 import torch
 import torch.nn.functional as F
-from safetensors.torch import load_file
 from torch.utils.data import Dataset
 from tqdm import tqdm
 
@@ -26,6 +24,8 @@ from axispose_core.checkpoint import CheckpointError, load_state, read_checkpoin
 from axispose_core.data.bop import BopFormatError, BopScene
 from axispose_core.detect.decode import Detection, draw_targets, focal_loss, match
 from axispose_core.detect.model import STRIDE, Localiser, LocaliserConfig
+from axispose_core.estimator import KIND as ESTIMATOR
+from axispose_core.estimator import EstimatorConfig
 from axispose_core.train.dataset import scene_dirs
 from axispose_core.train.loop import fit, training_device, training_record
 
@@ -82,10 +82,7 @@ class DetectionDataset(Dataset):
     def __getitem__(self, i: int) -> dict[str, torch.Tensor]:
         scene, im_id = self.frames[i]
         rng = np.random.default_rng([self.seed, self.epoch, i])
-        bgr = cv2.imread(str(scene.rgb_path(im_id)), cv2.IMREAD_COLOR)
-        if bgr is None:
-            raise BopFormatError(f"{scene.rgb_path(im_id)}: unreadable image")
-        rgb = cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB)
+        rgb = scene.rgb(im_id)
         w, h = self.config.input_size
         sx, sy = w / rgb.shape[1], h / rgb.shape[0]
         A = np.array([[sx, 0, 0], [0, sy, 0]], np.float64)
@@ -116,6 +113,15 @@ def detector_loss(model: Localiser, batch: dict[str, torch.Tensor], cfg: Detecto
     return focal_loss(heat, batch["heat"]) + cfg.size_weight * size_loss + cfg.offset_weight * off_loss
 
 
+def frame_instances(scene: BopScene, im_id: int, obj_ids: tuple[int, ...]) -> list[tuple[int, tuple[int, int, int, int], float]]:
+    """The frame's (obj_id, bbox_obj, visib_fract) instances of the given objects, as `frame_outcome` takes them."""
+    return [
+        (g.obj_id, info.bbox_obj, info.visib_fract)
+        for g, info in zip(scene.gt[im_id], scene.gt_info[im_id], strict=True)
+        if g.obj_id in obj_ids
+    ]
+
+
 def frame_outcome(
     dets: list[Detection], insts: list[tuple[int, tuple[float, float, float, float], float]], min_visib: float
 ) -> tuple[dict[int, bool], list[int]]:
@@ -139,12 +145,11 @@ def detection_scores(
     scenes = [BopScene(sd) for root in data for sd in scene_dirs(root)]
     frames = [(scene, im_id) for scene in scenes for im_id in scene.image_ids]
     for scene, im_id in tqdm(frames[:limit], desc="detect", disable=not progress):
-        rgb = cv2.cvtColor(cv2.imread(str(scene.rgb_path(im_id)), cv2.IMREAD_COLOR), cv2.COLOR_BGR2RGB)
+        rgb = scene.rgb(im_id)
         start = time.perf_counter()
         dets = model.detect(rgb)
         times.append(time.perf_counter() - start)
-        insts = [(g.obj_id, info.bbox_obj, info.visib_fract) for g, info in zip(scene.gt[im_id], scene.gt_info[im_id], strict=True)]
-        insts = [i for i in insts if i[0] in tp]
+        insts = frame_instances(scene, im_id, ids)
         found, alarms = frame_outcome(dets, insts, min_visib)
         for g, hit in found.items():
             n_gt[insts[g][0]] += 1
@@ -167,27 +172,33 @@ def detection_scores(
 
 
 def load_localiser(path: str | Path, device: str = "cpu") -> Localiser:
-    """A trained localiser from its own checkpoint, in eval mode."""
-    config, states, _ = read_checkpoint(path, KIND, LocaliserConfig)
+    """A trained localiser in eval mode, from its own checkpoint or from an estimator checkpoint that carries one
+    (without building the estimator's AGM)."""
+    kind = read_metadata(path, None)["kind"]
+    config: LocaliserConfig | None = None
+    if kind == KIND:
+        config, states, _ = read_checkpoint(path, KIND, LocaliserConfig)
+    elif kind == ESTIMATOR:
+        estimator, states, _ = read_checkpoint(path, ESTIMATOR, EstimatorConfig)
+        config = estimator.localiser
+    if config is None:
+        raise CheckpointError(f"{path}: a {kind!r} checkpoint without a localiser")
     model = Localiser(config)
     load_state(model, states.get("localiser", {}), str(path))
     return model.to(device).eval()
 
 
 def warm_start(model: Localiser, path: str | Path) -> list[str]:
-    """Copy into `model` the localiser weights of a trained checkpoint (a localiser's own, or an estimator's that
-    carries one) wherever names and shapes match, so a wider or deeper localiser, or one for other objects, need
-    not relearn what the trained one knows. The heatmap head is copied only for the same objects in the same
-    order (its channels are the objects). Returns the tensor names left at their fresh initialisation."""
-    meta = read_metadata(path, None)
-    config = json.loads(meta["config"])
-    source = config if meta["kind"] == KIND else config.get("localiser")
-    if not source:
-        raise CheckpointError(f"{path}: a {meta['kind']!r} checkpoint without a localiser to start from")
-    state = {k.partition(".")[2]: v for k, v in load_file(str(path)).items() if k.startswith("localiser.")}
-    same_objects = tuple(source["obj_ids"]) == model.config.obj_ids
+    """Copy into `model` the weights of a trained localiser (`load_localiser`: its own checkpoint, or an
+    estimator's that carries one) wherever names and shapes match, so a wider or deeper localiser, or one for other
+    objects, need not relearn what the trained one knows. The heatmap head is copied only for the same objects in
+    the same order (its channels are the objects). Returns the tensor names left at their fresh initialisation."""
+    source = load_localiser(path)
+    same_objects = source.config.obj_ids == model.config.obj_ids
     own = model.state_dict()
-    take = {k: v for k, v in state.items() if k in own and v.shape == own[k].shape and (same_objects or not k.startswith("heat."))}
+    take = {
+        k: v for k, v in source.state_dict().items() if k in own and v.shape == own[k].shape and (same_objects or not k.startswith("heat."))
+    }
     model.load_state_dict(take, strict=False)
     return sorted(set(own) - set(take))
 
