@@ -100,6 +100,7 @@ class Estimator:
         self.agm = agm.to(self.device).eval()
         self.reader = reader.to(self.device).eval()
         self.localiser = localiser.to(self.device).eval() if localiser is not None else None
+        self._detector = self.localiser.fused() if self.localiser is not None else None
         self.objects = {o.obj_id: o for o in config.objects}
 
     @property
@@ -116,9 +117,9 @@ class Estimator:
 
     def detect(self, image_rgb: np.ndarray, threshold: float | None = None) -> list[Detection]:
         """Objects found in a full frame by the checkpoint's localiser (none found: an empty list)."""
-        if self.localiser is None:
+        if self._detector is None:
             raise ValueError("this checkpoint has no localiser: pass boxes, or attach one with `axispose train-detector --attach`")
-        return self.localiser.detect(image_rgb, threshold)
+        return self._detector.detect(image_rgb, threshold)
 
     @classmethod
     def load(cls, path: str | Path, device: str = "cpu") -> Estimator:

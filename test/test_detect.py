@@ -130,6 +130,24 @@ def test_detected_crop_intrinsics_project_the_gt_origin_consistently(frames, tra
             assert np.abs(patch_mean - frame_mean).max() < 40
 
 
+def test_the_fused_inference_copy_finds_what_the_trained_localiser_finds(frames, trained):
+    """BatchNorm folded into the convolutions changes the layers, not the outputs; the original keeps its own."""
+    localiser = load_localiser(trained[1])
+    keys = set(localiser.state_dict())
+    fused = localiser.fused()
+    assert not any(isinstance(m, torch.nn.BatchNorm2d) for m in fused.modules())
+    assert set(localiser.state_dict()) == keys
+    scene = BopScene(frames / "000000")
+    rgb = scene.rgb(scene.image_ids[0])
+    x = localiser.prepare(rgb)
+    with torch.inference_mode():
+        for a, b in zip(localiser(x), fused(x), strict=True):
+            torch.testing.assert_close(a, b, atol=1e-4, rtol=1e-4)
+    found, again = localiser.detect(rgb, threshold=0.05), fused.detect(rgb, threshold=0.05)
+    assert found and [d.obj_id for d in found] == [d.obj_id for d in again]
+    np.testing.assert_allclose([d.box for d in found], [d.box for d in again], atol=1e-2)
+
+
 @pytest.fixture(scope="module")
 def estimator_with_localiser(frames, trained, tmp_path_factory):
     reader = load_reader(SHIPPED_READER)
