@@ -109,9 +109,7 @@ def test_detected_crop_intrinsics_project_the_gt_origin_consistently(frames, tra
     localiser = load_localiser(trained[1])
     scene = BopScene(frames / "000000")
     im_id = scene.image_ids[0]
-    import cv2
-
-    rgb = cv2.cvtColor(cv2.imread(str(scene.rgb_path(im_id))), cv2.COLOR_BGR2RGB)
+    rgb = scene.rgb(im_id)
     dets = localiser.detect(rgb, threshold=0.05)
     assert dets
     K = scene.cameras[im_id]
