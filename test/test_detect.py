@@ -16,11 +16,19 @@ from axispose_core.data.crops import instance_crop
 from axispose_core.data.objects import objects_from_models
 from axispose_core.data.synth.config import SynthConfig
 from axispose_core.data.synth.generate import generate
-from axispose_core.detect.decode import Detection, decode, draw_targets, iou, match
+from axispose_core.detect.decode import Detection, decode, draw_targets, focal_loss, iou, match
 from axispose_core.detect.model import STRIDE, Localiser, LocaliserConfig
 from axispose_core.estimator import Estimator, EstimatorConfig
 from axispose_core.tbm.reader import SHIPPED_READER, load_reader
-from axispose_core.train.detector import DetectorTrainConfig, detection_scores, frame_outcome, load_localiser, train_detector, warm_start
+from axispose_core.train.detector import (
+    DetectionDataset,
+    DetectorTrainConfig,
+    detection_scores,
+    frame_outcome,
+    load_localiser,
+    train_detector,
+    warm_start,
+)
 
 TINY = LocaliserConfig(obj_ids=(1, 5), input_size=(160, 128), channels=(8, 16, 24, 32))
 
@@ -52,6 +60,28 @@ def test_targets_decode_back_to_their_boxes():
     (dets,) = decode(*(torch.from_numpy(a)[None] for a in (heat, log_size, offset)), [1, 5], STRIDE, threshold=0.99)
     got = {d.obj_id: d.box for d in dets}
     assert got[1] == pytest.approx(boxes[0][1], abs=1e-4) and got[5] == pytest.approx(boxes[1][1], abs=1e-4)
+
+
+def test_weighted_centres_count_more_in_the_loss():
+    boxes = [(0, (33.0, 21.0, 40.0, 24.0)), (1, (90.5, 60.0, 22.0, 30.0))]
+    heat, _, _, mask = draw_targets(boxes, 2, (16, 20), STRIDE, weights=[1.0, 2.5])
+    assert sorted(mask[mask > 0].tolist()) == [1.0, 2.5]
+    assert np.array_equal(mask > 0, draw_targets(boxes, 2, (16, 20), STRIDE)[3] > 0)
+    with pytest.raises(ValueError, match="weights"):
+        draw_targets(boxes, 2, (16, 20), STRIDE, weights=[1.0])
+    target, weight = torch.from_numpy(heat)[None], torch.from_numpy(mask)[None, None]
+    pred = target.clamp(0.05, 0.95)  # right everywhere but not confident
+    pred[0, 1][target[0, 1] == 1] = 0.2  # the second (weighted) centre scores low
+    assert focal_loss(pred, target, weight) > focal_loss(pred, target) > focal_loss(pred, target, torch.ones_like(weight)) - 1e-6
+
+
+def test_occluded_instances_weigh_by_their_hidden_fraction(frames):
+    plain = DetectionDataset([frames], TINY, min_visib=0.0)
+    weighted = DetectionDataset([frames], TINY, min_visib=0.0, occluded_weight=2.0)
+    scene, im_id = weighted.frames[0]
+    visib = [info.visib_fract for g, info in zip(scene.gt[im_id], scene.gt_info[im_id], strict=True) if g.obj_id in (1, 5)]
+    assert [w for _, _, w in plain.boxes(0)] == [1.0] * len(visib)
+    assert [w for _, _, w in weighted.boxes(0)] == pytest.approx([1 + 2 * (1 - v) for v in visib])
 
 
 def test_match_takes_detections_by_score_and_iou():

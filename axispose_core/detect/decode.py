@@ -62,19 +62,26 @@ def decode(
 
 
 def draw_targets(
-    boxes: list[tuple[int, tuple[float, float, float, float]]], n_classes: int, shape: tuple[int, int], stride: float
+    boxes: list[tuple[int, tuple[float, float, float, float]]],
+    n_classes: int,
+    shape: tuple[int, int],
+    stride: float,
+    weights: list[float] | None = None,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Training targets for (class index, (x, y, w, h) in input pixels) boxes on an (h, w) output grid:
     heatmap (C,h,w) with a Gaussian per centre (σ a sixth of the box's shorter side in cells, at least 0.8),
-    log size (2,h,w) in image pixels, offset (2,h,w) and the mask (h,w) of the centre cells where size and offset
-    are supervised."""
+    log size (2,h,w) in image pixels, offset (2,h,w) and the mask (h,w) of the centre cells where size, offset
+    and the heatmap's peak are supervised, holding each box's weight (default 1; the larger where boxes share a
+    cell)."""
+    if weights is not None and len(weights) != len(boxes):
+        raise ValueError(f"{len(weights)} weights for {len(boxes)} boxes")
     h, w = shape
     heat = np.zeros((n_classes, h, w), np.float32)
     log_size = np.zeros((2, h, w), np.float32)
     offset = np.zeros((2, h, w), np.float32)
     mask = np.zeros((h, w), np.float32)
     ys, xs = np.mgrid[0:h, 0:w]
-    for cls, (x, y, bw, bh) in boxes:
+    for k, (cls, (x, y, bw, bh)) in enumerate(boxes):
         cx, cy = (x + bw / 2) / stride, (y + bh / 2) / stride
         j, i = int(np.floor(cx)), int(np.floor(cy))
         if not (0 <= i < h and 0 <= j < w) or bw <= 0 or bh <= 0:
@@ -85,15 +92,19 @@ def draw_targets(
         heat[cls, i, j] = 1.0
         log_size[:, i, j] = (np.log(bw), np.log(bh))
         offset[:, i, j] = (cx - j - 0.5, cy - i - 0.5)
-        mask[i, j] = 1.0
+        mask[i, j] = max(mask[i, j], 1.0 if weights is None else weights[k])
     return heat, log_size, offset, mask
 
 
-def focal_loss(pred: torch.Tensor, target: torch.Tensor, alpha: float = 2.0, beta: float = 4.0) -> torch.Tensor:
-    """CenterNet's penalty-reduced focal loss on heatmaps in (0, 1), normalised by the number of centres."""
+def focal_loss(
+    pred: torch.Tensor, target: torch.Tensor, pos_weight: torch.Tensor | None = None, alpha: float = 2.0, beta: float = 4.0
+) -> torch.Tensor:
+    """CenterNet's penalty-reduced focal loss on heatmaps in (0, 1), normalised by the number of centres;
+    `pos_weight` (broadcast to the heatmap) scales the term of each centre, so that hard instances can count more."""
     pred = pred.clamp(1e-4, 1 - 1e-4)
     pos = target.eq(1).to(pred.dtype)
-    pos_loss = -(torch.log(pred) * (1 - pred) ** alpha * pos).sum()
+    weighted = pos if pos_weight is None else pos * pos_weight
+    pos_loss = -(torch.log(pred) * (1 - pred) ** alpha * weighted).sum()
     neg_loss = -(torch.log(1 - pred) * pred**alpha * (1 - target) ** beta * (1 - pos)).sum()
     return (pos_loss + neg_loss) / pos.sum().clamp(min=1)
 

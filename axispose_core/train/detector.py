@@ -3,8 +3,9 @@
 with periodic validation recall, `--max-minutes`).
 
 Boxes are bbox_obj (the whole object, occluded parts included: the square the AGM's crops are cut around) of
-instances with visib_fract >= `min_visib`. Frames are zoomed and shifted at random (boxes follow) and
-colour-jittered on top of the data's own randomisation.
+instances with visib_fract >= `min_visib`; each instance's centre counts 1 + `occluded_weight` * (1 - visib_fract)
+in the loss, so partly hidden instances (few, and the ones the localiser misses) can count more. Frames are zoomed
+and shifted at random (boxes follow) and colour-jittered on top of the data's own randomisation.
 """
 
 from __future__ import annotations
@@ -45,6 +46,7 @@ class DetectorTrainConfig:
     seed: int = 0
     workers: int = 1
     min_visib: float = 0.1
+    occluded_weight: float = 0.0
     size_weight: float = 0.1
     offset_weight: float = 1.0
     save_every: int = 200
@@ -55,8 +57,17 @@ class DetectorTrainConfig:
 class DetectionDataset(Dataset):
     """Resized frames in [-1,1] with heatmap/size/offset targets; randomness depends on (seed, epoch, index)."""
 
-    def __init__(self, roots: list[str | Path], config: LocaliserConfig, min_visib: float, augment: bool = True, seed: int = 0) -> None:
+    def __init__(
+        self,
+        roots: list[str | Path],
+        config: LocaliserConfig,
+        min_visib: float,
+        augment: bool = True,
+        seed: int = 0,
+        occluded_weight: float = 0.0,
+    ) -> None:
         self.config, self.augment, self.seed, self.epoch = config, augment, seed, 0
+        self.occluded_weight = occluded_weight
         self.classes = {o: k for k, o in enumerate(config.obj_ids)}
         self.frames: list[tuple[BopScene, int]] = []
         for root in roots:
@@ -70,11 +81,11 @@ class DetectionDataset(Dataset):
     def __len__(self) -> int:
         return len(self.frames)
 
-    def boxes(self, i: int) -> list[tuple[int, tuple[float, float, float, float]]]:
-        """(class index, bbox_obj) of the frame's instances the localiser should find."""
+    def boxes(self, i: int) -> list[tuple[int, tuple[float, float, float, float], float]]:
+        """(class index, bbox_obj, loss weight) of the frame's instances the localiser should find."""
         scene, im_id = self.frames[i]
         return [
-            (self.classes[g.obj_id], tuple(float(v) for v in info.bbox_obj))
+            (self.classes[g.obj_id], tuple(float(v) for v in info.bbox_obj), 1 + self.occluded_weight * (1 - info.visib_fract))
             for g, info in zip(scene.gt[im_id], scene.gt_info[im_id], strict=True)
             if g.obj_id in self.classes and info.visib_fract >= self.min_visib
         ]
@@ -93,8 +104,10 @@ class DetectionDataset(Dataset):
         image = cv2.warpAffine(rgb, A, (w, h), flags=cv2.INTER_AREA, borderMode=cv2.BORDER_REFLECT101).astype(np.float32) / 255
         if self.augment:
             image = np.clip(image * rng.uniform(0.7, 1.3, 3) + rng.uniform(-0.1, 0.1), 0, 1)
-        boxes = [(c, (A[0, 0] * x + A[0, 2], A[1, 1] * y + A[1, 2], A[0, 0] * bw, A[1, 1] * bh)) for c, (x, y, bw, bh) in self.boxes(i)]
-        heat, log_size, offset, mask = draw_targets(boxes, len(self.classes), (h // STRIDE, w // STRIDE), STRIDE)
+        instances = self.boxes(i)
+        boxes = [(c, (A[0, 0] * x + A[0, 2], A[1, 1] * y + A[1, 2], A[0, 0] * bw, A[1, 1] * bh)) for c, (x, y, bw, bh), _ in instances]
+        weights = [wt for _, _, wt in instances]
+        heat, log_size, offset, mask = draw_targets(boxes, len(self.classes), (h // STRIDE, w // STRIDE), STRIDE, weights)
         return {
             "image": torch.from_numpy(image * 2 - 1).permute(2, 0, 1).float(),
             "heat": torch.from_numpy(heat),
@@ -110,7 +123,7 @@ def detector_loss(model: Localiser, batch: dict[str, torch.Tensor], cfg: Detecto
     n = mask.sum().clamp(min=1)
     size_loss = (F.l1_loss(log_size, batch["log_size"], reduction="none") * mask).sum() / n
     off_loss = (F.l1_loss(offset, batch["offset"], reduction="none") * mask).sum() / n
-    return focal_loss(heat, batch["heat"]) + cfg.size_weight * size_loss + cfg.offset_weight * off_loss
+    return focal_loss(heat, batch["heat"], mask) + cfg.size_weight * size_loss + cfg.offset_weight * off_loss
 
 
 def frame_instances(scene: BopScene, im_id: int, obj_ids: tuple[int, ...]) -> list[tuple[int, tuple[int, int, int, int], float]]:
@@ -220,7 +233,7 @@ def train_detector(
     out = Path(out)
     out.parent.mkdir(parents=True, exist_ok=True)
     torch.manual_seed(cfg.seed)
-    train_set = DetectionDataset(data, cfg.localiser, cfg.min_visib, seed=cfg.seed)
+    train_set = DetectionDataset(data, cfg.localiser, cfg.min_visib, seed=cfg.seed, occluded_weight=cfg.occluded_weight)
     if not len(train_set):
         raise ValueError(f"no frames in {data}")
 
