@@ -22,7 +22,7 @@ import numpy as np
 from tqdm import tqdm
 
 from axispose_core.camera import crop_image, crop_intrinsics, square_around_box
-from axispose_core.data.bop import BopFormatError, BopScene, load_ply, model_path
+from axispose_core.data.bop import BopFormatError, BopScene, load_ply, model_path, read_bgr
 from axispose_core.data.objects import ObjectSpec
 from axispose_core.data.synth.preview import draw_axes
 from axispose_core.detect.decode import Detection, match
@@ -300,15 +300,16 @@ def _box_corners(spec: ObjectSpec, points: np.ndarray) -> np.ndarray:
 
 
 def plot_grid(records: list[Record], objects: list[ObjectSpec], models_dir: str | Path, out_dir: str | Path, count: int = 24) -> Path:
-    """Crops around the GT box with the GT (green) and predicted (red) 3D boxes and axes, worst cases last."""
+    """Crops around the GT box with the GT (green) and predicted (red) 3D boxes and axes, worst cases last; records
+    without an image file (a bag's) are left out."""
     specs = {o.obj_id: o for o in objects}
     corners = {i: _box_corners(specs[i], load_ply(model_path(models_dir, i)).vertices) for i in specs}
     edges = [(0, 1), (0, 2), (1, 3), (2, 3), (4, 5), (4, 6), (5, 7), (6, 7), (0, 4), (1, 5), (2, 6), (3, 7)]
-    picks = sorted(records, key=lambda r: r.scores["rot_err_deg"])
+    picks = sorted((r for r in records if r.rgb_path is not None), key=lambda r: r.scores["rot_err_deg"])
     picks = [picks[int(i)] for i in np.linspace(0, len(picks) - 1, min(count, len(picks)))] if picks else []
     tiles = []
     for r in picks:
-        image = cv2.imread(str(r.rgb_path))
+        image = read_bgr(r.rgb_path)
         center, side = square_around_box(r.box, 1.5)
         Kc = crop_intrinsics(r.K, center, side, 160)
         tile = crop_image(image, center, side, 160)

@@ -1,15 +1,19 @@
 """Eval report: schema, perfect scores for a ground-truth predictor, failures counted as wrong."""
 
+import dataclasses
 import json
+import shutil
 
+import cv2
 import numpy as np
 import pytest
 
 from axispose_core.cli import main
-from axispose_core.data.bop import BopScene
+from axispose_core.data.bop import BopFormatError, BopScene
 from axispose_core.data.objects import objects_from_models
 from axispose_core.data.synth.config import SynthConfig
 from axispose_core.data.synth.generate import generate
+from axispose_core.data.synth.preview import contact_sheet
 from axispose_core.evaluate import Prediction, evaluate, plot_cdfs, plot_grid, plot_spread, summarize, write_report
 from axispose_core.stress import low_light, motion_blur
 
@@ -66,7 +70,19 @@ def test_ground_truth_predictor_scores_perfectly(scenes, lmo_dir, tmp_path):
     assert again["mean"]["add_0.1d"] == 1.0
     assert set(again["ms_per_object"]) == {"median", "p90"}
     assert plot_cdfs(records, objects, tmp_path).stat().st_size > 5000
-    assert plot_grid(records, objects, lmo_dir / "models_eval", tmp_path).stat().st_size > 5000
+    bag_record = dataclasses.replace(records[0], rgb_path=None)  # a bag replay's records have no image file
+    assert plot_grid([*records, bag_record], objects, lmo_dir / "models_eval", tmp_path).stat().st_size > 5000
+
+
+def test_contact_sheet_tiles_frames_and_refuses_an_unreadable_one(scenes, tmp_path):
+    sheet = cv2.imread(str(contact_sheet(scenes, tmp_path / "sheet.png", count=2, columns=2, tile_width=200)))
+    assert sheet.shape == (150, 400, 3) and sheet.std() > 10
+    broken = tmp_path / "broken"
+    shutil.copytree(scenes, broken)
+    scene = BopScene(broken / "000000")
+    scene.rgb_path(scene.image_ids[0]).write_bytes(b"not an image")
+    with pytest.raises(BopFormatError, match="unreadable image"):
+        contact_sheet(broken, tmp_path / "broken.png")
 
 
 def test_failed_poses_count_as_wrong(scenes, lmo_dir):

@@ -311,6 +311,15 @@ def bbox_from_model(K: np.ndarray, R: np.ndarray, t: np.ndarray, pts: np.ndarray
     return int(x0), int(y0), int(x1 - x0 + 1), int(y1 - y0 + 1)
 
 
+def read_bgr(path: str | Path) -> np.ndarray:
+    """An image file as HxWx3 uint8 BGR (OpenCV's order, for drawing and writing); an unreadable file is a
+    BopFormatError rather than cv2.imread's None."""
+    bgr = cv2.imread(str(path), cv2.IMREAD_COLOR)
+    if bgr is None:
+        raise BopFormatError(f"{path}: unreadable image")
+    return bgr
+
+
 @dataclass
 class BopScene:
     """One scene folder (``rgb/``, ``scene_gt.json``, ``scene_camera.json``, optional ``scene_gt_info.json``).
@@ -349,11 +358,7 @@ class BopScene:
 
     def rgb(self, im_id: int) -> np.ndarray:
         """The image as HxWx3 uint8 RGB; an unreadable file is a BopFormatError, not a None further on."""
-        path = self.rgb_path(im_id)
-        bgr = cv2.imread(str(path), cv2.IMREAD_COLOR)
-        if bgr is None:
-            raise BopFormatError(f"{path}: unreadable image")
-        return cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB)
+        return cv2.cvtColor(read_bgr(self.rgb_path(im_id)), cv2.COLOR_BGR2RGB)
 
     def boxes(self, im_id: int, model_points: dict[int, np.ndarray] | None = None) -> list[tuple[int, int, int, int]]:
         """bbox_obj of every instance: from scene_gt_info.json, else projected from `model_points` (metres)."""

@@ -8,7 +8,7 @@ import cv2
 import numpy as np
 
 from axispose_core.axis_image import AxisSpec, axis_keypoints
-from axispose_core.data.bop import BopScene, load_models_info
+from axispose_core.data.bop import BopScene, load_models_info, read_bgr
 
 AXIS_BGR = ((0, 0, 255), (0, 255, 0), (255, 0, 0))  # X red, Y green, Z blue
 
@@ -32,7 +32,7 @@ def contact_sheet(data_dir: str | Path, out: str | Path, count: int = 16, column
     for scene_dir in sorted(p for p in data_dir.iterdir() if (p / "scene_gt_info.json").exists()):
         scene = BopScene(scene_dir)
         for im_id in scene.image_ids:
-            img = cv2.imread(str(scene.rgb_path(im_id)))
+            img = read_bgr(scene.rgb_path(im_id))
             K = scene.cameras[im_id]
             for g, info in zip(scene.gt[im_id], scene.gt_info[im_id], strict=True):
                 if info.visib_fract > 0:
