@@ -85,9 +85,9 @@ class DetectionDataset(Dataset):
         """(class index, bbox_obj, loss weight) of the frame's instances the localiser should find."""
         scene, im_id = self.frames[i]
         return [
-            (self.classes[g.obj_id], tuple(float(v) for v in info.bbox_obj), 1 + self.occluded_weight * (1 - info.visib_fract))
-            for g, info in zip(scene.gt[im_id], scene.gt_info[im_id], strict=True)
-            if g.obj_id in self.classes and info.visib_fract >= self.min_visib
+            (self.classes[obj_id], tuple(float(v) for v in box), 1 + self.occluded_weight * (1 - visib))
+            for obj_id, box, visib in frame_instances(scene, im_id, tuple(self.classes))
+            if visib >= self.min_visib
         ]
 
     def __getitem__(self, i: int) -> dict[str, torch.Tensor]:
