@@ -1,4 +1,11 @@
-from axispose_core.cli import main
+from pathlib import Path
+
+import pytest
+
+from axispose_core.cli import _config, main
+from axispose_core.train.agm import TrainConfig
+from axispose_core.train.detector import DetectorTrainConfig
+from axispose_core.train.direct import DirectTrainConfig
 
 
 def test_geometry_demo_recovers_every_pose(tmp_path, capsys):
@@ -9,3 +16,15 @@ def test_geometry_demo_recovers_every_pose(tmp_path, capsys):
     assert len(rows) == 16
     assert all(float(r[2]) < 5.0 for r in rows)  # rotation error of a clean axis image, degrees
     assert (tmp_path / "geometry_demo.png").stat().st_size > 10_000
+
+
+CONFIGS = sorted((Path(__file__).resolve().parents[1] / "config").glob("train_*.yaml"))
+
+
+@pytest.mark.parametrize("path", CONFIGS, ids=[p.name for p in CONFIGS])
+def test_shipped_training_configs_load_into_their_dataclasses(path):
+    kinds = {"train_agm": TrainConfig, "train_direct": DirectTrainConfig, "train_detector": DetectorTrainConfig}
+    cls = next(c for prefix, c in kinds.items() if path.name.startswith(prefix))
+    cfg = _config(cls, str(path))  # unknown or misspelt fields raise
+    if path.name == "train_agm_gpu.yaml":  # the GPU recipe trains the CPU recipe's network, only longer
+        assert cfg.agm == _config(TrainConfig, str(path.with_name("train_agm.yaml"))).agm

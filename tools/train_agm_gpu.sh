@@ -5,14 +5,18 @@
 #
 # MODELS: the BOP models folder; WORK: scratch folder; BUDGET_S: seconds this call may take in all; CALLS: how
 # many such calls the run is planned over; the seeds: `axispose synth` datasets to render first (20 images per
-# scene, all CPU cores). A first call (no RESUME_DIR) trains 30 s with the recipe's step count left open,
-# measures steps per second, fixes `steps` so the cosine schedule ends after CALLS calls of this length, and
-# goes on (a resume with a new `steps`, which the trainer allows). A later call resumes from RESUME_DIR
-# (train.yaml, agm.csv, agm.safetensors.state.pt.*, the state split in parts). The run ends up in WORK/run.
-# CONFIG (default config/train_agm_gpu.yaml) and DEVICE (default cuda) may be set in the environment.
+# scene, all CPU cores). A first call (no RESUME_DIR) trains PROBE_MINUTES with the step count left open,
+# measures steps per second, fixes `steps` so that the cosine schedule ends after CALLS calls like this one, and
+# goes on (a resume with a new `steps`, which the trainer allows). A later call resumes from RESUME_DIR: the
+# previous call's train.yaml, agm.csv and agm.safetensors.state.pt (whole, or split into parts named
+# agm.safetensors.state.pt.00, .01, ...). The run ends up in WORK/run, the planned config in WORK/train.yaml.
+#
+# Environment: CONFIG (default config/train_agm_gpu.yaml), DEVICE (cuda), PROBE_MINUTES (0.5), VAL_SCENES (5
+# held-out scenes, seed 1000, for the trainer's validation), RESERVE_S (45: seconds left free at the end).
 set -euo pipefail
 models=$1 work=$2 budget=$3 calls=$4 seeds=$5 resume=${6:-}
-config=${CONFIG:-config/train_agm_gpu.yaml} device=${DEVICE:-cuda}
+config=${CONFIG:-config/train_agm_gpu.yaml} device=${DEVICE:-cuda} probe=${PROBE_MINUTES:-0.5}
+reserve=${RESERVE_S:-45}
 start=$SECONDS
 ax="python3 -m axispose_core.cli"
 run=$work/run
@@ -23,34 +27,46 @@ for spec in $seeds; do
         --seed "${spec%:*}" --workers "$(nproc)"
     data+=("$work/synth$spec")
 done
-$ax synth --models "$models" --out "$work/val" --scenes 5 --images-per-scene 20 --seed 1000 --workers "$(nproc)"
+$ax synth --models "$models" --out "$work/val" --scenes "${VAL_SCENES:-5}" --images-per-scene 20 --seed 1000 \
+    --workers "$(nproc)"
 echo "synthetic data: $((SECONDS - start)) s"
-train() {  # $1: config, $2: minutes
-    $ax train --data "${data[@]}" --val "$work/val" --out "$run/agm.safetensors" --config "$1" --max-minutes "$2" \
-        --device "$device" --threads 4 ${resume_arg:+--resume "$run/agm.safetensors.state.pt"}
+train() {  # $1: config, $2: seconds
+    if (($2 <= 0)); then
+        echo "train_agm_gpu.sh: no time left to train (budget $budget s, $((SECONDS - start)) s used)" >&2
+        exit 1
+    fi
+    $ax train --data "${data[@]}" --val "$work/val" --out "$run/agm.safetensors" --config "$1" \
+        --max-minutes "$(python3 -c "print($2 / 60)")" --device "$device" --threads 4 \
+        ${resume_arg:+--resume "$run/agm.safetensors.state.pt"}
 }
 if [[ -z $resume ]]; then
     resume_arg=
     sed 's/^steps:.*/steps: 1000000/' "$config" >"$work/probe.yaml"
-    train "$work/probe.yaml" 0.5
+    probe_start=$SECONDS
+    train "$work/probe.yaml" "$(python3 -c "print(round($probe * 60))")"
     resume_arg=1
-    left=$((budget - (SECONDS - start) - 60))
-    python3 - "$run/agm.csv" "$left" "$calls" "$work/train.yaml" "$config" <<'EOF'
+    # a later call trains for about what this one has left plus the probe's time (it renders instead of probing)
+    per_call=$((budget - (SECONDS - start) - reserve + SECONDS - probe_start))
+    python3 - "$run/agm.csv" "$per_call" "$calls" "$config" "$work/train.yaml" <<'PY'
 import csv, re, sys
 rows = [r for r in csv.DictReader(open(sys.argv[1])) if r["step"]]
+if len(rows) < 3:
+    sys.exit(f"train_agm_gpu.sh: the probe logged {len(rows)} rows (one per 10 steps); give it more PROBE_MINUTES")
 a, b = rows[len(rows) // 3], rows[-1]
 rate = (int(b["step"]) - int(a["step"])) / (float(b["seconds"]) - float(a["seconds"]))
-steps = int(rate * (int(sys.argv[2]) + 30) * int(sys.argv[3]))
-text = re.sub(r"(?m)^steps:.*$", f"steps: {steps}", open(sys.argv[5]).read())
-open(sys.argv[4], "w").write(text)
+steps = int(rate * int(sys.argv[2]) * int(sys.argv[3]))
+open(sys.argv[5], "w").write(re.sub(r"(?m)^steps:.*$", f"steps: {steps}", open(sys.argv[4]).read()))
 print(f"{rate:.2f} steps/s -> steps: {steps}")
-EOF
+PY
 else
     resume_arg=1
     cp "$resume/train.yaml" "$resume/agm.csv" "$run/"
-    cat "$resume"/agm.safetensors.state.pt.* >"$run/agm.safetensors.state.pt"
+    if [[ -f $resume/agm.safetensors.state.pt ]]; then
+        cp "$resume/agm.safetensors.state.pt" "$run/"
+    else
+        cat "$resume"/agm.safetensors.state.pt.* >"$run/agm.safetensors.state.pt"
+    fi
     cp "$resume/train.yaml" "$work/train.yaml"
 fi
-left=$((budget - (SECONDS - start) - 45))
-train "$work/train.yaml" "$(python3 -c "print($left / 60)")"
+train "$work/train.yaml" $((budget - (SECONDS - start) - reserve))
 echo "total: $((SECONDS - start)) s"

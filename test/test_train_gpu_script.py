@@ -1,0 +1,60 @@
+"""tools/train_agm_gpu.sh, run on the CPU with a tiny network: it plans the schedule from a probe and resumes
+from a split state in a later call (what a GPU lent for a few calls of ten minutes needs)."""
+
+from __future__ import annotations
+
+import csv
+import os
+import subprocess
+from pathlib import Path
+
+import yaml
+
+from axispose_core.estimator import Estimator
+
+REPO = Path(__file__).resolve().parents[1]
+SCRIPT = REPO / "tools" / "train_agm_gpu.sh"
+
+
+def _call(tmp_path: Path, lmo_dir: Path, work: str, budget: int, resume: Path | None = None) -> subprocess.CompletedProcess:
+    cfg = yaml.safe_load((REPO / "config" / "train_agm_gpu.yaml").read_text())
+    cfg |= {"batch": 2, "workers": 0, "save_every": 1000, "val_every": 100000, "val_samples": 2}
+    cfg["agm"]["denoiser"] |= {"channels": 8, "multipliers": [1, 2], "groups": 4}
+    tiny = tmp_path / "tiny.yaml"
+    tiny.write_text(yaml.safe_dump(cfg))
+    env = os.environ | {"CONFIG": str(tiny), "DEVICE": "cpu", "PROBE_MINUTES": "0.15", "VAL_SCENES": "1", "RESERVE_S": "2"}
+    args = ["bash", str(SCRIPT), str(lmo_dir / "models"), str(tmp_path / work), str(budget), "2", "77:1"]
+    return subprocess.run(args + ([str(resume)] if resume else []), cwd=REPO, env=env, capture_output=True, text=True, timeout=300)
+
+
+def _steps(run: Path) -> list[int]:
+    return [int(r["step"]) for r in csv.DictReader(open(run / "agm.csv"))]
+
+
+def test_plans_the_schedule_then_resumes_from_a_split_state(tmp_path, lmo_dir):
+    first = _call(tmp_path, lmo_dir, "w1", 40)
+    assert first.returncode == 0, first.stderr[-2000:]
+    planned = yaml.safe_load((tmp_path / "w1" / "train.yaml").read_text())["steps"]
+    run1 = tmp_path / "w1" / "run"
+    reached = Estimator.load(run1 / "agm.safetensors").config.training["steps"]
+    assert 0 < reached < planned  # the schedule spans two calls, so the first stops about half-way
+
+    carried = tmp_path / "carried"
+    carried.mkdir()
+    (carried / "train.yaml").write_text((tmp_path / "w1" / "train.yaml").read_text())
+    (carried / "agm.csv").write_text((run1 / "agm.csv").read_text())
+    state = (run1 / "agm.safetensors.state.pt").read_bytes()
+    (carried / "agm.safetensors.state.pt.00").write_bytes(state[: len(state) // 2])
+    (carried / "agm.safetensors.state.pt.01").write_bytes(state[len(state) // 2 :])
+
+    second = _call(tmp_path, lmo_dir, "w2", 30, carried)
+    assert second.returncode == 0, second.stderr[-2000:]
+    final = Estimator.load(tmp_path / "w2" / "run" / "agm.safetensors").config.training["steps"]
+    assert reached < final <= planned
+    logged = _steps(tmp_path / "w2" / "run")  # one log across both calls, every 10 steps
+    assert logged == list(range(10, final + 1, 10))
+
+
+def test_refuses_a_budget_with_no_time_to_train(tmp_path, lmo_dir):
+    out = _call(tmp_path, lmo_dir, "w", 1)
+    assert out.returncode != 0 and "no time left to train" in out.stderr
