@@ -6,6 +6,7 @@ from __future__ import annotations
 import csv
 import os
 import subprocess
+import sys
 from pathlib import Path
 
 import yaml
@@ -22,7 +23,8 @@ def _call(tmp_path: Path, lmo_dir: Path, work: str, budget: int, resume: Path | 
     cfg["agm"]["denoiser"] |= {"channels": 8, "multipliers": [1, 2], "groups": 4}
     tiny = tmp_path / "tiny.yaml"
     tiny.write_text(yaml.safe_dump(cfg))
-    env = os.environ | {"CONFIG": str(tiny), "DEVICE": "cpu", "PROBE_MINUTES": "0.15", "VAL_SCENES": "1", "RESERVE_S": "2"}
+    knobs = {"CONFIG": str(tiny), "DEVICE": "cpu", "PROBE_MINUTES": "0.15", "VAL_SCENES": "1", "RESERVE_S": "2"}
+    env = os.environ | knobs | {"PYTHON": sys.executable}  # CI runs the venv's python without activating it
     args = ["bash", str(SCRIPT), str(lmo_dir / "models"), str(tmp_path / work), str(budget), "2", "77:1"]
     return subprocess.run(args + ([str(resume)] if resume else []), cwd=REPO, env=env, capture_output=True, text=True, timeout=300)
 
@@ -56,5 +58,6 @@ def test_plans_the_schedule_then_resumes_from_a_split_state(tmp_path, lmo_dir):
 
 
 def test_refuses_a_budget_with_no_time_to_train(tmp_path, lmo_dir):
-    out = _call(tmp_path, lmo_dir, "w", 1)
-    assert out.returncode != 0 and "no time left to train" in out.stderr
+    out = _call(tmp_path, lmo_dir, "w", 2)  # RESERVE_S is 2
+    assert out.returncode != 0 and "leaves no time to train" in out.stderr
+    assert not (tmp_path / "w").exists()  # refused before rendering anything

@@ -12,13 +12,19 @@
 # agm.safetensors.state.pt.00, .01, ...). The run ends up in WORK/run, the planned config in WORK/train.yaml.
 #
 # Environment: CONFIG (default config/train_agm_gpu.yaml), DEVICE (cuda), PROBE_MINUTES (0.5), VAL_SCENES (5
-# held-out scenes, seed 1000, for the trainer's validation), RESERVE_S (45: seconds left free at the end).
+# held-out scenes, seed 1000, for the trainer's validation), RESERVE_S (45: seconds left free at the end), PYTHON
+# (python3: the interpreter with axispose_core's requirements).
 set -euo pipefail
 models=$1 work=$2 budget=$3 calls=$4 seeds=$5 resume=${6:-}
 config=${CONFIG:-config/train_agm_gpu.yaml} device=${DEVICE:-cuda} probe=${PROBE_MINUTES:-0.5}
 reserve=${RESERVE_S:-45}
+if ((budget <= reserve)); then
+    echo "train_agm_gpu.sh: a budget of $budget s leaves no time to train after the $reserve s kept free (RESERVE_S)" >&2
+    exit 1
+fi
 start=$SECONDS
-ax="python3 -m axispose_core.cli"
+py=${PYTHON:-python3}
+ax="$py -m axispose_core.cli"
 run=$work/run
 mkdir -p "$run"
 data=()
@@ -36,18 +42,18 @@ train() {  # $1: config, $2: seconds
         exit 1
     fi
     $ax train --data "${data[@]}" --val "$work/val" --out "$run/agm.safetensors" --config "$1" \
-        --max-minutes "$(python3 -c "print($2 / 60)")" --device "$device" --threads 4 \
+        --max-minutes "$($py -c "print($2 / 60)")" --device "$device" --threads 4 \
         ${resume_arg:+--resume "$run/agm.safetensors.state.pt"}
 }
 if [[ -z $resume ]]; then
     resume_arg=
     sed 's/^steps:.*/steps: 1000000/' "$config" >"$work/probe.yaml"
     probe_start=$SECONDS
-    train "$work/probe.yaml" "$(python3 -c "print(round($probe * 60))")"
+    train "$work/probe.yaml" "$($py -c "print(round($probe * 60))")"
     resume_arg=1
     # a later call trains for about what this one has left plus the probe's time (it renders instead of probing)
     per_call=$((budget - (SECONDS - start) - reserve + SECONDS - probe_start))
-    python3 - "$run/agm.csv" "$per_call" "$calls" "$config" "$work/train.yaml" <<'PY'
+    $py - "$run/agm.csv" "$per_call" "$calls" "$config" "$work/train.yaml" <<'PY'
 import csv, re, sys
 rows = [r for r in csv.DictReader(open(sys.argv[1])) if r["step"]]
 if len(rows) < 3:
