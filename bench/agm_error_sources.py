@@ -1,0 +1,119 @@
+"""Where the pose error of a checkpoint comes from: rotation, or depth along the viewing ray, or across it.
+
+Runs `axispose_core.evaluate.evaluate` with GT crops (the code `axispose eval` runs) and splits each posed
+instance's translation error into its part along the camera's z axis and the part across it. For the
+instances whose rotation is within `--rot-ok` degrees it asks what ADD(-S)@0.1d would be if depth were right:
+once with the true depth (an oracle), and once with the depth that makes the object model's projected box
+as large as the crop's box (which needs the mesh at run time, so the model-free estimator does not do it).
+
+    python bench/agm_error_sources.py --checkpoint axispose_core/models/axispose_lmo.safetensors \\
+        --data data/lmo_val --models ../shared/data/lmo/models_eval --json bench/results/agm_error_sources.json
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import platform
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from axispose_core.data.bop import load_ply, model_path
+from axispose_core.estimator import Estimator
+from axispose_core.evaluate import Prediction, evaluate
+from axispose_core.metrics import add_or_adi, re
+
+
+def box_side(R: np.ndarray, t: np.ndarray, K: np.ndarray, pts: np.ndarray) -> float:
+    """sqrt(width * height) of the model's projected bounding box."""
+    q = (K @ (pts @ R.T + t).T).T
+    q = q[:, :2] / q[:, 2:3]
+    w, h = q.max(0) - q.min(0)
+    return float(np.sqrt(w * h))
+
+
+def depth_from_box(R: np.ndarray, t: np.ndarray, K: np.ndarray, pts: np.ndarray, box: tuple[float, ...], iters: int = 5) -> np.ndarray:
+    """t moved along its ray until the projected model's box side matches the observed box's (fixed point)."""
+    observed = float(np.sqrt(box[2] * box[3]))
+    for _ in range(iters):
+        t = t * box_side(R, t, K, pts) / observed
+    return t
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--checkpoint", required=True)
+    ap.add_argument("--data", required=True)
+    ap.add_argument("--models", required=True, help="BOP models_eval folder")
+    ap.add_argument("--steps", type=int, default=None)
+    ap.add_argument("--rot-ok", type=float, default=15.0, help="rotation error (deg) under which the rotation counts as right")
+    ap.add_argument("--threads", type=int, default=2)
+    ap.add_argument("--json", default="bench/results/agm_error_sources.json")
+    args = ap.parse_args()
+    torch.set_num_threads(args.threads)
+    est = Estimator.load(args.checkpoint)
+    objects = list(est.config.objects)
+    records = evaluate(
+        lambda image, K, boxes: [Prediction(p.R, p.t, p.ok) for p in est.estimate(image, K, boxes, steps=args.steps)],
+        args.data, args.models, objects,
+    )  # fmt: skip
+    specs = {o.obj_id: o for o in objects}
+    points = {i: load_ply(model_path(args.models, i)).vertices for i in specs}
+    rows = []
+    for r in (r for r in records if r.ok):
+        spec, pts = specs[r.obj_id], points[r.obj_id]
+        d = r.t - r.t_gt
+        thr = 0.1 * spec.diameter
+        oracle = r.t * (r.t_gt[2] / r.t[2])  # the same ray, the true depth
+        rows.append({
+            "rot_err_deg": re(r.R, r.R_gt),
+            "depth_err_mm": 1000 * abs(d[2]),
+            "lateral_err_mm": 1000 * float(np.hypot(d[0], d[1])),
+            "rel_depth_err": abs(d[2]) / r.t_gt[2],
+            "add_ok": add_or_adi(r.R, r.t, r.R_gt, r.t_gt, pts, spec.symmetric) < thr,
+            "add_ok_true_depth": add_or_adi(r.R, oracle, r.R_gt, r.t_gt, pts, spec.symmetric) < thr,
+            "add_ok_box_depth": add_or_adi(r.R, depth_from_box(r.R, r.t, r.K, pts, r.box), r.R_gt, r.t_gt, pts, spec.symmetric) < thr,
+        })  # fmt: skip
+    n = len(records)
+
+    def summary(sel: list[dict]) -> dict:
+        if not sel:
+            return {"n": 0}
+        col = {k: np.array([s[k] for s in sel], dtype=float) for k in sel[0]}
+        return {
+            "n": len(sel),
+            "depth_err_mm_median": float(np.median(col["depth_err_mm"])),
+            "lateral_err_mm_median": float(np.median(col["lateral_err_mm"])),
+            "rel_depth_err_quartiles": [float(q) for q in np.percentile(col["rel_depth_err"], [25, 50, 75])],
+            "add_0.1d": float(col["add_ok"].mean()),
+            "add_0.1d_true_depth": float(col["add_ok_true_depth"].mean()),
+            "add_0.1d_box_depth": float(col["add_ok_box_depth"].mean()),
+        }
+
+    right = [s for s in rows if s["rot_err_deg"] < args.rot_ok]
+    out = {
+        "machine": platform.processor() or platform.machine(), "date": time.strftime("%Y-%m-%d"), "checkpoint": args.checkpoint,
+        "data": args.data, "instances": n, "posed": len(rows), "rot_ok_deg": args.rot_ok,
+        "all_posed": summary(rows), "rotation_right": summary(right),
+        "add_0.1d_of_all": {k: sum(s[k] for s in rows) / n for k in ("add_ok", "add_ok_true_depth", "add_ok_box_depth")},
+    }  # fmt: skip
+    print(f"{n} instances, {len(rows)} posed, {len(right)} with rotation error < {args.rot_ok:g} deg")
+    print(f"{'':<22}{'n':>5}{'depth mm':>10}{'across mm':>11}{'rel. depth':>12}{'ADD0.1d':>9}{'true z':>8}{'box z':>7}")
+    for name, s in (("all posed", out["all_posed"]), ("rotation right", out["rotation_right"])):
+        if s["n"]:
+            print(f"{name:<22}{s['n']:>5}{s['depth_err_mm_median']:>10.1f}{s['lateral_err_mm_median']:>11.1f}"
+                  f"{s['rel_depth_err_quartiles'][1]:>12.3f}{s['add_0.1d']:>9.3f}{s['add_0.1d_true_depth']:>8.3f}"
+                  f"{s['add_0.1d_box_depth']:>7.3f}")  # fmt: skip
+    a = out["add_0.1d_of_all"]
+    print(f"ADD(-S)@0.1d of all {n}: {a['add_ok']:.3f}; with the true depth {a['add_ok_true_depth']:.3f}; "
+          f"with depth from the box {a['add_ok_box_depth']:.3f}")  # fmt: skip
+    Path(args.json).parent.mkdir(parents=True, exist_ok=True)
+    Path(args.json).write_text(json.dumps(out, indent=1))
+    print(f"wrote {args.json}")
+
+
+if __name__ == "__main__":
+    main()
