@@ -98,7 +98,7 @@ def _train(args: argparse.Namespace) -> int:
 
     torch.set_num_threads(args.threads)
     cfg = _config(TrainConfig, args.config)
-    step = train_agm(cfg, args.data, args.out, **_training_kwargs(args))
+    step = train_agm(cfg, args.data, args.out, init=args.init, **_training_kwargs(args))
     print(f"stopped at step {step} of {cfg.steps}; checkpoint {args.out}")
     return 0
 
@@ -266,6 +266,8 @@ def build_parser() -> argparse.ArgumentParser:
 
     tn = sub.add_parser("train", help="train the AGM (axis generation) on synthetic BOP data")
     _training_args(tn, "estimator checkpoint", "TrainConfig", "config/train_agm.yaml")
+    tn.add_argument("--init", help="estimator checkpoint with the same AGM network to start from (its weights; a fresh "
+                    "optimiser and schedule), e.g. the shipped model")  # fmt: skip
     tn.set_defaults(func=_train)
 
     td = sub.add_parser("train-detector", help="train the 2D localiser (CenterNet) on synthetic BOP frames")

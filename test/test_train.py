@@ -67,3 +67,23 @@ def test_torchrun_two_cpu_processes_with_gloo(data, tmp_path):
     proc = subprocess.run(cmd, capture_output=True, text=True, timeout=300, env={**os.environ, "OMP_NUM_THREADS": "1"})
     assert proc.returncode == 0, proc.stderr[-3000:]
     assert Estimator.load(out).config.training["steps"] == 2
+
+
+def test_init_starts_from_a_checkpoints_weights(data, tmp_path):
+    first = tmp_path / "first.safetensors"
+    assert main(["train", "--data", str(data), "--out", str(first), "--config", _config(tmp_path), "--threads", "1"]) == 0
+    trained = Estimator.load(first).agm.denoiser.state_dict()
+    # zero steps from the checkpoint: the new run's weights are exactly the ones it started from
+    again = tmp_path / "again.safetensors"
+    assert main(["train", "--data", str(data), "--out", str(again), "--config", _config(tmp_path, steps=0), "--init", str(first)]) == 0
+    started = Estimator.load(again)
+    assert started.config.training["init"] == str(first)
+    assert all(torch.equal(v, trained[k]) for k, v in started.agm.denoiser.state_dict().items())
+    fresh = tmp_path / "fresh.safetensors"
+    assert main(["train", "--data", str(data), "--out", str(fresh), "--config", _config(tmp_path, steps=0)]) == 0
+    assert not all(torch.equal(v, trained[k]) for k, v in Estimator.load(fresh).agm.denoiser.state_dict().items())
+    # another network is refused, naming both
+    wider = {**TINY["agm"], "denoiser": {**TINY["agm"]["denoiser"], "channels": 16}}
+    with pytest.raises(ValueError, match="the config asks for"):
+        main(["train", "--data", str(data), "--out", str(tmp_path / "w.safetensors"), "--config", _config(tmp_path, agm=wider),
+              "--init", str(first)])  # fmt: skip

@@ -85,8 +85,13 @@ def train_agm(
     device: str = "auto",
     max_minutes: float | None = None,
     progress: bool = True,
+    init: str | Path | None = None,
 ) -> int:
-    """Train (or continue) the AGM; returns the step reached."""
+    """Train (or continue) the AGM; returns the step reached.
+
+    `init`: an estimator checkpoint with the same AGM network whose (EMA) weights a new run starts from, with a
+    fresh optimiser and schedule, e.g. to train the shipped model on; a resumed run restores its own weights.
+    """
     distributed = "RANK" in os.environ and "WORLD_SIZE" in os.environ
     if distributed and not dist.is_initialized():
         dist.init_process_group("nccl" if torch.cuda.is_available() and device != "cpu" else "gloo")
@@ -104,7 +109,13 @@ def train_agm(
     train_set = AxisCropDataset(data, objects, cfg.agm.denoiser.size, cfg.min_visib, seed=cfg.seed)
     if not len(train_set):
         raise ValueError(f"no training instances with visib_fract >= {cfg.min_visib} in {data}")
-    model = AxisGenerator(cfg.agm).to(dev)
+    model = AxisGenerator(cfg.agm)
+    if init and not resume:
+        start_from = Estimator.load(init)
+        if start_from.config.agm != cfg.agm:
+            raise ValueError(f"{init}: its AGM is {start_from.config.agm}, the config asks for {cfg.agm}")
+        model.denoiser.load_state_dict(start_from.agm.denoiser.state_dict())
+    model = model.to(dev)
     ema = copy.deepcopy(model).eval()
     opt = torch.optim.AdamW(model.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
     sched = torch.optim.lr_scheduler.LambdaLR(opt, lambda s: warmup_cosine(s, cfg.warmup, cfg.steps))
@@ -139,7 +150,7 @@ def train_agm(
             agm=cfg.agm,
             reader=reader.config,
             objects=tuple(objects),
-            training=training_record(data, step, cfg.batch, time.time() - start, dev),
+            training=training_record(data, step, cfg.batch, time.time() - start, dev) | {"init": str(init) if init else None},
         )
         Estimator(est_cfg, ema, reader, "cpu" if dev.type == "cpu" else str(dev)).save(out)
         save_run_state(state_path(out), cfg, model, ema, opt, sched, step)
