@@ -25,6 +25,7 @@ from axispose_core.agm.model import AxisGenerator
 from axispose_core.data.bop import BopScene
 from axispose_core.estimator import Estimator
 from axispose_core.train.dataset import scene_dirs
+from axispose_core.train.detector import frame_instances
 
 
 def _median_ms(fn, repeats: int) -> float:
@@ -67,7 +68,7 @@ def main() -> None:
     im_id = scene.image_ids[0]
     rgb = scene.rgb(im_id)
     K = scene.cameras[im_id]
-    boxes = [(g.obj_id, info.bbox_obj) for g, info in zip(scene.gt[im_id], scene.gt_info[im_id], strict=True) if g.obj_id in est.objects]
+    boxes = [(obj_id, box) for obj_id, box, _ in frame_instances(scene, im_id, tuple(est.objects))]
     print(f"part 2: full path of {args.checkpoint} ({est.config.agm.denoiser.conditioning}), ms per frame")
     for threads in args.threads:
         torch.set_num_threads(threads)

@@ -26,6 +26,7 @@ import torch
 from axispose_core.data.bop import BopScene
 from axispose_core.estimator import Estimator
 from axispose_core.train.dataset import scene_dirs
+from axispose_core.train.detector import frame_instances
 
 MODES = ("fp32", "bf16", "bf16+graphs")
 
@@ -86,7 +87,7 @@ def main() -> None:
     scene = BopScene(scene_dirs(args.data)[0])
     im_id = scene.image_ids[0]
     rgb, K = scene.rgb(im_id), scene.cameras[im_id]
-    boxes = [(g.obj_id, info.bbox_obj) for g, info in zip(scene.gt[im_id], scene.gt_info[im_id], strict=True) if g.obj_id in est.objects]
+    boxes = [(obj_id, box) for obj_id, box, _ in frame_instances(scene, im_id, tuple(est.objects))]
     print(f"part 2: full path (fp32, TBM on the CPU), {est.config.ddim_steps} steps, ms per frame")
     for n in args.objects:
         frame_boxes = (boxes * n)[:n]
