@@ -79,6 +79,11 @@ def test_init_starts_from_a_checkpoints_weights(data, tmp_path):
     started = Estimator.load(again)
     assert started.config.training["init"] == str(first)
     assert all(torch.equal(v, trained[k]) for k, v in started.agm.denoiser.state_dict().items())
+    # a later call of the warm-started run resumes its own state and still names where the run began
+    state = str(again) + ".state.pt"
+    assert main(["train", "--data", str(data), "--out", str(again), "--config", _config(tmp_path, steps=1), "--resume", state]) == 0
+    assert Estimator.load(again).config.training["init"] == str(first)
+    assert Estimator.load(again).config.training["steps"] == 1
     fresh = tmp_path / "fresh.safetensors"
     assert main(["train", "--data", str(data), "--out", str(fresh), "--config", _config(tmp_path, steps=0)]) == 0
     assert not all(torch.equal(v, trained[k]) for k, v in Estimator.load(fresh).agm.denoiser.state_dict().items())

@@ -13,7 +13,11 @@
 #
 # Environment: CONFIG (default config/train_agm_gpu.yaml), DEVICE (cuda), PROBE_MINUTES (0.5), VAL_SCENES (5
 # held-out scenes, seed 1000, for the trainer's validation), RESERVE_S (45: seconds left free at the end), PYTHON
-# (python3: the interpreter with axispose_core's requirements).
+# (python3: the interpreter with axispose_core's requirements), INIT (an estimator checkpoint with the config's
+# network for the first call to start from, e.g. the shipped model: `axispose train --init`; later calls resume,
+# and their checkpoints still name it), EXPORT (a folder, e.g. the device's $OUT, that gets what a later call's
+# RESUME_DIR needs and the checkpoint: train.yaml, agm.csv, agm.safetensors and the resume state split into
+# 15 MB parts, since files larger than 16 MiB do not come back from the device).
 set -euo pipefail
 models=$1 work=$2 budget=$3 calls=$4 seeds=$5 resume=${6:-}
 config=${CONFIG:-config/train_agm_gpu.yaml} device=${DEVICE:-cuda} probe=${PROBE_MINUTES:-0.5}
@@ -41,9 +45,14 @@ train() {  # $1: config, $2: seconds
         echo "train_agm_gpu.sh: no time left to train (budget $budget s, $((SECONDS - start)) s used)" >&2
         exit 1
     fi
+    local start_from=()  # the run's own state once there is one, else INIT's weights (if given)
+    if [[ -n $resume_arg ]]; then
+        start_from=(--resume "$run/agm.safetensors.state.pt")
+    elif [[ -n ${INIT:-} ]]; then
+        start_from=(--init "$INIT")
+    fi
     $ax train --data "${data[@]}" --val "$work/val" --out "$run/agm.safetensors" --config "$1" \
-        --max-minutes "$($py -c "print($2 / 60)")" --device "$device" --threads 4 \
-        ${resume_arg:+--resume "$run/agm.safetensors.state.pt"}
+        --max-minutes "$($py -c "print($2 / 60)")" --device "$device" --threads 4 "${start_from[@]}"
 }
 if [[ -z $resume ]]; then
     resume_arg=
@@ -75,4 +84,9 @@ else
     cp "$resume/train.yaml" "$work/train.yaml"
 fi
 train "$work/train.yaml" $((budget - (SECONDS - start) - reserve))
+if [[ -n ${EXPORT:-} ]]; then
+    mkdir -p "$EXPORT"
+    cp "$work/train.yaml" "$run/agm.csv" "$run/agm.safetensors" "$EXPORT/"
+    split -b 15M -d "$run/agm.safetensors.state.pt" "$EXPORT/agm.safetensors.state.pt."
+fi
 echo "total: $((SECONDS - start)) s"

@@ -90,7 +90,8 @@ def train_agm(
     """Train (or continue) the AGM; returns the step reached.
 
     `init`: an estimator checkpoint with the same AGM network whose (EMA) weights a new run starts from, with a
-    fresh optimiser and schedule, e.g. to train the shipped model on; a resumed run restores its own weights.
+    fresh optimiser and schedule, e.g. to train the shipped model on; a resumed run restores its own weights and
+    keeps recording the checkpoint its first call started from.
     """
     distributed = "RANK" in os.environ and "WORLD_SIZE" in os.environ
     if distributed and not dist.is_initialized():
@@ -120,8 +121,8 @@ def train_agm(
     opt = torch.optim.AdamW(model.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
     sched = torch.optim.lr_scheduler.LambdaLR(opt, lambda s: warmup_cosine(s, cfg.warmup, cfg.steps))
     step = 0
-    if resume:
-        step = load_run_state(resume, cfg, model, ema, opt, sched)
+    if resume:  # its weights are the run's own; the record keeps naming what its first call started from
+        step, init = load_run_state(resume, cfg, model, ema, opt, sched)
     net = torch.nn.parallel.DistributedDataParallel(model) if distributed else model
     val_batch, val_lengths = None, None
     if val_data and rank == 0:
@@ -153,7 +154,7 @@ def train_agm(
             training=training_record(data, step, cfg.batch, time.time() - start, dev) | {"init": str(init) if init else None},
         )
         Estimator(est_cfg, ema, reader, "cpu" if dev.type == "cpu" else str(dev)).save(out)
-        save_run_state(state_path(out), cfg, model, ema, opt, sched, step)
+        save_run_state(state_path(out), cfg, model, ema, opt, sched, step, str(init) if init else None)
 
     try:
         while step < cfg.steps:

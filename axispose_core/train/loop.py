@@ -77,7 +77,7 @@ def fit(
     ema = copy.deepcopy(model).eval()
     opt = torch.optim.AdamW(model.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
     sched = torch.optim.lr_scheduler.LambdaLR(opt, lambda s: warmup_cosine(s, cfg.warmup, cfg.steps))
-    step = load_run_state(resume, cfg, model, ema, opt, sched) if resume else 0
+    step = load_run_state(resume, cfg, model, ema, opt, sched)[0] if resume else 0
     log = open(out.with_suffix(".csv"), "a", newline="")
     writer = csv.writer(log)
     if step == 0:

@@ -14,8 +14,11 @@ def state_path(out: Path) -> Path:
     return out.with_suffix(out.suffix + ".state.pt")
 
 
-def save_run_state(path: Path, cfg: Any, model: torch.nn.Module, ema: torch.nn.Module, opt, sched, step: int) -> None:
-    """Model, EMA, optimiser, LR schedule, step and RNG with the run's config, written atomically."""
+def save_run_state(
+    path: Path, cfg: Any, model: torch.nn.Module, ema: torch.nn.Module, opt, sched, step: int, init: str | None = None
+) -> None:
+    """Model, EMA, optimiser, LR schedule, step and RNG with the run's config, written atomically; `init` names the
+    checkpoint a warm-started run began from, so that every later call of the run still records it."""
     tmp = path.with_suffix(".tmp")
     torch.save(
         {
@@ -26,6 +29,7 @@ def save_run_state(path: Path, cfg: Any, model: torch.nn.Module, ema: torch.nn.M
             "sched": sched.state_dict(),
             "step": step,
             "torch_rng": torch.get_rng_state(),
+            "init": init,
         },
         tmp,
     )
@@ -37,8 +41,11 @@ def save_run_state(path: Path, cfg: Any, model: torch.nn.Module, ema: torch.nn.M
 EXTENDABLE = ("steps", "save_every", "val_every")
 
 
-def load_run_state(path: str | Path, cfg: Any, model: torch.nn.Module, ema: torch.nn.Module, opt, sched) -> int:
-    """Restore a saved run into the given objects and return its step; a run with another recipe is refused."""
+def load_run_state(
+    path: str | Path, cfg: Any, model: torch.nn.Module, ema: torch.nn.Module, opt, sched
+) -> tuple[int, str | None]:
+    """Restore a saved run into the given objects and return its step and the checkpoint it was warm-started from
+    (None: from scratch); a run with another recipe is refused."""
     state = torch.load(path, map_location="cpu", weights_only=False)
     saved, now = dict(state["config"]), dataclasses.asdict(cfg)
     for key in EXTENDABLE:
@@ -52,4 +59,4 @@ def load_run_state(path: str | Path, cfg: Any, model: torch.nn.Module, ema: torc
     opt.load_state_dict(state["opt"])
     sched.load_state_dict(state["sched"])
     torch.set_rng_state(state["torch_rng"])
-    return state["step"]
+    return state["step"], state.get("init")
