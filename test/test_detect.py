@@ -1,6 +1,7 @@
 """The 2D localiser: decoding hand-made maps, targets round trip, matching, training, the estimator and eval."""
 
 import json
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -9,7 +10,7 @@ import torch
 from axispose_core.agm.denoiser import DenoiserConfig
 from axispose_core.agm.model import AGMConfig, AxisGenerator
 from axispose_core.camera import crop_transform, project
-from axispose_core.checkpoint import CheckpointError
+from axispose_core.checkpoint import CheckpointError, read_checkpoint
 from axispose_core.cli import main
 from axispose_core.data.bop import BopScene
 from axispose_core.data.crops import instance_crop
@@ -21,6 +22,7 @@ from axispose_core.detect.model import STRIDE, Localiser, LocaliserConfig
 from axispose_core.estimator import Estimator, EstimatorConfig
 from axispose_core.tbm.reader import SHIPPED_READER, load_reader
 from axispose_core.train.detector import (
+    KIND,
     DetectionDataset,
     DetectorTrainConfig,
     detection_scores,
@@ -29,6 +31,7 @@ from axispose_core.train.detector import (
     train_detector,
     warm_start,
 )
+from axispose_core.train.resume import state_path
 
 TINY = LocaliserConfig(obj_ids=(1, 5), input_size=(160, 128), channels=(8, 16, 24, 32))
 
@@ -246,6 +249,16 @@ def test_warm_start_copies_what_matches_and_leaves_the_rest_fresh(trained, estim
     fresh = warm_start(other, estimator_with_localiser)  # the estimator's copy; objects in another order
     assert fresh and all(k.startswith("heat.") for k in fresh) and "heat.0.0.weight" in fresh
     assert torch.equal(other.state_dict()["s8.0.0.weight"], source["s8.0.0.weight"])
+
+
+def test_a_warm_started_run_keeps_naming_its_start_when_resumed(frames, trained, tmp_path):
+    cfg = DetectorTrainConfig(localiser=TINY, steps=2, batch=2, warmup=1, workers=0, save_every=1000)
+    out = tmp_path / "warm.safetensors"
+    train_detector(cfg, [frames], out, init=trained[1], progress=False)
+    assert read_checkpoint(out, KIND, LocaliserConfig)[2]["training"]["init"] == str(trained[1])
+    train_detector(replace(cfg, steps=3), [frames], out, resume=state_path(out), progress=False)
+    record = read_checkpoint(out, KIND, LocaliserConfig)[2]["training"]
+    assert record["steps"] == 3 and record["init"] == str(trained[1])
 
 
 def test_load_localiser_reads_an_estimator_checkpoint_and_refuses_one_without_a_localiser(trained, estimator_with_localiser):

@@ -30,9 +30,7 @@ def _tiny() -> dict:
     return cfg
 
 
-def _call(
-    tmp_path: Path, lmo_dir: Path, work: str, budget: int, resume: Path | None = None, **extra: str
-) -> subprocess.CompletedProcess:
+def _call(tmp_path: Path, lmo_dir: Path, work: str, budget: int, resume: Path | None = None, **extra: str) -> subprocess.CompletedProcess:
     tiny = tmp_path / "tiny.yaml"
     tiny.write_text(yaml.safe_dump(_tiny()))
     knobs = {"CONFIG": str(tiny), "DEVICE": "cpu", "PROBE_MINUTES": "0.25", "VAL_SCENES": "1", "RESERVE_S": "2"}
@@ -82,4 +80,3 @@ def test_refuses_a_budget_with_no_time_to_train(tmp_path, lmo_dir):
     out = _call(tmp_path, lmo_dir, "w", 2)  # RESERVE_S is 2
     assert out.returncode != 0 and "leaves no time to train" in out.stderr
     assert not (tmp_path / "w").exists()  # refused before rendering anything
-

@@ -151,7 +151,7 @@ def train_agm(
             agm=cfg.agm,
             reader=reader.config,
             objects=tuple(objects),
-            training=training_record(data, step, cfg.batch, time.time() - start, dev) | {"init": str(init) if init else None},
+            training=training_record(data, step, cfg.batch, time.time() - start, dev, str(init) if init else None),
         )
         Estimator(est_cfg, ema, reader, "cpu" if dev.type == "cpu" else str(dev)).save(out)
         save_run_state(state_path(out), cfg, model, ema, opt, sched, step, str(init) if init else None)

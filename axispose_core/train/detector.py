@@ -228,7 +228,8 @@ def train_detector(
     init: str | Path | None = None,
 ) -> int:
     """Train (or continue) the localiser; OUT holds the EMA weights with their config. Returns the step reached.
-    `init`: a trained checkpoint to start from (`warm_start`); a resumed run restores its own weights instead."""
+    `init`: a trained checkpoint to start from (`warm_start`); a resumed run restores its own weights instead (and
+    keeps recording the checkpoint its first call started from)."""
     dev = training_device(device)
     out = Path(out)
     out.parent.mkdir(parents=True, exist_ok=True)
@@ -237,8 +238,8 @@ def train_detector(
     if not len(train_set):
         raise ValueError(f"no frames in {data}")
 
-    def save(ema: torch.nn.Module, step: int, seconds: float) -> None:
-        provenance = training_record(data, step, cfg.batch, seconds, dev) | {"init": str(init) if init else None}
+    def save(ema: torch.nn.Module, step: int, seconds: float, started_from: str | None) -> None:
+        provenance = training_record(data, step, cfg.batch, seconds, dev, started_from)
         save_checkpoint(out, KIND, cfg.localiser, {"localiser": ema}, extra={"training": provenance})
 
     def validate(ema: torch.nn.Module) -> dict[str, float]:
@@ -253,4 +254,5 @@ def train_detector(
     return fit(
         cfg, model, train_set, lambda model, batch: detector_loss(model, batch, cfg), out, save,
         validate if val_data else None, ("val_recall", "val_precision"), resume, dev, max_minutes, progress, "train detector",
+        str(init) if init and not resume else None,
     )  # fmt: skip

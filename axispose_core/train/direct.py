@@ -74,8 +74,8 @@ def train_direct(
         items = [val_set[int(i)] for i in np.linspace(0, len(val_set) - 1, min(cfg.val_samples, len(val_set))).astype(int)]
         val_batch = {k: torch.stack([it[k] for it in items]) for k in items[0]}
 
-    def save(ema: torch.nn.Module, step: int, seconds: float) -> None:
-        DirectEstimator(ema).save(out, extra={"training": training_record(data, step, cfg.batch, seconds, dev)})
+    def save(ema: torch.nn.Module, step: int, seconds: float, init: str | None) -> None:
+        DirectEstimator(ema).save(out, extra={"training": training_record(data, step, cfg.batch, seconds, dev, init)})
 
     def validate(ema: torch.nn.Module) -> dict[str, float]:
         with torch.inference_mode():

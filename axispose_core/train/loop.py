@@ -31,10 +31,13 @@ def training_device(device: str) -> torch.device:
     return torch.device(device)
 
 
-def training_record(data: list[str | Path], step: int, batch: int, seconds: float, device: torch.device | str) -> dict[str, Any]:
-    """What a checkpoint records of the run that made it: data, progress, hardware."""
+def training_record(
+    data: list[str | Path], step: int, batch: int, seconds: float, device: torch.device | str, init: str | None = None
+) -> dict[str, Any]:
+    """What a checkpoint records of the run that made it: data, progress, hardware, and the checkpoint a
+    warm-started run began from (None: from scratch)."""
     return {"data": [str(d) for d in data], "steps": step, "batch": batch, "seconds": seconds, "device": str(device),
-            "host": platform.processor() or platform.machine()}  # fmt: skip
+            "host": platform.processor() or platform.machine(), "init": init}  # fmt: skip
 
 
 def optimizer_step(
@@ -61,7 +64,7 @@ def fit(
     train_set: Dataset,
     loss_fn: Callable[[torch.nn.Module, dict[str, torch.Tensor]], torch.Tensor],
     out: Path,
-    save: Callable[[torch.nn.Module, int, float], None],
+    save: Callable[[torch.nn.Module, int, float, str | None], None],
     validate: Callable[[torch.nn.Module], dict[str, float]] | None = None,
     val_columns: tuple[str, ...] = (),
     resume: str | Path | None = None,
@@ -69,15 +72,19 @@ def fit(
     max_minutes: float | None = None,
     progress: bool = True,
     desc: str = "train",
+    init: str | None = None,
 ) -> int:
     """Train `model` for cfg.steps (fields: steps, batch, lr, weight_decay, warmup, grad_clip, ema_decay, seed,
-    workers, save_every, val_every); `save(ema, step, seconds)` writes the checkpoint. Returns the step reached.
-    Seed torch before building `model`, so its initial weights follow cfg.seed too."""
+    workers, save_every, val_every); `save(ema, step, seconds, init)` writes the checkpoint. Returns the step reached.
+    Seed torch before building `model`, so its initial weights follow cfg.seed too. `init` names the checkpoint
+    `model` was warm-started from; a resumed run takes it from its state instead, so every call records it."""
     model = model.to(device)
     ema = copy.deepcopy(model).eval()
     opt = torch.optim.AdamW(model.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
     sched = torch.optim.lr_scheduler.LambdaLR(opt, lambda s: warmup_cosine(s, cfg.warmup, cfg.steps))
-    step = load_run_state(resume, cfg, model, ema, opt, sched)[0] if resume else 0
+    step = 0
+    if resume:
+        step, init = load_run_state(resume, cfg, model, ema, opt, sched)
     log = open(out.with_suffix(".csv"), "a", newline="")
     writer = csv.writer(log)
     if step == 0:
@@ -85,8 +92,8 @@ def fit(
     start = time.time()
 
     def checkpoint() -> None:
-        save(ema, step, time.time() - start)
-        save_run_state(state_path(out), cfg, model, ema, opt, sched, step)
+        save(ema, step, time.time() - start, init)
+        save_run_state(state_path(out), cfg, model, ema, opt, sched, step, init)
 
     def out_of_time() -> bool:
         return max_minutes is not None and time.time() - start > 60 * max_minutes

@@ -41,9 +41,7 @@ def save_run_state(
 EXTENDABLE = ("steps", "save_every", "val_every")
 
 
-def load_run_state(
-    path: str | Path, cfg: Any, model: torch.nn.Module, ema: torch.nn.Module, opt, sched
-) -> tuple[int, str | None]:
+def load_run_state(path: str | Path, cfg: Any, model: torch.nn.Module, ema: torch.nn.Module, opt, sched) -> tuple[int, str | None]:
     """Restore a saved run into the given objects and return its step and the checkpoint it was warm-started from
     (None: from scratch); a run with another recipe is refused."""
     state = torch.load(path, map_location="cpu", weights_only=False)
