@@ -26,5 +26,7 @@ def test_shipped_training_configs_load_into_their_dataclasses(path):
     kinds = {"train_agm": TrainConfig, "train_direct": DirectTrainConfig, "train_detector": DetectorTrainConfig}
     cls = next(c for prefix, c in kinds.items() if path.name.startswith(prefix))
     cfg = _config(cls, str(path))  # unknown or misspelt fields raise
-    if path.name == "train_agm_gpu.yaml":  # the GPU recipe trains the CPU recipe's network, only longer
+    if path.name in ("train_agm_gpu.yaml", "train_agm_finetune_cpu.yaml"):  # the CPU recipe's network, trained longer
         assert cfg.agm == _config(TrainConfig, str(path.with_name("train_agm.yaml"))).agm
+    if path.name == "train_detector_gpu.yaml":  # the shipped localiser's network, so INIT can be the shipped model
+        assert cfg.localiser == _config(DetectorTrainConfig, str(path.with_name("train_detector_stage4.yaml"))).localiser

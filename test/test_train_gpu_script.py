@@ -1,6 +1,6 @@
-"""tools/train_agm_gpu.sh, run on the CPU with a tiny network: it plans the schedule from a probe, exports what a
-later call needs in parts small enough to come back from the device, resumes from a split state, and warm-starts
-from a checkpoint (what a GPU lent for a few calls of ten minutes needs)."""
+"""tools/train_gpu.sh, run on the CPU with tiny networks: it plans the schedule from a probe, exports what a later
+call needs in parts small enough to come back from the device, resumes from a split state, warm-starts from a
+checkpoint (what a GPU lent for a few calls of ten minutes needs), and trains the localiser the same way."""
 
 from __future__ import annotations
 
@@ -13,26 +13,30 @@ from pathlib import Path
 import yaml
 
 from axispose_core.agm.model import AxisGenerator
-from axispose_core.checkpoint import config_from_dict
+from axispose_core.checkpoint import config_from_dict, read_checkpoint
+from axispose_core.detect.model import LocaliserConfig
 from axispose_core.estimator import Estimator, EstimatorConfig
 from axispose_core.tbm.reader import SHIPPED_READER, load_reader
 from axispose_core.train.agm import TrainConfig
+from axispose_core.train.detector import KIND
 
 REPO = Path(__file__).resolve().parents[1]
-SCRIPT = REPO / "tools" / "train_agm_gpu.sh"
+SCRIPT = REPO / "tools" / "train_gpu.sh"
 
 
 def _tiny() -> dict:
-    """The GPU recipe with a network and batch small enough for a CPU test."""
+    """The AGM's GPU recipe with a network and batch small enough for a CPU test."""
     cfg = yaml.safe_load((REPO / "config" / "train_agm_gpu.yaml").read_text())
     cfg |= {"batch": 2, "workers": 0, "save_every": 1000, "val_every": 100000, "val_samples": 2}
     cfg["agm"]["denoiser"] |= {"channels": 8, "multipliers": [1, 2], "groups": 4}
     return cfg
 
 
-def _call(tmp_path: Path, lmo_dir: Path, work: str, budget: int, resume: Path | None = None, **extra: str) -> subprocess.CompletedProcess:
+def _call(
+    tmp_path: Path, lmo_dir: Path, work: str, budget: int, resume: Path | None = None, config: dict | None = None, **extra: str
+) -> subprocess.CompletedProcess:
     tiny = tmp_path / "tiny.yaml"
-    tiny.write_text(yaml.safe_dump(_tiny()))
+    tiny.write_text(yaml.safe_dump(config or _tiny()))
     knobs = {"CONFIG": str(tiny), "DEVICE": "cpu", "PROBE_MINUTES": "0.25", "VAL_SCENES": "1", "RESERVE_S": "2"}
     env = os.environ | knobs | extra | {"PYTHON": sys.executable}  # CI runs the venv's python without activating it
     args = ["bash", str(SCRIPT), str(lmo_dir / "models"), str(tmp_path / work), str(budget), "2", "77:1"]
@@ -76,7 +80,27 @@ def test_plans_the_schedule_then_resumes_from_a_split_state(tmp_path, lmo_dir):
     assert logged == list(range(10, record["steps"] + 1, 10))
 
 
-def test_refuses_a_budget_with_no_time_to_train(tmp_path, lmo_dir):
+def test_refuses_a_budget_with_no_time_to_train_and_an_unknown_trainer(tmp_path, lmo_dir):
     out = _call(tmp_path, lmo_dir, "w", 2)  # RESERVE_S is 2
     assert out.returncode != 0 and "leaves no time to train" in out.stderr
-    assert not (tmp_path / "w").exists()  # refused before rendering anything
+    out = _call(tmp_path, lmo_dir, "w", 60, TRAINER="train-agm")
+    assert out.returncode != 0 and "TRAINER is train (the AGM) or train-detector" in out.stderr
+    assert not (tmp_path / "w").exists()  # both refused before rendering anything
+
+
+def test_trains_the_localiser_from_the_shipped_checkpoint(tmp_path, lmo_dir):
+    cfg = yaml.safe_load((REPO / "config" / "train_detector_gpu.yaml").read_text())
+    cfg |= {"batch": 2, "workers": 0, "save_every": 1000, "val_every": 100000}
+    cfg["localiser"] |= {"input_size": [160, 128]}  # the shipped network at a small input: INIT's weights all fit
+    shipped = REPO / "axispose_core" / "models" / "axispose_lmo.safetensors"
+    export = tmp_path / "out"
+    out = _call(tmp_path, lmo_dir, "w", 60, config=cfg, TRAINER="train-detector", INIT=str(shipped), EXPORT=str(export))
+    assert out.returncode == 0, out.stderr[-2000:]
+    assert "0 of" in out.stdout  # warm_start: no tensor of the shipped localiser's left fresh
+    record = read_checkpoint(tmp_path / "w" / "run" / "localiser.safetensors", KIND, LocaliserConfig)[2]["training"]
+    assert record["steps"] > 0 and record["init"] == str(shipped)
+    assert {"localiser.csv", "localiser.safetensors", "train.yaml"} < {f.name for f in export.iterdir()}
+    parts = sorted(export.glob("localiser.safetensors.state.pt.*"))  # this network's state is over 15 MB
+    assert len(parts) > 1 and all(p.stat().st_size <= 15 * 2**20 for p in parts)
+    state = (tmp_path / "w" / "run" / "localiser.safetensors.state.pt").read_bytes()
+    assert b"".join(p.read_bytes() for p in parts) == state
