@@ -254,5 +254,5 @@ def train_detector(
     return fit(
         cfg, model, train_set, lambda model, batch: detector_loss(model, batch, cfg), out, save,
         validate if val_data else None, ("val_recall", "val_precision"), resume, dev, max_minutes, progress, "train detector",
-        str(init) if init and not resume else None,
+        str(init) if init else None,
     )  # fmt: skip
