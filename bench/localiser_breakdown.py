@@ -8,7 +8,9 @@ recall per visibility band and per box size, each false alarm's kind: another ob
 background; and each missed instance's kind: found below the threshold (a detection of its object at
 IoU >= 0.5 scoring under it), a poor box (one of its object above it that did not match it, IoU >= 0.1), taken
 for another object (a detection of a different object at IoU >= 0.5 above it), or nothing there. Prints tables
-and writes JSON.
+and writes JSON. `--across-objects IOU` first drops every detection that overlaps a higher-scoring detection of
+another object at IoU >= IOU (class-agnostic NMS on top of the per-object peaks), to see whether confusions
+between objects can be removed that way.
 
     python bench/localiser_breakdown.py --checkpoint stage1=runs/det_long/localiser.safetensors \\
         --checkpoint shipped=axispose_core/models/axispose_lmo.safetensors --data data/lmo_val
@@ -50,7 +52,16 @@ def miss_kind(inst: tuple[int, tuple[float, float, float, float], float], dets: 
     return "nothing"
 
 
-def breakdown(model: Localiser, frames: list[tuple[BopScene, int]], min_visib: float) -> dict:
+def suppress_across_objects(dets: list[Detection], min_iou: float) -> list[Detection]:
+    """`dets` without those overlapping a higher-scoring detection of another object at IoU >= min_iou."""
+    kept: list[Detection] = []
+    for d in sorted(dets, key=lambda d: -d.score):
+        if not any(k.obj_id != d.obj_id and iou(k.box, d.box) >= min_iou for k in kept):
+            kept.append(d)
+    return kept
+
+
+def breakdown(model: Localiser, frames: list[tuple[BopScene, int]], min_visib: float, across_objects: float | None = None) -> dict:
     sweep = {t: [0, 0, 0] for t in THRESHOLDS}  # hits, false alarms, GT
     at = model.config.threshold
     found, visib, size = [], [], []
@@ -58,6 +69,8 @@ def breakdown(model: Localiser, frames: list[tuple[BopScene, int]], min_visib: f
     misses = {"low_score": 0, "poor_box": 0, "other_object": 0, "nothing": 0}
     for scene, im_id in tqdm(frames, desc="detect", leave=False):
         all_dets = model.detect(scene.rgb(im_id), threshold=min(THRESHOLDS))
+        if across_objects is not None:
+            all_dets = suppress_across_objects(all_dets, across_objects)
         insts = frame_instances(scene, im_id, model.config.obj_ids)
         for t in sorted({*THRESHOLDS, at}):
             dets = [d for d in all_dets if d.score >= t]
@@ -102,6 +115,8 @@ def main() -> None:
     ap.add_argument("--checkpoint", action="append", required=True, help="LABEL=PATH (repeatable)")
     ap.add_argument("--data", required=True, help="held-out BOP folder")
     ap.add_argument("--min-visib", type=float, default=0.3)
+    ap.add_argument("--across-objects", type=float, default=None, metavar="IOU",
+                    help="drop detections overlapping a better one of another object at IoU >= IOU")  # fmt: skip
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--json", default="bench/results/localiser_breakdown.json")
     args = ap.parse_args()
@@ -110,7 +125,7 @@ def main() -> None:
     results = {}
     for item in args.checkpoint:
         label, _, path = item.partition("=")
-        r = results[label] = breakdown(load_localiser(path), frames, args.min_visib) | {"checkpoint": path}
+        r = results[label] = breakdown(load_localiser(path), frames, args.min_visib, args.across_objects) | {"checkpoint": path}
         print(f"\n{label} ({path}), {len(frames)} frames; recall {r['recall']:.3f} at its threshold {r['threshold']}")
         print("threshold  " + "  ".join(f"{s['threshold']:>5}" for s in r["sweep"]))
         print("recall     " + "  ".join(f"{s['recall']:5.3f}" for s in r["sweep"]))
@@ -120,7 +135,8 @@ def main() -> None:
         print("false alarms: " + ", ".join(f"{k} {v}" for k, v in r["false_alarms"].items()))
         print("misses: " + ", ".join(f"{k} {v}" for k, v in r["misses"].items()))
     meta = {"machine": f"{platform.machine()} {platform.processor()}".strip(), "threads": args.threads,
-            "date": datetime.date.today().isoformat(), "data": args.data, "frames": len(frames)}  # fmt: skip
+            "date": datetime.date.today().isoformat(), "data": args.data, "frames": len(frames),
+            "across_objects": args.across_objects}  # fmt: skip
     Path(args.json).parent.mkdir(parents=True, exist_ok=True)
     Path(args.json).write_text(json.dumps(meta | {"results": results}, indent=1))
     print(f"wrote {args.json}")
