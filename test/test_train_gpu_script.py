@@ -96,7 +96,7 @@ def test_trains_the_localiser_from_the_shipped_checkpoint(tmp_path, lmo_dir):
     export = tmp_path / "out"
     out = _call(tmp_path, lmo_dir, "w", 60, config=cfg, TRAINER="train-detector", INIT=str(shipped), EXPORT=str(export))
     assert out.returncode == 0, out.stderr[-2000:]
-    assert "0 of" in out.stdout  # warm_start: no tensor of the shipped localiser's left fresh
+    assert "; 0 of" in out.stdout  # warm_start: no tensor of the shipped localiser's left fresh
     record = read_checkpoint(tmp_path / "w" / "run" / "localiser.safetensors", KIND, LocaliserConfig)[2]["training"]
     assert record["steps"] > 0 and record["init"] == str(shipped)
     assert {"localiser.csv", "localiser.safetensors", "train.yaml"} < {f.name for f in export.iterdir()}
