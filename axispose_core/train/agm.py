@@ -120,9 +120,9 @@ def train_agm(
     ema = copy.deepcopy(model).eval()
     opt = torch.optim.AdamW(model.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
     sched = torch.optim.lr_scheduler.LambdaLR(opt, lambda s: warmup_cosine(s, cfg.warmup, cfg.steps))
-    step = 0
+    step, started_from = 0, str(init) if init else None
     if resume:  # its weights are the run's own; the record keeps naming what its first call started from
-        step, init = load_run_state(resume, cfg, model, ema, opt, sched)
+        step, started_from = load_run_state(resume, cfg, model, ema, opt, sched)
     net = torch.nn.parallel.DistributedDataParallel(model) if distributed else model
     val_batch, val_lengths = None, None
     if val_data and rank == 0:
@@ -151,10 +151,10 @@ def train_agm(
             agm=cfg.agm,
             reader=reader.config,
             objects=tuple(objects),
-            training=training_record(data, step, cfg.batch, time.time() - start, dev, str(init) if init else None),
+            training=training_record(data, step, cfg.batch, time.time() - start, dev, started_from),
         )
         Estimator(est_cfg, ema, reader, "cpu" if dev.type == "cpu" else str(dev)).save(out)
-        save_run_state(state_path(out), cfg, model, ema, opt, sched, step, str(init) if init else None)
+        save_run_state(state_path(out), cfg, model, ema, opt, sched, step, started_from)
 
     try:
         while step < cfg.steps:
