@@ -140,6 +140,28 @@ def _train_detector(args: argparse.Namespace) -> int:
     return 0
 
 
+def _train_verifier(args: argparse.Namespace) -> int:
+    import torch
+
+    from axispose_core.estimator import Estimator
+    from axispose_core.train.detector import detection_scores, load_localiser
+    from axispose_core.train.verifier import VerifierTrainConfig, train_verifier
+
+    torch.set_num_threads(args.threads)
+    cfg = _config(VerifierTrainConfig, args.config)
+    step = train_verifier(cfg, args.localiser, args.data, args.out, **_training_kwargs(args))
+    print(f"stopped at step {step} of {cfg.steps}; localiser with verifier {args.out}")
+    localiser = load_localiser(args.out)
+    if args.val:
+        scores = detection_scores(localiser, args.val, progress=True)
+        print(f"held-out recall {scores['recall']:.3f}, precision {scores['precision']:.3f} at IoU 0.5 (visib >= 0.3), "
+              f"{scores['ms_per_frame']['median']:.1f} ms per frame")  # fmt: skip
+    if args.attach:
+        Estimator.load(args.attach).with_localiser(localiser).save(args.attach)
+        print(f"attached to {args.attach}")
+    return 0
+
+
 def _eval(args: argparse.Namespace) -> int:
     import torch
 
@@ -276,6 +298,12 @@ def build_parser() -> argparse.ArgumentParser:
     td.add_argument("--init", help="trained localiser or estimator checkpoint to start from: weights whose names and shapes "
                     "match are copied (a wider/deeper localiser or other objects keep the rest fresh)")  # fmt: skip
     td.set_defaults(func=_train_detector)
+
+    tv = sub.add_parser("train-verifier", help="train the localiser's second stage, which rescores each detection from its crop")
+    _training_args(tv, "localiser checkpoint (with the verifier)", "VerifierTrainConfig", "config/train_verifier.yaml")
+    tv.add_argument("--localiser", required=True, help="trained localiser, or an estimator checkpoint carrying one, to verify")
+    tv.add_argument("--attach", help="estimator checkpoint to give the localiser with its verifier (rewritten in place)")
+    tv.set_defaults(func=_train_verifier)
 
     tr = sub.add_parser("train-direct", help="train the direct-regression baseline (keypoints from the crop, no diffusion)")
     _training_args(tr, "regressor checkpoint", "DirectTrainConfig", "config/train_direct.yaml")

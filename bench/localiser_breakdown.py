@@ -10,7 +10,8 @@ IoU >= 0.5 scoring under it), a poor box (one of its object above it that did no
 for another object (a detection of a different object at IoU >= 0.5 above it), or nothing there. Prints tables
 and writes JSON. `--across-objects IOU` first drops every detection that overlaps a higher-scoring detection of
 another object at IoU >= IOU (class-agnostic NMS on top of the per-object peaks), to see whether confusions
-between objects can be removed that way.
+between objects can be removed that way. `--verifier-weight W` reads a localiser that carries a verifier with its
+score exponent set to W (0: the heatmap's scores, 1: the verifier's), to choose that weight on held-out frames.
 
     python bench/localiser_breakdown.py --checkpoint stage1=runs/det_long/localiser.safetensors \\
         --checkpoint shipped=axispose_core/models/axispose_lmo.safetensors --data data/lmo_val
@@ -22,6 +23,7 @@ import argparse
 import datetime
 import json
 import platform
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -31,10 +33,11 @@ from tqdm import tqdm
 from axispose_core.data.bop import BopScene
 from axispose_core.detect.decode import Detection, iou
 from axispose_core.detect.model import Localiser
+from axispose_core.detect.verifier import Verifier
 from axispose_core.train.dataset import scene_dirs
 from axispose_core.train.detector import frame_instances, frame_outcome, load_localiser
 
-THRESHOLDS = (0.05, 0.1, 0.15, 0.2, 0.25, 0.3, 0.4, 0.5)
+THRESHOLDS = (0.05, 0.1, 0.15, 0.2, 0.25, 0.3, 0.4, 0.5, 0.6, 0.7)
 VISIB = ((0.3, 0.5), (0.5, 0.8), (0.8, 1.01))
 SIZES = ((0, 60), (60, 100), (100, 160), (160, 10_000))
 
@@ -59,6 +62,15 @@ def suppress_across_objects(dets: list[Detection], min_iou: float) -> list[Detec
         if not any(k.obj_id != d.obj_id and iou(k.box, d.box) >= min_iou for k in kept):
             kept.append(d)
     return kept
+
+
+def reweighted(model: Localiser, weight: float) -> Localiser:
+    """`model` with its verifier's score exponent set to `weight` (a model without a verifier is refused)."""
+    if model.config.verifier is None:
+        raise SystemExit("--verifier-weight: this localiser has no verifier")
+    verifier = Verifier(replace(model.config.verifier, weight=weight), len(model.config.obj_ids))
+    verifier.load_state_dict(model.verifier.state_dict())
+    return model.with_verifier(verifier)
 
 
 def breakdown(model: Localiser, frames: list[tuple[BopScene, int]], min_visib: float, across_objects: float | None = None) -> dict:
@@ -117,6 +129,7 @@ def main() -> None:
     ap.add_argument("--min-visib", type=float, default=0.3)
     ap.add_argument("--across-objects", type=float, default=None, metavar="IOU",
                     help="drop detections overlapping a better one of another object at IoU >= IOU")  # fmt: skip
+    ap.add_argument("--verifier-weight", type=float, default=None, help="the verifier's score exponent, in place of the checkpoint's")
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--json", default="bench/results/localiser_breakdown.json")
     args = ap.parse_args()
@@ -125,7 +138,9 @@ def main() -> None:
     results = {}
     for item in args.checkpoint:
         label, _, path = item.partition("=")
-        r = results[label] = breakdown(load_localiser(path), frames, args.min_visib, args.across_objects) | {"checkpoint": path}
+        model = load_localiser(path)
+        model = model if args.verifier_weight is None else reweighted(model, args.verifier_weight)
+        r = results[label] = breakdown(model, frames, args.min_visib, args.across_objects) | {"checkpoint": path}
         print(f"\n{label} ({path}), {len(frames)} frames; recall {r['recall']:.3f} at its threshold {r['threshold']}")
         print("threshold  " + "  ".join(f"{s['threshold']:>5}" for s in r["sweep"]))
         print("recall     " + "  ".join(f"{s['recall']:5.3f}" for s in r["sweep"]))
@@ -136,7 +151,7 @@ def main() -> None:
         print("misses: " + ", ".join(f"{k} {v}" for k, v in r["misses"].items()))
     meta = {"machine": f"{platform.machine()} {platform.processor()}".strip(), "threads": args.threads,
             "date": datetime.date.today().isoformat(), "data": args.data, "frames": len(frames),
-            "across_objects": args.across_objects}  # fmt: skip
+            "across_objects": args.across_objects, "verifier_weight": args.verifier_weight}  # fmt: skip
     Path(args.json).parent.mkdir(parents=True, exist_ok=True)
     Path(args.json).write_text(json.dumps(meta | {"results": results}, indent=1))
     print(f"wrote {args.json}")
