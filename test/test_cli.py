@@ -6,6 +6,7 @@ from axispose_core.cli import _config, main
 from axispose_core.train.agm import TrainConfig
 from axispose_core.train.detector import DetectorTrainConfig
 from axispose_core.train.direct import DirectTrainConfig
+from axispose_core.train.verifier import VerifierTrainConfig
 
 
 def test_geometry_demo_recovers_every_pose(tmp_path, capsys):
@@ -23,7 +24,8 @@ CONFIGS = sorted((Path(__file__).resolve().parents[1] / "config").glob("train_*.
 
 @pytest.mark.parametrize("path", CONFIGS, ids=[p.name for p in CONFIGS])
 def test_shipped_training_configs_load_into_their_dataclasses(path):
-    kinds = {"train_agm": TrainConfig, "train_direct": DirectTrainConfig, "train_detector": DetectorTrainConfig}
+    kinds = {"train_agm": TrainConfig, "train_direct": DirectTrainConfig, "train_detector": DetectorTrainConfig,
+             "train_verifier": VerifierTrainConfig}  # fmt: skip
     cls = next(c for prefix, c in kinds.items() if path.name.startswith(prefix))
     cfg = _config(cls, str(path))  # unknown or misspelt fields raise
     if path.name in ("train_agm_gpu.yaml", "train_agm_finetune_cpu.yaml"):  # the CPU recipe's network, trained longer
