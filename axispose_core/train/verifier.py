@@ -49,7 +49,8 @@ class VerifierTrainConfig:
     """Mine every n-th training frame."""
     min_visib: float = 0.1
     jitter_per_instance: int = 2
-    """Jittered right boxes (IoU >= 0.6) per GT instance, and half as many poorly placed ones (IoU < 0.4)."""
+    """GT boxes jittered a little (shift 8 %, scale 15 %) per instance, and half as many moved far (45 %, 50 %);
+    each labelled by `box_label` like the localiser's peaks."""
     background_per_frame: int = 2
     shift: int = 0
     """Random shift of each training crop, in pixels."""
