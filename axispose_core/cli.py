@@ -115,12 +115,27 @@ def _train_direct(args: argparse.Namespace) -> int:
     return 0
 
 
+def _score_and_attach(args: argparse.Namespace) -> int:
+    """After `train-detector` or `train-verifier`: the localiser in OUT scored on --val, then given to --attach."""
+    from axispose_core.estimator import Estimator
+    from axispose_core.train.detector import detection_scores, load_localiser
+
+    localiser = load_localiser(args.out)
+    if args.val:
+        scores = detection_scores(localiser, args.val, progress=True)
+        print(f"held-out recall {scores['recall']:.3f}, precision {scores['precision']:.3f} at IoU 0.5 (visib >= 0.3), "
+              f"{scores['ms_per_frame']['median']:.1f} ms per frame")  # fmt: skip
+    if args.attach:
+        Estimator.load(args.attach).with_localiser(localiser).save(args.attach)
+        print(f"attached to {args.attach}")
+    return 0
+
+
 def _train_detector(args: argparse.Namespace) -> int:
     import torch
 
-    from axispose_core.estimator import Estimator
     from axispose_core.train.agm import dataset_objects
-    from axispose_core.train.detector import DetectorTrainConfig, detection_scores, load_localiser, train_detector
+    from axispose_core.train.detector import DetectorTrainConfig, train_detector
 
     torch.set_num_threads(args.threads)
     cfg = _config(DetectorTrainConfig, args.config)
@@ -129,37 +144,19 @@ def _train_detector(args: argparse.Namespace) -> int:
         cfg = dataclasses.replace(cfg, localiser=dataclasses.replace(cfg.localiser, obj_ids=ids))
     step = train_detector(cfg, args.data, args.out, init=args.init, **_training_kwargs(args))
     print(f"stopped at step {step} of {cfg.steps}; localiser {args.out}")
-    localiser = load_localiser(args.out)
-    if args.val:
-        scores = detection_scores(localiser, args.val, progress=True)
-        print(f"held-out recall {scores['recall']:.3f}, precision {scores['precision']:.3f} at IoU 0.5 (visib >= 0.3), "
-              f"{scores['ms_per_frame']['median']:.1f} ms per frame")  # fmt: skip
-    if args.attach:
-        Estimator.load(args.attach).with_localiser(localiser).save(args.attach)
-        print(f"attached to {args.attach}")
-    return 0
+    return _score_and_attach(args)
 
 
 def _train_verifier(args: argparse.Namespace) -> int:
     import torch
 
-    from axispose_core.estimator import Estimator
-    from axispose_core.train.detector import detection_scores, load_localiser
     from axispose_core.train.verifier import VerifierTrainConfig, train_verifier
 
     torch.set_num_threads(args.threads)
     cfg = _config(VerifierTrainConfig, args.config)
     step = train_verifier(cfg, args.localiser, args.data, args.out, **_training_kwargs(args))
     print(f"stopped at step {step} of {cfg.steps}; localiser with verifier {args.out}")
-    localiser = load_localiser(args.out)
-    if args.val:
-        scores = detection_scores(localiser, args.val, progress=True)
-        print(f"held-out recall {scores['recall']:.3f}, precision {scores['precision']:.3f} at IoU 0.5 (visib >= 0.3), "
-              f"{scores['ms_per_frame']['median']:.1f} ms per frame")  # fmt: skip
-    if args.attach:
-        Estimator.load(args.attach).with_localiser(localiser).save(args.attach)
-        print(f"attached to {args.attach}")
-    return 0
+    return _score_and_attach(args)
 
 
 def _eval(args: argparse.Namespace) -> int:
