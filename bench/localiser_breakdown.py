@@ -34,7 +34,7 @@ from axispose_core.data.bop import BopScene
 from axispose_core.detect.decode import Detection, iou
 from axispose_core.detect.model import Localiser
 from axispose_core.detect.verifier import Verifier
-from axispose_core.train.dataset import scene_dirs
+from axispose_core.train.dataset import bop_frames
 from axispose_core.train.detector import frame_instances, frame_outcome, load_localiser
 
 THRESHOLDS = (0.05, 0.1, 0.15, 0.2, 0.25, 0.3, 0.4, 0.5, 0.6, 0.7)
@@ -134,7 +134,7 @@ def main() -> None:
     ap.add_argument("--json", default="bench/results/localiser_breakdown.json")
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
-    frames = [(scene, im_id) for sd in scene_dirs(args.data) for scene in [BopScene(sd)] for im_id in scene.image_ids]
+    frames = bop_frames([args.data])
     results = {}
     for item in args.checkpoint:
         label, _, path = item.partition("=")

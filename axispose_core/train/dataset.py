@@ -27,6 +27,12 @@ def scene_dirs(root: str | Path) -> list[Path]:
     return scenes
 
 
+def bop_frames(roots: list[str | Path]) -> list[tuple[BopScene, int]]:
+    """Every (scene, image id) of the BOP folders (each a scene or a folder of scenes), in folder and image order."""
+    scenes = [BopScene(sd) for root in roots for sd in scene_dirs(root)]
+    return [(scene, im_id) for scene in scenes for im_id in scene.image_ids]
+
+
 @dataclass(frozen=True)
 class InstanceRef:
     scene: Path

@@ -27,7 +27,7 @@ from axispose_core.detect.decode import Detection, draw_targets, focal_loss, mat
 from axispose_core.detect.model import STRIDE, Localiser, LocaliserConfig
 from axispose_core.estimator import KIND as ESTIMATOR
 from axispose_core.estimator import EstimatorConfig
-from axispose_core.train.dataset import scene_dirs
+from axispose_core.train.dataset import bop_frames, scene_dirs
 from axispose_core.train.loop import fit, training_device, training_record
 
 KIND = "localiser"
@@ -155,9 +155,7 @@ def detection_scores(
     ids = model.config.obj_ids
     tp, fp, n_gt = dict.fromkeys(ids, 0), dict.fromkeys(ids, 0), dict.fromkeys(ids, 0)
     times = []
-    scenes = [BopScene(sd) for root in data for sd in scene_dirs(root)]
-    frames = [(scene, im_id) for scene in scenes for im_id in scene.image_ids]
-    for scene, im_id in tqdm(frames[:limit], desc="detect", disable=not progress):
+    for scene, im_id in tqdm(bop_frames(data)[:limit], desc="detect", disable=not progress):
         rgb = scene.rgb(im_id)
         start = time.perf_counter()
         dets = model.detect(rgb)

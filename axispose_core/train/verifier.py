@@ -22,11 +22,10 @@ from torch.utils.data import Dataset
 from tqdm import tqdm
 
 from axispose_core.checkpoint import save_checkpoint
-from axispose_core.data.bop import BopScene
 from axispose_core.detect.decode import iou
 from axispose_core.detect.model import Localiser
 from axispose_core.detect.verifier import Verifier, VerifierConfig, box_crops
-from axispose_core.train.dataset import scene_dirs
+from axispose_core.train.dataset import bop_frames
 from axispose_core.train.detector import KIND, detection_scores, frame_instances, load_localiser
 from axispose_core.train.loop import fit, training_device, training_record
 
@@ -105,8 +104,7 @@ def mine_crops(
 ) -> tuple[np.ndarray, np.ndarray]:
     """uint8 crops (N,S,S,3) and class labels (N,) from every `cfg.frame_stride`-th frame of `data`."""
     detector = localiser.with_verifier(None).fused()
-    scenes = [BopScene(sd) for root in data for sd in scene_dirs(root)]
-    frames = [(scene, im_id) for scene in scenes for im_id in scene.image_ids][:: cfg.frame_stride]
+    frames = bop_frames(data)[:: cfg.frame_stride]
     crops, labels = [], []
     for k, (scene, im_id) in enumerate(tqdm(frames, desc="mine crops", disable=not progress)):
         rgb = scene.rgb(im_id)
