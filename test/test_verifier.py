@@ -141,6 +141,11 @@ def test_training_on_a_tiny_set_teaches_the_verifier_its_crops(frames, localiser
     mined_at = cache.stat().st_mtime_ns
     assert train_verifier(replace(cfg, steps=130), localiser_path, [frames], out, resume=state_path(out), progress=False) == 130
     assert cache.stat().st_mtime_ns == mined_at  # the resumed run read the crops it had mined
+    torch.manual_seed(1)
+    other = tmp_path / "other_localiser.safetensors"
+    save_checkpoint(other, KIND, TINY, {"localiser": Localiser(TINY).eval()})  # same config, other weights
+    train_verifier(replace(cfg, steps=1), other, [frames], out, progress=False)
+    assert cache.stat().st_mtime_ns != mined_at  # its peaks are other boxes: mined again
 
 
 def test_cli_trains_a_verifier_and_attaches_it(frames, localiser_path, tmp_path):

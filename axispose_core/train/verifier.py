@@ -11,6 +11,7 @@ keeps the crops in OUT.crops.npz, so a resumed run does not mine again.
 
 from __future__ import annotations
 
+import hashlib
 import json
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -140,8 +141,9 @@ class CropDataset(Dataset):
 def _cached_crops(
     localiser: Localiser, data: list[str | Path], cfg: VerifierTrainConfig, cache: Path, progress: bool
 ) -> tuple[np.ndarray, np.ndarray]:
-    """The mined crops, from `cache` when it was mined from the same data, localiser and settings."""
-    recipe = json.dumps({"data": [str(d) for d in data], "localiser": asdict(localiser.with_verifier(None).config),
+    """The mined crops, from `cache` when it was mined from the same data, localiser (config and weights) and settings."""
+    weights = hashlib.sha256(b"".join(v.cpu().numpy().tobytes() for v in localiser.state_dict().values())).hexdigest()
+    recipe = json.dumps({"data": [str(d) for d in data], "localiser": asdict(localiser.config), "weights": weights,
                          "verifier": asdict(cfg.verifier), "seed": cfg.seed, "frame_stride": cfg.frame_stride,
                          "min_visib": cfg.min_visib, "jitter": cfg.jitter_per_instance,
                          "background": cfg.background_per_frame}, sort_keys=True)  # fmt: skip
