@@ -22,6 +22,17 @@ def lmo_dir() -> Path:
     return LMO_DIR
 
 
+@pytest.fixture(scope="session")
+def frames(tmp_path_factory, lmo_dir) -> Path:
+    """Four rendered frames of objects 1 and 5 (one scene), for the localiser's and its verifier's tests."""
+    from axispose_core.data.synth.config import SynthConfig
+    from axispose_core.data.synth.generate import generate
+
+    out = tmp_path_factory.mktemp("detdata")
+    generate(SynthConfig(seed=33, scenes=1, images_per_scene=4, objects=(1, 5)), lmo_dir / "models", out, progress=False)
+    return out
+
+
 @pytest.fixture
 def rng() -> np.random.Generator:
     return np.random.default_rng(1234)

@@ -15,8 +15,6 @@ from axispose_core.cli import main
 from axispose_core.data.bop import BopScene
 from axispose_core.data.crops import instance_crop
 from axispose_core.data.objects import objects_from_models
-from axispose_core.data.synth.config import SynthConfig
-from axispose_core.data.synth.generate import generate
 from axispose_core.detect.decode import Detection, decode, draw_targets, focal_loss, iou, match
 from axispose_core.detect.model import STRIDE, Localiser, LocaliserConfig
 from axispose_core.estimator import Estimator, EstimatorConfig
@@ -102,13 +100,6 @@ def test_frame_outcome_scores_visible_instances_and_spares_detections_of_hidden_
     found, alarms = frame_outcome(dets, insts, min_visib=0.3)
     assert found == {0: True, 2: False}  # the 0.2-visible instance is not scored...
     assert alarms == [2]  # ...and the detection that found it is no false alarm
-
-
-@pytest.fixture(scope="module")
-def frames(tmp_path_factory, lmo_dir):
-    out = tmp_path_factory.mktemp("detdata")
-    generate(SynthConfig(seed=33, scenes=1, images_per_scene=4, objects=(1, 5)), lmo_dir / "models", out, progress=False)
-    return out
 
 
 @pytest.fixture(scope="module")

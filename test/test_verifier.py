@@ -13,8 +13,6 @@ from axispose_core.checkpoint import read_checkpoint, save_checkpoint
 from axispose_core.cli import main
 from axispose_core.data.bop import BopScene
 from axispose_core.data.objects import objects_from_models
-from axispose_core.data.synth.config import SynthConfig
-from axispose_core.data.synth.generate import generate
 from axispose_core.detect.model import Localiser, LocaliserConfig
 from axispose_core.detect.verifier import Verifier, VerifierConfig, box_crops, crops_tensor
 from axispose_core.estimator import Estimator, EstimatorConfig
@@ -51,13 +49,6 @@ def test_box_labels_follow_the_instance_a_box_frames_not_the_object_it_claims():
     assert box_label((50, 0, 10, 10), insts, classes, 0.1) is None  # an instance 5 % visible: not used
     assert box_label((100, 0, 10, 10), insts, classes, 0.1) is None  # an object the localiser does not know
     assert box_label((300, 300, 10, 10), insts, classes, 0.1) == 2
-
-
-@pytest.fixture(scope="module")
-def frames(tmp_path_factory, lmo_dir):
-    out = tmp_path_factory.mktemp("verdata")
-    generate(SynthConfig(seed=34, scenes=1, images_per_scene=4, objects=(1, 5)), lmo_dir / "models", out, progress=False)
-    return out
 
 
 @pytest.fixture(scope="module")
