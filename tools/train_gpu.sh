@@ -12,6 +12,8 @@
 # previous call's train.yaml, NAME.csv and NAME.safetensors.state.pt (whole, or split into parts named
 # NAME.safetensors.state.pt.00, .01, ...), NAME being agm or localiser. The run ends up in WORK/run, the planned
 # config in WORK/train.yaml.
+# `axispose synth` renders only the scenes a folder lacks, so a later call on a machine still warm, given the same
+# WORK, starts training at once; a new WORK renders everything again.
 #
 # Environment: TRAINER (train: the AGM, default; train-detector: the localiser), CONFIG (default
 # config/train_agm_gpu.yaml or config/train_detector_gpu.yaml), DEVICE (cuda), PROBE_MINUTES (0.5), VAL_SCENES (5
