@@ -36,7 +36,7 @@ class LocaliserConfig:
     """Default score threshold of `detect`."""
     max_per_object: int = 3
     verifier: VerifierConfig | None = None
-    """A second-stage classifier that rescores each detection from its crop (`detect/verifier.py`), if trained."""
+    """A second stage that rescores (and may refine) each detection from its crop (`detect/verifier.py`), if trained."""
 
 
 def _block(c_in: int, c_out: int, stride: int) -> nn.Sequential:
@@ -116,7 +116,8 @@ class Localiser(nn.Module):
     @torch.inference_mode()
     def detect(self, image_rgb: np.ndarray, threshold: float | None = None) -> list[Detection]:
         """Detections in the frame's pixels, best first; none (not an error) when nothing scores above threshold.
-        With a verifier, the heatmap's peaks down to its `candidates` score are rescored and then thresholded."""
+        With a verifier, the heatmap's peaks down to its `candidates` score are rescored (and with `refine`, their
+        boxes corrected) and then thresholded."""
         if image_rgb.ndim != 3 or image_rgb.shape[2] != 3 or image_rgb.dtype != np.uint8:
             raise ValueError(f"detect takes an HxWx3 uint8 RGB image, got {image_rgb.shape} {image_rgb.dtype}")
         dev = next(self.parameters()).device
@@ -125,7 +126,7 @@ class Localiser(nn.Module):
         sx, sy = image_rgb.shape[1] / w, image_rgb.shape[0] / h
         thr = self.config.threshold if threshold is None else threshold
         verify = self.config.verifier
-        peak_thr = thr if verify is None else verify.candidates
+        peak_thr = thr if verify is None or verify.weight == 0 else verify.candidates
         dets = decode(heat.cpu(), size.cpu(), offset.cpu(), list(self.config.obj_ids), STRIDE, peak_thr, self.config.max_per_object)[0]
         dets = [Detection(d.obj_id, d.score, (d.center[0] * sx, d.center[1] * sy), (d.size[0] * sx, d.size[1] * sy)) for d in dets]
         if verify is None:

@@ -6,6 +6,12 @@ instance or on background (docs/BENCHMARKS.md). The verifier reads every candida
 to `candidates`) cut from the full frame with some context and warped to `size` x `size`, and says which object
 fills it, or none (the last class). A detection's score becomes det_score^(1 - weight) * p(its object)^weight, so
 the threshold then ranks boxes by what two networks see, at two resolutions.
+
+With `refine` it also regresses, per object, a correction of the box it reads (centre shift in box widths and
+heights, log scale; R-CNN's parameterisation), and the detection takes the corrected box. Most of the
+heatmap's missed instances that it does see are boxes placed at IoU 0.4-0.5, too coarse at stride 8 and
+384x288 for partly hidden instances (docs/BENCHMARKS.md); the crop from the full frame, with context around the
+box, shows where the object really ends.
 """
 
 from __future__ import annotations
@@ -32,7 +38,32 @@ class VerifierConfig:
     candidates: float = 0.05
     """Least heatmap score of a peak the verifier looks at."""
     weight: float = 1.0
-    """Exponent of the verifier's probability in the final score (0: the heatmap's score alone)."""
+    """Exponent of the verifier's probability in the final score (0: the heatmap's score alone; then only the
+    peaks above the detection threshold are read)."""
+    refine: bool = False
+    """Also correct each detection's box (`apply_deltas`)."""
+
+
+DELTA_SCALE = (0.1, 0.1, 0.2, 0.2)
+"""The refiner's outputs times these are the box deltas: unit-scale targets for deltas of typical detector errors."""
+MAX_LOG_SCALE = 1.4
+"""A refined box grows or shrinks by at most e^1.4 (about 4x) per side."""
+
+
+def box_deltas(box: tuple[float, float, float, float], target: tuple[float, float, float, float]) -> np.ndarray:
+    """(dx, dy, dw, dh) taking the (x, y, w, h) `box` to `target`: centre shift in box widths and heights, log scale."""
+    x, y, w, h = box
+    tx, ty, tw, th = target
+    return np.array([(tx + tw / 2 - x - w / 2) / w, (ty + th / 2 - y - h / 2) / h, np.log(tw / w), np.log(th / h)], np.float32)
+
+
+def apply_deltas(box: tuple[float, float, float, float], deltas: np.ndarray) -> tuple[float, float, float, float]:
+    """The box `box_deltas` leads to from `box` (log scales clipped to +-MAX_LOG_SCALE)."""
+    x, y, w, h = box
+    dx, dy, dw, dh = (float(v) for v in deltas)
+    nw, nh = w * np.exp(np.clip(dw, -MAX_LOG_SCALE, MAX_LOG_SCALE)), h * np.exp(np.clip(dh, -MAX_LOG_SCALE, MAX_LOG_SCALE))
+    cx, cy = x + w / 2 + dx * w, y + h / 2 + dy * h
+    return (cx - nw / 2, cy - nh / 2, float(nw), float(nh))
 
 
 def _block(c_in: int, c_out: int, stride: int) -> nn.Sequential:
@@ -40,23 +71,27 @@ def _block(c_in: int, c_out: int, stride: int) -> nn.Sequential:
 
 
 class Verifier(nn.Module):
-    """Crops (B,3,S,S) in [-1,1] -> logits (B, n_objects + 1); the last class is "no object of ours, or a poor box"."""
+    """Crops (B,3,S,S) in [-1,1] -> logits (B, n_objects + 1), the last class "no object of ours, or a poor box",
+    and with `refine` the box deltas per object (B, n_objects, 4) in units of DELTA_SCALE (else None)."""
 
     def __init__(self, config: VerifierConfig, n_objects: int) -> None:
         super().__init__()
         if config.size % 16 or len(config.channels) != 4 or not 0 <= config.weight <= 1:
             raise ValueError(f"a verifier needs a size in multiples of 16, 4 widths and a weight in [0, 1], got {config}")
-        self.config = config
+        self.config, self.n_objects = config, n_objects
         c = config.channels
         layers = [_block(3, c[0], 2)]
         for a, b in pairwise(c):
             layers += [_block(a, b, 2), _block(b, b, 1)]
         self.features = nn.Sequential(*layers)
         cells = (config.size // 16) ** 2  # the flattened grid keeps where in the box the object sits
-        self.head = nn.Sequential(nn.Flatten(), nn.Dropout(0.2), nn.Linear(c[-1] * cells, 128), nn.SiLU(), nn.Linear(128, n_objects + 1))
+        outputs = n_objects + 1 + (4 * n_objects if config.refine else 0)
+        self.head = nn.Sequential(nn.Flatten(), nn.Dropout(0.2), nn.Linear(c[-1] * cells, 128), nn.SiLU(), nn.Linear(128, outputs))
 
-    def forward(self, x: torch.Tensor) -> torch.Tensor:
-        return self.head(self.features(x))
+    def forward(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor | None]:
+        out = self.head(self.features(x))
+        n = self.n_objects + 1
+        return out[:, :n], out[:, n:].reshape(len(out), -1, 4) if self.config.refine else None
 
 
 def box_crops(image_rgb: np.ndarray, boxes: list[tuple[float, float, float, float]], size: int, pad: float) -> np.ndarray:
@@ -79,16 +114,21 @@ def crops_tensor(crops: np.ndarray) -> torch.Tensor:
 
 @torch.inference_mode()
 def rescore(verifier: Verifier, image_rgb: np.ndarray, dets: list[Detection], obj_ids: tuple[int, ...]) -> list[Detection]:
-    """`dets` with the verifier's score folded in, best first."""
+    """`dets` with the verifier's score folded in (and with `refine`, its boxes), best first."""
     if not dets:
         return []
     cfg = verifier.config
     x = crops_tensor(box_crops(image_rgb, [d.box for d in dets], cfg.size, cfg.pad))
     dev = next(verifier.parameters()).device
-    probs = torch.softmax(verifier(x.to(dev, memory_format=torch.channels_last)), dim=1).cpu().numpy()
+    logits, deltas = verifier(x.to(dev, memory_format=torch.channels_last))
+    probs = torch.softmax(logits, dim=1).cpu().numpy()
     cls = {o: k for k, o in enumerate(obj_ids)}
-    scored = [
-        Detection(d.obj_id, float(d.score ** (1 - cfg.weight) * probs[k, cls[d.obj_id]] ** cfg.weight), d.center, d.size)
-        for k, d in enumerate(dets)
-    ]
+    scored = []
+    for k, d in enumerate(dets):
+        score = float(d.score ** (1 - cfg.weight) * probs[k, cls[d.obj_id]] ** cfg.weight)
+        if deltas is None:
+            scored.append(Detection(d.obj_id, score, d.center, d.size))
+            continue
+        x, y, w, h = apply_deltas(d.box, deltas[k, cls[d.obj_id]].cpu().numpy() * DELTA_SCALE)
+        scored.append(Detection(d.obj_id, score, (x + w / 2, y + h / 2), (w, h)))
     return sorted(scored, key=lambda d: -d.score)
