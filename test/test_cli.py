@@ -25,10 +25,13 @@ CONFIGS = sorted((Path(__file__).resolve().parents[1] / "config").glob("train_*.
 @pytest.mark.parametrize("path", CONFIGS, ids=[p.name for p in CONFIGS])
 def test_shipped_training_configs_load_into_their_dataclasses(path):
     kinds = {"train_agm": TrainConfig, "train_direct": DirectTrainConfig, "train_detector": DetectorTrainConfig,
-             "train_verifier": VerifierTrainConfig}  # fmt: skip
+             "train_verifier": VerifierTrainConfig, "train_refiner": VerifierTrainConfig}  # fmt: skip
     cls = next(c for prefix, c in kinds.items() if path.name.startswith(prefix))
     cfg = _config(cls, str(path))  # unknown or misspelt fields raise
     if path.name in ("train_agm_gpu.yaml", "train_agm_finetune_cpu.yaml"):  # the CPU recipe's network, trained longer
         assert cfg.agm == _config(TrainConfig, str(path.with_name("train_agm.yaml"))).agm
-    if path.name == "train_detector_gpu.yaml":  # the shipped localiser's network, so INIT can be the shipped model
+    # the shipped localiser's network, so INIT can be the shipped model
+    if path.name in ("train_detector_gpu.yaml", "train_detector_gpu_ft.yaml", "train_detector_cpu_ft.yaml"):
         assert cfg.localiser == _config(DetectorTrainConfig, str(path.with_name("train_detector_stage4.yaml"))).localiser
+    if path.name == "train_refiner.yaml":
+        assert cfg.verifier.refine and cfg.verifier.weight == 0  # the heatmap's scores, corrected boxes
