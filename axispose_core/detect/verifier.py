@@ -8,10 +8,9 @@ fills it, or none (the last class). A detection's score becomes det_score^(1 - w
 the threshold then ranks boxes by what two networks see, at two resolutions.
 
 With `refine` it also regresses, per object, a correction of the box it reads (centre shift in box widths and
-heights, log scale; R-CNN's parameterisation), and the detection takes the corrected box. Most of the
-heatmap's missed instances that it does see are boxes placed at IoU 0.4-0.5, too coarse at stride 8 and
-384x288 for partly hidden instances (docs/BENCHMARKS.md); the crop from the full frame, with context around the
-box, shows where the object really ends.
+heights, log scale; R-CNN's parameterisation), and the detection takes the corrected box. It was meant for the
+heatmap's poorly placed boxes on partly hidden instances (IoU 0.4-0.5), reading the full frame with context around
+the box; measured, it did not mend them (docs/BENCHMARKS.md, "A box refiner").
 """
 
 from __future__ import annotations
@@ -129,6 +128,6 @@ def rescore(verifier: Verifier, image_rgb: np.ndarray, dets: list[Detection], ob
         if deltas is None:
             scored.append(Detection(d.obj_id, score, d.center, d.size))
             continue
-        x, y, w, h = apply_deltas(d.box, deltas[k, cls[d.obj_id]].cpu().numpy() * DELTA_SCALE)
-        scored.append(Detection(d.obj_id, score, (x + w / 2, y + h / 2), (w, h)))
+        bx, by, bw, bh = apply_deltas(d.box, deltas[k, cls[d.obj_id]].cpu().numpy() * DELTA_SCALE)
+        scored.append(Detection(d.obj_id, score, (bx + bw / 2, by + bh / 2), (bw, bh)))
     return sorted(scored, key=lambda d: -d.score)
