@@ -121,13 +121,14 @@ def rescore(verifier: Verifier, image_rgb: np.ndarray, dets: list[Detection], ob
     dev = next(verifier.parameters()).device
     logits, deltas = verifier(x.to(dev, memory_format=torch.channels_last))
     probs = torch.softmax(logits, dim=1).cpu().numpy()
+    moves = None if deltas is None else deltas.cpu().numpy() * np.array(DELTA_SCALE)
     cls = {o: k for k, o in enumerate(obj_ids)}
     scored = []
     for k, d in enumerate(dets):
         score = float(d.score ** (1 - cfg.weight) * probs[k, cls[d.obj_id]] ** cfg.weight)
-        if deltas is None:
-            scored.append(Detection(d.obj_id, score, d.center, d.size))
-            continue
-        bx, by, bw, bh = apply_deltas(d.box, deltas[k, cls[d.obj_id]].cpu().numpy() * DELTA_SCALE)
-        scored.append(Detection(d.obj_id, score, (bx + bw / 2, by + bh / 2), (bw, bh)))
+        center, size = d.center, d.size
+        if moves is not None:
+            bx, by, bw, bh = apply_deltas(d.box, moves[k, cls[d.obj_id]])
+            center, size = (bx + bw / 2, by + bh / 2), (bw, bh)
+        scored.append(Detection(d.obj_id, score, center, size))
     return sorted(scored, key=lambda d: -d.score)
