@@ -1,6 +1,7 @@
 """The 2D localiser: decoding hand-made maps, targets round trip, matching, training, the estimator and eval."""
 
 import json
+import shutil
 from dataclasses import replace
 
 import numpy as np
@@ -12,7 +13,7 @@ from axispose_core.agm.model import AGMConfig, AxisGenerator
 from axispose_core.camera import crop_transform, project
 from axispose_core.checkpoint import CheckpointError, read_checkpoint
 from axispose_core.cli import main
-from axispose_core.data.bop import BopScene
+from axispose_core.data.bop import BopFormatError, BopScene
 from axispose_core.data.crops import instance_crop
 from axispose_core.data.objects import objects_from_models
 from axispose_core.detect.decode import Detection, decode, draw_targets, focal_loss, iou, match
@@ -119,6 +120,15 @@ def test_training_on_a_tiny_set_increases_recall(frames, trained):
     r1 = detection_scores(after, [frames], min_visib=0.3)
     assert r1["recall"] > r0 and r1["recall"] >= 0.5
     assert set(r1["objects"]) == {"1", "5"} and r1["ms_per_frame"]["median"] > 0
+
+
+def test_scores_without_scene_gt_info_are_a_format_error(frames, tmp_path):
+    copy = tmp_path / "frames"
+    shutil.copytree(frames, copy)
+    (info,) = copy.glob("*/scene_gt_info.json")
+    info.unlink()
+    with pytest.raises(BopFormatError, match="scene_gt_info"):
+        detection_scores(Localiser(TINY).eval(), [copy], min_visib=0.3, progress=False)
 
 
 def test_a_frame_without_objects_gives_no_detections(trained):

@@ -127,7 +127,11 @@ def detector_loss(model: Localiser, batch: dict[str, torch.Tensor], cfg: Detecto
 
 
 def frame_instances(scene: BopScene, im_id: int, obj_ids: tuple[int, ...]) -> list[tuple[int, tuple[int, int, int, int], float]]:
-    """The frame's (obj_id, bbox_obj, visib_fract) instances of the given objects, as `frame_outcome` takes them."""
+    """The frame's (obj_id, bbox_obj, visib_fract) instances of the given objects, as `frame_outcome` takes them.
+    Visibility lives only in scene_gt_info.json, so a scene without one is a BopFormatError here, where every
+    reader of a frame's instances (scores, verifier mining, the benches) passes."""
+    if scene.gt_info is None:
+        raise BopFormatError(f"{scene.root}: scene_gt_info.json is needed for the instances' boxes and visibility")
     return [
         (g.obj_id, info.bbox_obj, info.visib_fract)
         for g, info in zip(scene.gt[im_id], scene.gt_info[im_id], strict=True)
