@@ -128,8 +128,8 @@ def detector_loss(model: Localiser, batch: dict[str, torch.Tensor], cfg: Detecto
 
 def frame_instances(scene: BopScene, im_id: int, obj_ids: tuple[int, ...]) -> list[tuple[int, tuple[int, int, int, int], float]]:
     """The frame's (obj_id, bbox_obj, visib_fract) instances of the given objects, as `frame_outcome` takes them.
-    Visibility lives only in scene_gt_info.json, so a scene without one is a BopFormatError here, where every
-    reader of a frame's instances (scores, verifier mining, the benches) passes."""
+    Visibility lives only in scene_gt_info.json: a scene without one is a BopFormatError here, the one place the
+    detection scores, the verifier's mining and the benches all pass through."""
     if scene.gt_info is None:
         raise BopFormatError(f"{scene.root}: scene_gt_info.json is needed for the instances' boxes and visibility")
     return [
