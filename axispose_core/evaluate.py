@@ -22,12 +22,12 @@ import numpy as np
 from tqdm import tqdm
 
 from axispose_core.camera import crop_image, crop_intrinsics, square_around_box
-from axispose_core.data.bop import BopFormatError, BopScene, load_ply, model_path, read_bgr
+from axispose_core.data.bop import load_ply, model_path, read_bgr
 from axispose_core.data.objects import ObjectSpec
 from axispose_core.data.synth.preview import draw_axes
 from axispose_core.detect.decode import Detection, match
 from axispose_core.metrics import ADD_THRESHOLDS, REPROJ_THRESHOLDS, pose_scores
-from axispose_core.train.dataset import scene_dirs
+from axispose_core.train.dataset import bop_frames
 
 MIN_VISIB = 0.1
 SUMMARY_KEYS = [f"add_{f:g}d" for f in ADD_THRESHOLDS] + [f"reproj_{p:g}px" for p in REPROJ_THRESHOLDS]
@@ -90,13 +90,7 @@ def evaluate(
     specs = {o.obj_id: o for o in objects}
     points = {i: load_ply(model_path(models_dir, i)).vertices for i in specs}
     records: list[Record] = []
-    frames = []
-    for sd in scene_dirs(data):
-        scene = BopScene(sd)
-        if scene.gt_info is None:
-            raise BopFormatError(f"{sd}: scene_gt_info.json is needed for visibility (BOP19 protocol)")
-        frames += [(scene, im_id) for im_id in scene.image_ids]
-    for scene, im_id in tqdm(frames, desc="eval", disable=not progress):
+    for scene, im_id in tqdm(bop_frames([data]), desc="eval", disable=not progress):
         insts = [
             (g, info)
             for g, info in zip(scene.gt[im_id], scene.gt_info[im_id], strict=True)

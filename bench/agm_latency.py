@@ -22,9 +22,8 @@ import numpy as np
 import torch
 
 from axispose_core.agm.model import AxisGenerator
-from axispose_core.data.bop import BopScene
 from axispose_core.estimator import Estimator
-from axispose_core.train.dataset import scene_dirs
+from axispose_core.train.dataset import bop_frames
 from axispose_core.train.detector import frame_instances
 
 
@@ -64,8 +63,7 @@ def main() -> None:
                         ms = _median_ms(lambda agm=agm, crops=crops, steps=steps: agm.sample(crops, steps), args.repeats)
                     sampler_rows.append({"conditioning": conditioning, "threads": threads, "objects": n, "steps": steps, "ms": ms})
                     print(f"  {conditioning:<8} threads {threads} objects {n} steps {steps:>2}: {ms:7.1f} ms ({ms / n:6.1f} per object)")
-    scene = BopScene(scene_dirs(args.data)[0])
-    im_id = scene.image_ids[0]
+    scene, im_id = bop_frames([args.data])[0]
     rgb = scene.rgb(im_id)
     K = scene.cameras[im_id]
     boxes = [(obj_id, box) for obj_id, box, _ in frame_instances(scene, im_id, tuple(est.objects))]

@@ -23,9 +23,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from axispose_core.data.bop import BopScene
 from axispose_core.estimator import Estimator
-from axispose_core.train.dataset import scene_dirs
+from axispose_core.train.dataset import bop_frames
 from axispose_core.train.detector import frame_instances
 
 MODES = ("fp32", "bf16", "bf16+graphs")
@@ -84,8 +83,7 @@ def main() -> None:
                 ms = _median_ms(call, args.repeats)
                 sampler_rows.append({"mode": mode, "batch": n, "steps": steps, "ms": ms, "first_call_ms": first_ms})
                 print(f"  {mode:<12} batch {n:>3} steps {steps}: {ms:7.2f} ms ({ms / n:6.3f} per instance; first call {first_ms:.0f} ms)")
-    scene = BopScene(scene_dirs(args.data)[0])
-    im_id = scene.image_ids[0]
+    scene, im_id = bop_frames([args.data])[0]
     rgb, K = scene.rgb(im_id), scene.cameras[im_id]
     boxes = [(obj_id, box) for obj_id, box, _ in frame_instances(scene, im_id, tuple(est.objects))]
     print(f"part 2: full path (fp32, TBM on the CPU), {est.config.ddim_steps} steps, ms per frame")

@@ -122,13 +122,15 @@ def test_training_on_a_tiny_set_increases_recall(frames, trained):
     assert set(r1["objects"]) == {"1", "5"} and r1["ms_per_frame"]["median"] > 0
 
 
-def test_scores_without_scene_gt_info_are_a_format_error(frames, tmp_path):
+def test_frames_without_scene_gt_info_are_a_format_error(frames, tmp_path):
     copy = tmp_path / "frames"
     shutil.copytree(frames, copy)
     (info,) = copy.glob("*/scene_gt_info.json")
     info.unlink()
     with pytest.raises(BopFormatError, match="scene_gt_info"):
         detection_scores(Localiser(TINY).eval(), [copy], min_visib=0.3, progress=False)
+    with pytest.raises(BopFormatError, match="scene_gt_info"):
+        DetectionDataset([copy], TINY, min_visib=0.1)
 
 
 def test_a_frame_without_objects_gives_no_detections(trained):

@@ -85,6 +85,15 @@ def test_contact_sheet_tiles_frames_and_refuses_an_unreadable_one(scenes, tmp_pa
         contact_sheet(broken, tmp_path / "broken.png")
 
 
+def test_evaluation_without_scene_gt_info_is_a_format_error(scenes, lmo_dir, tmp_path):
+    broken = tmp_path / "broken"
+    shutil.copytree(scenes, broken)
+    (broken / "000000" / "scene_gt_info.json").unlink()
+    objects = objects_from_models(scenes)
+    with pytest.raises(BopFormatError, match="scene_gt_info"):  # visibility decides which instances count
+        evaluate(_gt_predictor(scenes / "000000"), broken, lmo_dir / "models_eval", objects, progress=False)
+
+
 def test_failed_poses_count_as_wrong(scenes, lmo_dir):
     objects = objects_from_models(scenes)
     records = evaluate(_gt_predictor(scenes / "000000", scramble=True), scenes, lmo_dir / "models_eval", objects, progress=False)

@@ -28,8 +28,13 @@ def scene_dirs(root: str | Path) -> list[Path]:
 
 
 def bop_frames(roots: list[str | Path]) -> list[tuple[BopScene, int]]:
-    """Every (scene, image id) of the BOP folders (each a scene or a folder of scenes), in folder and image order."""
+    """Every (scene, image id) of the BOP folders (each a scene or a folder of scenes), in folder and image order.
+    Its users read the instances' boxes and visibility, which live only in scene_gt_info.json, so a scene without
+    one is a BopFormatError here, before any frame is read."""
     scenes = [BopScene(sd) for root in roots for sd in scene_dirs(root)]
+    for scene in scenes:
+        if scene.gt_info is None:
+            raise BopFormatError(f"{scene.root}: scene_gt_info.json is needed for the instances' boxes and visibility")
     return [(scene, im_id) for scene in scenes for im_id in scene.image_ids]
 
 

@@ -22,12 +22,12 @@ from torch.utils.data import Dataset
 from tqdm import tqdm
 
 from axispose_core.checkpoint import CheckpointError, load_state, read_checkpoint, read_metadata, save_checkpoint
-from axispose_core.data.bop import BopFormatError, BopScene
+from axispose_core.data.bop import BopScene
 from axispose_core.detect.decode import Detection, draw_targets, focal_loss, match
 from axispose_core.detect.model import STRIDE, Localiser, LocaliserConfig
 from axispose_core.estimator import KIND as ESTIMATOR
 from axispose_core.estimator import EstimatorConfig
-from axispose_core.train.dataset import bop_frames, scene_dirs
+from axispose_core.train.dataset import bop_frames
 from axispose_core.train.loop import fit, training_device, training_record
 
 KIND = "localiser"
@@ -69,13 +69,7 @@ class DetectionDataset(Dataset):
         self.config, self.augment, self.seed, self.epoch = config, augment, seed, 0
         self.occluded_weight = occluded_weight
         self.classes = {o: k for k, o in enumerate(config.obj_ids)}
-        self.frames: list[tuple[BopScene, int]] = []
-        for root in roots:
-            for sd in scene_dirs(root):
-                scene = BopScene(sd)
-                if scene.gt_info is None:
-                    raise BopFormatError(f"{sd}: scene_gt_info.json is needed for training boxes")
-                self.frames += [(scene, im_id) for im_id in scene.image_ids]
+        self.frames = bop_frames(roots)
         self.min_visib = min_visib
 
     def __len__(self) -> int:
@@ -127,11 +121,8 @@ def detector_loss(model: Localiser, batch: dict[str, torch.Tensor], cfg: Detecto
 
 
 def frame_instances(scene: BopScene, im_id: int, obj_ids: tuple[int, ...]) -> list[tuple[int, tuple[int, int, int, int], float]]:
-    """The frame's (obj_id, bbox_obj, visib_fract) instances of the given objects, as `frame_outcome` takes them.
-    Visibility lives only in scene_gt_info.json: a scene without one is a BopFormatError here, the one place the
-    detection scores, the verifier's mining and the benches all pass through."""
-    if scene.gt_info is None:
-        raise BopFormatError(f"{scene.root}: scene_gt_info.json is needed for the instances' boxes and visibility")
+    """The frame's (obj_id, bbox_obj, visib_fract) instances of the given objects, as `frame_outcome` takes them
+    (a scene from `bop_frames`, which refuses one without scene_gt_info.json)."""
     return [
         (g.obj_id, info.bbox_obj, info.visib_fract)
         for g, info in zip(scene.gt[im_id], scene.gt_info[im_id], strict=True)
