@@ -20,6 +20,7 @@ from axispose_core.detect.decode import Detection, decode, draw_targets, focal_l
 from axispose_core.detect.model import STRIDE, Localiser, LocaliserConfig
 from axispose_core.estimator import Estimator, EstimatorConfig
 from axispose_core.tbm.reader import SHIPPED_READER, load_reader
+from axispose_core.train.dataset import AxisCropDataset
 from axispose_core.train.detector import (
     KIND,
     DetectionDataset,
@@ -131,6 +132,8 @@ def test_frames_without_scene_gt_info_are_a_format_error(frames, tmp_path):
         detection_scores(Localiser(TINY).eval(), [copy], min_visib=0.3, progress=False)
     with pytest.raises(BopFormatError, match="scene_gt_info"):
         DetectionDataset([copy], TINY, min_visib=0.1)
+    with pytest.raises(BopFormatError, match="scene_gt_info"):  # the AGM's crops, too
+        AxisCropDataset([copy], objects_from_models(frames, [1, 5]), 64)
 
 
 def test_a_frame_without_objects_gives_no_detections(trained):

@@ -71,16 +71,11 @@ class AxisCropDataset(Dataset):
         self.epoch = 0
         self.items: list[InstanceRef] = []
         self.scenes: dict[Path, BopScene] = {}
-        for root in roots:
-            for sd in scene_dirs(root):
-                scene = BopScene(sd)
-                if scene.gt_info is None:
-                    raise BopFormatError(f"{sd}: scene_gt_info.json is needed for training crops")
-                self.scenes[sd] = scene
-                for im_id in scene.image_ids:
-                    for k, (g, info) in enumerate(zip(scene.gt[im_id], scene.gt_info[im_id], strict=True)):
-                        if g.obj_id in self.objects and info.visib_fract >= min_visib:
-                            self.items.append(InstanceRef(sd, im_id, k, g.obj_id, info.bbox_obj, info.visib_fract))
+        for scene, im_id in bop_frames(roots):
+            self.scenes[scene.root] = scene
+            for k, (g, info) in enumerate(zip(scene.gt[im_id], scene.gt_info[im_id], strict=True)):
+                if g.obj_id in self.objects and info.visib_fract >= min_visib:
+                    self.items.append(InstanceRef(scene.root, im_id, k, g.obj_id, info.bbox_obj, info.visib_fract))
 
     def __len__(self) -> int:
         return len(self.items)
