@@ -31,7 +31,12 @@ def test_shipped_training_configs_load_into_their_dataclasses(path):
     if path.name in ("train_agm_gpu.yaml", "train_agm_finetune_cpu.yaml"):  # the CPU recipe's network, trained longer
         assert cfg.agm == _config(TrainConfig, str(path.with_name("train_agm.yaml"))).agm
     # the shipped localiser's network, so INIT can be the shipped model
-    if path.name in ("train_detector_gpu.yaml", "train_detector_gpu_ft.yaml", "train_detector_cpu_ft.yaml"):
+    if path.name in (
+        "train_detector_gpu.yaml",
+        "train_detector_gpu_ft.yaml",
+        "train_detector_gpu_ft2.yaml",
+        "train_detector_cpu_ft.yaml",
+    ):
         assert cfg.localiser == _config(DetectorTrainConfig, str(path.with_name("train_detector_stage4.yaml"))).localiser
     if path.name == "train_refiner.yaml":
         assert cfg.verifier.refine and cfg.verifier.weight == 0  # the heatmap's scores, corrected boxes
