@@ -12,6 +12,8 @@ and writes JSON. `--across-objects IOU` first drops every detection that overlap
 another object at IoU >= IOU (class-agnostic NMS on top of the per-object peaks), to see whether confusions
 between objects can be removed that way. `--verifier-weight W` reads a localiser that carries a verifier with its
 score exponent set to W (0: the heatmap's scores, 1: the verifier's), to choose that weight on held-out frames.
+Recall at the checkpoint's threshold comes with its instance counts and a 95 % Wilson interval, so a held-out set's
+size shows in the figure; `--data` may be given several times to pool sets.
 
     python bench/localiser_breakdown.py --checkpoint stage1=runs/det_long/localiser.safetensors \\
         --checkpoint shipped=axispose_core/models/axispose_lmo.safetensors --data data/lmo_val
@@ -28,6 +30,7 @@ from pathlib import Path
 
 import numpy as np
 import torch
+from scipy.stats import binomtest
 from tqdm import tqdm
 
 from axispose_core.data.bop import BopScene
@@ -110,11 +113,16 @@ def breakdown(model: Localiser, frames: list[tuple[BopScene, int]], min_visib: f
         return {"range": [lo, hi], "n": int(sel.sum()), "recall": float(found_a[sel].mean()) if sel.any() else float("nan")}
 
     nan = float("nan")
+    hits = int(found_a.sum())
+    ci = binomtest(hits, len(found_a)).proportion_ci(method="wilson") if len(found_a) else None
     curve = [{"threshold": t, "recall": h / n if n else nan, "precision": h / (h + f) if h + f else nan} for t, (h, f, n) in sweep.items()]
     return {
         "threshold": at,
         "sweep": curve,
         "recall": float(found_a.mean()) if len(found_a) else float("nan"),
+        "instances": len(found_a),
+        "hits": hits,
+        "recall_ci95": [float(ci.low), float(ci.high)] if ci else [nan, nan],
         "by_visibility": [band(visib_a, lo, hi) for lo, hi in VISIB],
         "by_box_side_px": [band(size_a, lo, hi) for lo, hi in SIZES],
         "false_alarms": alarms,
@@ -125,7 +133,7 @@ def breakdown(model: Localiser, frames: list[tuple[BopScene, int]], min_visib: f
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--checkpoint", action="append", required=True, help="LABEL=PATH (repeatable)")
-    ap.add_argument("--data", required=True, help="held-out BOP folder")
+    ap.add_argument("--data", action="append", required=True, help="held-out BOP folder (repeatable: pooled)")
     ap.add_argument("--min-visib", type=float, default=0.3)
     ap.add_argument("--across-objects", type=float, default=None, metavar="IOU",
                     help="drop detections overlapping a better one of another object at IoU >= IOU")  # fmt: skip
@@ -134,14 +142,16 @@ def main() -> None:
     ap.add_argument("--json", default="bench/results/localiser_breakdown.json")
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
-    frames = bop_frames([args.data])
+    frames = bop_frames(args.data)
     results = {}
     for item in args.checkpoint:
         label, _, path = item.partition("=")
         model = load_localiser(path)
         model = model if args.verifier_weight is None else reweighted(model, args.verifier_weight)
         r = results[label] = breakdown(model, frames, args.min_visib, args.across_objects) | {"checkpoint": path}
-        print(f"\n{label} ({path}), {len(frames)} frames; recall {r['recall']:.3f} at its threshold {r['threshold']}")
+        lo, hi = r["recall_ci95"]
+        print(f"\n{label} ({path}), {len(frames)} frames; recall {r['recall']:.3f} ({r['hits']}/{r['instances']}, "
+              f"95 % interval {lo:.3f}-{hi:.3f}) at its threshold {r['threshold']}")  # fmt: skip
         print("threshold  " + "  ".join(f"{s['threshold']:>5}" for s in r["sweep"]))
         print("recall     " + "  ".join(f"{s['recall']:5.3f}" for s in r["sweep"]))
         print("precision  " + "  ".join(f"{s['precision']:5.3f}" for s in r["sweep"]))
