@@ -91,11 +91,8 @@ def evaluate(
     points = {i: load_ply(model_path(models_dir, i)).vertices for i in specs}
     records: list[Record] = []
     for scene, im_id in tqdm(bop_frames([data]), desc="eval", disable=not progress):
-        insts = [
-            (g, info)
-            for g, info in zip(scene.gt[im_id], scene.gt_info[im_id], strict=True)
-            if g.obj_id in specs and visib[0] <= info.visib_fract <= visib[1]
-        ]
+        pairs = scene.instances(im_id)
+        insts = [(g, info) for g, info in pairs if g.obj_id in specs and visib[0] <= info.visib_fract <= visib[1]]
         if not insts:
             continue
         if limit is not None and len(records) >= limit:
@@ -108,7 +105,7 @@ def evaluate(
         boxes = [(g.obj_id, info.bbox_obj) for g, info in insts]
         if detector is not None:
             dets = detector(rgb)
-            everyone = [(g.obj_id, info.bbox_obj) for g, info in zip(scene.gt[im_id], scene.gt_info[im_id], strict=True)]
+            everyone = [(g.obj_id, info.bbox_obj) for g, info in pairs]
             hits = match(dets, everyone)  # detections of barely visible instances are neither hits nor false alarms
             found = dict(zip(map(id, scene.gt[im_id]), hits, strict=True))
             boxes = [(g.obj_id, dets[found[id(g)]].box) for g, _ in insts if found[id(g)] is not None]

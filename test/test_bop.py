@@ -80,6 +80,8 @@ def test_scene_round_trip_keeps_metres(tmp_path, rng):
     np.testing.assert_allclose(scene.gt[2][1].t, gt[2][1].t)
     np.testing.assert_allclose(scene.cameras[0], LMO_K)
     assert scene.boxes(1) == [(10, 20, 30, 40)] * 2
+    pairs = scene.instances(2)
+    assert [g.obj_id for g, _ in pairs] == [1, 5] and [info.visib_fract for _, info in pairs] == [0.5, 0.5]
 
 
 def test_boxes_from_models_when_gt_info_is_absent(tmp_path, rng):
@@ -91,6 +93,8 @@ def test_boxes_from_models_when_gt_info_is_absent(tmp_path, rng):
     assert boxes[1] == bbox_from_model(LMO_K, gt[0][1].R, gt[0][1].t, pts[5])
     with pytest.raises(BopFormatError, match="scene_gt_info"):
         scene.boxes(0)
+    with pytest.raises(BopFormatError, match="scene_gt_info"):  # visibility has no fallback
+        scene.instances(0)
 
 
 def test_rgb_reads_rgb_and_refuses_an_unreadable_file(tmp_path, rng):

@@ -360,6 +360,12 @@ class BopScene:
         """The image as HxWx3 uint8 RGB; an unreadable file is a BopFormatError, not a None further on."""
         return cv2.cvtColor(read_bgr(self.rgb_path(im_id)), cv2.COLOR_BGR2RGB)
 
+    def instances(self, im_id: int) -> list[tuple[GTInstance, GTInfo]]:
+        """Each GT instance of the image with its scene_gt_info.json entry (boxes, visibility), in file order."""
+        if self.gt_info is None:
+            raise BopFormatError(f"{self.root}: scene_gt_info.json is needed for the instances' boxes and visibility")
+        return list(zip(self.gt[im_id], self.gt_info[im_id], strict=True))
+
     def boxes(self, im_id: int, model_points: dict[int, np.ndarray] | None = None) -> list[tuple[int, int, int, int]]:
         """bbox_obj of every instance: from scene_gt_info.json, else projected from `model_points` (metres)."""
         if self.gt_info is not None:

@@ -73,7 +73,7 @@ class AxisCropDataset(Dataset):
         self.scenes: dict[Path, BopScene] = {}
         for scene, im_id in bop_frames(roots):
             self.scenes[scene.root] = scene
-            for k, (g, info) in enumerate(zip(scene.gt[im_id], scene.gt_info[im_id], strict=True)):
+            for k, (g, info) in enumerate(scene.instances(im_id)):
                 if g.obj_id in self.objects and info.visib_fract >= min_visib:
                     self.items.append(InstanceRef(scene.root, im_id, k, g.obj_id, info.bbox_obj, info.visib_fract))
 

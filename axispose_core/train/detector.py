@@ -121,13 +121,8 @@ def detector_loss(model: Localiser, batch: dict[str, torch.Tensor], cfg: Detecto
 
 
 def frame_instances(scene: BopScene, im_id: int, obj_ids: tuple[int, ...]) -> list[tuple[int, tuple[int, int, int, int], float]]:
-    """The frame's (obj_id, bbox_obj, visib_fract) instances of the given objects, as `frame_outcome` takes them
-    (a scene from `bop_frames`, which refuses one without scene_gt_info.json)."""
-    return [
-        (g.obj_id, info.bbox_obj, info.visib_fract)
-        for g, info in zip(scene.gt[im_id], scene.gt_info[im_id], strict=True)
-        if g.obj_id in obj_ids
-    ]
+    """The frame's (obj_id, bbox_obj, visib_fract) instances of the given objects, as `frame_outcome` takes them."""
+    return [(g.obj_id, info.bbox_obj, info.visib_fract) for g, info in scene.instances(im_id) if g.obj_id in obj_ids]
 
 
 def frame_outcome(

@@ -34,7 +34,7 @@ def contact_sheet(data_dir: str | Path, out: str | Path, count: int = 16, column
         for im_id in scene.image_ids:
             img = read_bgr(scene.rgb_path(im_id))
             K = scene.cameras[im_id]
-            for g, info in zip(scene.gt[im_id], scene.gt_info[im_id], strict=True):
+            for g, info in scene.instances(im_id):
                 if info.visib_fract > 0:
                     x, y, w, h = info.bbox_visib
                     cv2.rectangle(img, (x, y), (x + w - 1, y + h - 1), (255, 255, 255), 1)
