@@ -80,12 +80,17 @@ def render_axis_keypoints(keypoints: np.ndarray, size: int | tuple[int, int], li
     kp = np.asarray(keypoints, dtype=np.float64)
     if kp.shape != (4, 2) or not np.all(np.isfinite(kp)):
         raise ValueError(f"keypoints must be finite (4,2), got {kp.shape}")
-    ys, xs = np.mgrid[0:h, 0:w].astype(np.float64)
-    px = np.stack([xs, ys], axis=-1)
-    img = np.empty((h, w, 3), dtype=np.float32)
+    img = np.zeros((h, w, 3), dtype=np.float32)
+    reach = 0.5 * line_width + 0.5  # beyond this distance from the segment the profile is 0
     for c in range(3):
-        d = _segment_distance_np(px, kp[0], kp[c + 1])
-        img[..., c] = np.clip(0.5 * line_width + 0.5 - d, 0.0, 1.0)
+        a, b = kp[0], kp[c + 1]
+        lo = np.maximum(np.ceil(np.minimum(a, b) - reach), 0).astype(int)
+        hi = np.minimum(np.floor(np.maximum(a, b) + reach), (w - 1, h - 1)).astype(int)
+        if np.any(hi < lo):
+            continue
+        ys, xs = np.mgrid[lo[1] : hi[1] + 1, lo[0] : hi[0] + 1].astype(np.float64)
+        d = _segment_distance_np(np.stack([xs, ys], axis=-1), a, b)
+        img[lo[1] : hi[1] + 1, lo[0] : hi[0] + 1, c] = np.clip(0.5 * line_width + 0.5 - d, 0.0, 1.0)
     return img
 
 

@@ -65,6 +65,26 @@ def load_ply(path: str | Path, units: float = MM) -> Mesh:
     return Mesh(vertices, faces, colors, normals)
 
 
+def ply_vertex_properties(path: str | Path) -> tuple[str, ...]:
+    """The vertex properties a PLY header declares (x, y, z, red, ...), read without parsing the body."""
+    names, in_vertex = [], False
+    try:
+        with open(path, "rb") as f:
+            for raw in f:
+                words = raw.decode("ascii", "replace").split()
+                if not words or words[0] == "end_header":
+                    if words:
+                        break
+                    continue
+                if words[0] == "element":
+                    in_vertex = len(words) > 1 and words[1] == "vertex"
+                elif words[0] == "property" and in_vertex:
+                    names.append(words[-1])
+    except OSError as err:
+        raise BopFormatError(f"{path}: cannot read PLY ({err})") from err
+    return tuple(names)
+
+
 def model_path(models_dir: str | Path, obj_id: int) -> Path:
     """BOP model file name of an object id."""
     return Path(models_dir) / f"obj_{obj_id:06d}.ply"

@@ -10,6 +10,19 @@ from pathlib import Path
 from axispose_core.checkpoint import config_from_dict
 from axispose_core.pose_sampling import LMO_K
 
+PHOTOS = (
+    "astronaut.png", "brick.png", "camera.png", "chelsea.png", "coffee.png", "coins.png", "color.png", "grass.png",
+    "gravel.png", "hubble_deep_field.jpg", "ihc.png", "moon.png", "motorcycle_left.png", "motorcycle_right.png",
+    "retina.jpg", "rocket.jpg", "text.png",
+)  # fmt: skip
+"""scikit-image's bundled photographs (not page.png: its ICC profile makes libpng warn on every read)."""
+ALL_PHOTOS = (*PHOTOS, "cell.png", "clock_motion.png", "matplotlib:mpl-data/sample_data/grace_hopper.jpg")
+"""Every usable photograph of the installed packages: PHOTOS, two more of scikit-image's, matplotlib's portrait
+(logo.png is a drawing on an alpha background; the rest of the packages' images are plots and icons)."""
+TEXTURES = ("noise", "stripes", "checkers", "gradient")
+"""The procedural backgrounds of the frame recipe; `ALL_TEXTURES` adds printed markers and clutter."""
+ALL_TEXTURES = (*TEXTURES, "markers", "clutter")
+
 
 @dataclass(frozen=True)
 class SceneConfig:
@@ -31,14 +44,33 @@ class RandomizationConfig:
     """Domain randomisation of appearance."""
 
     photo_background_prob: float = 0.6
+    photos: tuple[str, ...] = PHOTOS
+    """Background photographs by file name (randomize.py: scikit-image's, or 'package:path')."""
+    photo_scale: tuple[float, float] = (0.4, 1.0)
+    """Side of the photograph's random crop, as a fraction of its height."""
+    textures: tuple[str, ...] = TEXTURES
+    """Procedural backgrounds to draw from: noise, stripes, checkers, gradient, markers, clutter."""
     light_intensity: tuple[float, float] = (0.6, 1.4)
     light_color_jitter: float = 0.15
     ambient: tuple[float, float] = (0.15, 0.6)
+    specular: tuple[float, float] = (0.0, 0.0)
+    """Strength of the Blinn-Phong highlight (0, 0: matte, and no number drawn)."""
+    shininess: tuple[float, float] = (5.0, 60.0)
     object_brightness: tuple[float, float] = (0.75, 1.25)
     object_color_jitter: float = 0.08
     blur_prob: float = 0.3
     blur_sigma: tuple[float, float] = (0.3, 1.5)
     noise_std: tuple[float, float] = (0.0, 0.03)
+    noise_shot: float = 0.0
+    """Extra noise in the dark: std x (1 + noise_shot x (1 - brightness))."""
+    motion_blur_prob: float = 0.0
+    motion_blur_px: tuple[float, float] = (2.0, 8.0)
+    white_balance: float = 0.0
+    """Per-channel gain jitter (std) of the camera's white balance."""
+    gamma: tuple[float, float] = (0.0, 0.0)
+    """Exponent range of the camera's tone curve (0, 0: linear, and no number drawn)."""
+    contrast: float = 0.0
+    """Contrast and saturation jitter (std of the gains about 1; 0: none, and no number drawn)."""
     jpeg_quality: tuple[int, int] = (60, 95)
     cutout_prob: float = 0.3
     cutouts: tuple[int, int] = (1, 3)
@@ -66,3 +98,82 @@ class SynthConfig:
     @classmethod
     def load(cls, path: str | Path) -> SynthConfig:
         return config_from_dict(cls, json.loads(Path(path).read_text()), str(path))
+
+
+STREAM_RANDOMIZATION = RandomizationConfig(
+    photo_background_prob=0.5,
+    photos=ALL_PHOTOS,
+    textures=ALL_TEXTURES,
+    specular=(0.0, 0.5),
+    blur_sigma=(0.3, 1.2),
+    noise_std=(0.0, 0.04),
+    noise_shot=1.0,
+    motion_blur_prob=0.15,
+    motion_blur_px=(2.0, 7.0),
+    white_balance=0.06,
+    gamma=(0.8, 1.25),
+    contrast=0.12,
+    jpeg_quality=(50, 95),
+    cutout_prob=0.0,
+)
+"""The crop stream's appearance: every photograph and texture, highlights, and the whole camera model on."""
+
+
+@dataclass(frozen=True)
+class Framing:
+    """Where the crop sits on the object: the estimator's square around the amodal box (`pad`), shifted and
+    scaled as the shipped localiser's crops are, by visibility band (edges `visib_edges`). Measured on 600
+    held-out frames (`bench/localiser_framing.py`, bench/results/localiser_framing.json): the centre error per
+    axis in crop sides and the log side ratio are drawn as Student-t of `dof` degrees of freedom (the measured
+    tails are about twice a Gaussian's) with the measured medians and robust (1.4826 MAD) spreads."""
+
+    pad: float = 1.25
+    visib_edges: tuple[float, ...] = (0.5, 0.8)
+    centre_std: tuple[float, ...] = (0.0719, 0.0410, 0.0145)
+    scale_median: tuple[float, ...] = (-0.0602, -0.0290, -0.0069)
+    scale_std: tuple[float, ...] = (0.1281, 0.0958, 0.0514)
+    dof: float = 3.0
+
+
+@dataclass(frozen=True)
+class StreamConfig:
+    """The crop stream (`data/synth/stream.py`): object crops rendered at their own resolution, sample i from
+    (seed, i). The frame the crops are cut from is `width` x `height` through `K`; poses cover the LM-O range."""
+
+    size: int = 64
+    objects: tuple[int, ...] = ()
+    seed: int = 0
+    width: int = 640
+    height: int = 480
+    K: tuple[float, ...] = tuple(LMO_K.ravel().tolist())
+    distance: tuple[float, float] = (0.35, 1.5)
+    margin: float = 0.05
+    """The object origin projects inside the frame less this fraction of its size on each side."""
+    upright_prob: float = 0.5
+    elevation_deg: tuple[float, float] = (-14.0, 89.0)
+    camera_roll_deg: tuple[float, float] = (-30.0, 30.0)
+    visib: tuple[float, float] = (0.1, 1.0)
+    """Range of the target's visible fraction (visible / silhouette pixels in the crop); every sample meets it."""
+    occluded_prob: float = 0.7
+    """Share of samples with an occluder over the target, visible fraction uniform in `visib` (the rest: 1)."""
+    clutter_prob: float = 0.5
+    """Share of the unoccluded samples with an object in front beside the target."""
+    neighbours: tuple[int, int] = (0, 2)
+    """Objects behind the target, partly in the crop."""
+    object_prob: float = 0.6
+    """An occluder or neighbour is another object of the set with this probability, else a primitive."""
+    primitive_size: tuple[float, float] = (0.03, 0.15)
+    """Diameter range (m) of the primitive neighbours."""
+    mesh_cell: float = 2.0
+    """Meshes are decimated to about this many crop pixels per vertex at the target's scale (0: full meshes)."""
+    framing: Framing = field(default_factory=Framing)
+    randomization: RandomizationConfig = field(default_factory=lambda: STREAM_RANDOMIZATION)
+
+    def __post_init__(self) -> None:
+        if not (isinstance(self.size, int) and self.size % 16 == 0 and 32 <= self.size <= 512):
+            raise ValueError(f"crop size must be a multiple of 16 from 32 to 512 (the networks halve it four times), got {self.size}")
+        lo, hi = self.visib
+        if not 0.0 < lo <= hi <= 1.0:
+            raise ValueError(f"visib range must satisfy 0 < lo <= hi <= 1, got {self.visib}")
+        if len(self.framing.centre_std) != len(self.framing.visib_edges) + 1:
+            raise ValueError("framing: one centre_std, scale_median and scale_std per visibility band")

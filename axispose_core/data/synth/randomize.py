@@ -1,7 +1,10 @@
 """Appearance randomisation: backgrounds, lights, object colour, and the camera's blur, noise and occluders.
 
-Photographs come from scikit-image's bundled sample images (real photos shipped inside a registry package:
-nothing is downloaded); procedural backgrounds are smooth noise, stripes, checkers and gradients.
+Photographs come from packages the project installs (scikit-image's sample images, matplotlib's sample data:
+real photos shipped inside registry packages; nothing is downloaded); procedural backgrounds are smooth noise,
+stripes, checkers and gradients, and printed markers and clutter where the configuration names them. Both
+`axispose synth` (full frames) and the crop stream (object crops) draw from here. Every knob that the frame
+recipe leaves off draws no random number, so turning a knob on in one recipe never changes another's frames.
 """
 
 from __future__ import annotations
@@ -12,35 +15,74 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from axispose_core.data.synth.config import RandomizationConfig
+from axispose_core.data.synth.config import PHOTOS, TEXTURES, RandomizationConfig
 from axispose_core.data.synth.raster import Light
 
-PHOTOS = (
-    "astronaut.png", "brick.png", "camera.png", "chelsea.png", "coffee.png", "coins.png", "color.png", "grass.png",
-    "gravel.png", "hubble_deep_field.jpg", "ihc.png", "moon.png", "motorcycle_left.png", "motorcycle_right.png",
-    "retina.jpg", "rocket.jpg", "text.png",
-)  # fmt: skip
-"""Bundled photographs used as backgrounds (not page.png: its ICC profile makes libpng warn on every read)."""
+
+def _photo_path(name: str) -> Path:
+    """'file' is in scikit-image's data folder; 'package:relative/path' inside an installed package."""
+    package, _, rel = name.rpartition(":")
+    module = __import__(package or "skimage")
+    return Path(module.__file__).parent / (rel if package else Path("data") / rel)
 
 
-@lru_cache(maxsize=1)
-def photographs() -> tuple[np.ndarray, ...]:
-    """The sample photographs as RGB float32 in [0,1] (grey ones as three equal channels)."""
-    import skimage  # the photos ship in its wheel; only their files are used
-
-    folder = Path(skimage.__file__).parent / "data"
+@lru_cache(maxsize=4)
+def photographs(names: tuple[str, ...] = PHOTOS) -> tuple[np.ndarray, ...]:
+    """The named photographs as RGB float32 in [0,1] (grey ones as three equal channels)."""
     out = []
-    for name in PHOTOS:
-        img = cv2.imread(str(folder / name), cv2.IMREAD_COLOR)
+    for name in names:
+        path = _photo_path(name)
+        img = cv2.imread(str(path), cv2.IMREAD_COLOR)
         if img is None:
-            raise FileNotFoundError(f"background photograph {folder / name} is missing (is scikit-image installed?)")
+            raise FileNotFoundError(f"background photograph {path} is missing (is its package installed?)")
         out.append(cv2.cvtColor(img, cv2.COLOR_BGR2RGB).astype(np.float32) / 255.0)
     return tuple(out)
 
 
-def _procedural(rng: np.random.Generator, width: int, height: int) -> np.ndarray:
-    kind = rng.integers(4)
-    if kind == 0:  # smooth multi-scale colour noise
+def _markers(rng: np.random.Generator, width: int, height: int) -> np.ndarray:
+    """Printed fiducials on paper: black-bordered random bit grids (ArUco-like) on a light sheet, turned and scaled."""
+    paper = rng.uniform(0.75, 1.0) * np.clip(1 + rng.normal(0, 0.03, 3), 0.9, 1.1)
+    img = np.ones((height, width, 3), np.float32) * paper.astype(np.float32)
+    side = rng.uniform(0.15, 0.6) * max(width, height)
+    for _ in range(int(rng.integers(1, 5))):
+        n = int(rng.integers(4, 7))
+        bits = np.zeros((n + 2, n + 2), np.float32)
+        bits[1:-1, 1:-1] = rng.integers(0, 2, (n, n))
+        tile = np.pad(bits, 1, constant_values=1.0)  # white quiet zone
+        A = cv2.getRotationMatrix2D(((n + 3) / 2, (n + 3) / 2), rng.uniform(0, 360), side / (n + 4))
+        A[:, 2] += rng.uniform(-0.3, 1.0, 2) * (width, height)
+        ink = cv2.warpAffine(tile, A, (width, height), flags=cv2.INTER_NEAREST, borderValue=-1.0)
+        img[ink == 0.0] = rng.uniform(0.0, 0.15)
+        img[ink == 1.0] = paper
+    return img
+
+
+def _clutter(rng: np.random.Generator, width: int, height: int) -> np.ndarray:
+    """Dead-leaves clutter: many overlapping rectangles, ellipses and strokes of random colour and size."""
+    img = np.ones((height, width, 3), np.float32) * rng.uniform(0, 1, 3).astype(np.float32)
+    scale = max(width, height)
+    for _ in range(int(rng.integers(15, 50))):
+        colour = tuple(float(c) for c in rng.uniform(0, 1, 3))
+        c = (int(rng.uniform(0, width)), int(rng.uniform(0, height)))
+        r = np.maximum(1, rng.uniform(0.02, 0.3, 2) * scale).astype(int)
+        kind = rng.integers(3)
+        if kind == 0:
+            cv2.rectangle(img, (c[0] - r[0], c[1] - r[1]), (c[0] + r[0], c[1] + r[1]), colour, -1)
+        elif kind == 1:
+            cv2.ellipse(img, c, (int(r[0]), int(r[1])), rng.uniform(0, 180), 0, 360, colour, -1)
+        else:
+            end = (int(rng.uniform(0, width)), int(rng.uniform(0, height)))
+            cv2.line(img, c, end, colour, max(1, int(r[0] / 8)), cv2.LINE_AA)
+    return img
+
+
+def _procedural(rng: np.random.Generator, width: int, height: int, kinds: tuple[str, ...] = TEXTURES) -> np.ndarray:
+    kind = kinds[int(rng.integers(len(kinds)))]
+    if kind == "markers":
+        return _markers(rng, width, height)
+    if kind == "clutter":
+        return _clutter(rng, width, height)
+    if kind == "noise":  # smooth multi-scale colour noise
         img = np.zeros((height, width, 3), np.float32)
         for cells in (4, 16, 64):
             small = rng.uniform(0, 1, (max(2, cells * height // width), cells, 3)).astype(np.float32)
@@ -50,9 +92,9 @@ def _procedural(rng: np.random.Generator, width: int, height: int) -> np.ndarray
     a, b = rng.uniform(0, 1, 3), rng.uniform(0, 1, 3)
     angle = rng.uniform(0, np.pi)
     proj = xs * np.cos(angle) + ys * np.sin(angle)
-    if kind == 1:  # stripes
+    if kind == "stripes":
         mix = 0.5 + 0.5 * np.sin(proj * 2 * np.pi / rng.uniform(8, 80))
-    elif kind == 2:  # checkers
+    elif kind == "checkers":
         p = rng.uniform(10, 80)
         mix = ((np.floor(xs / p) + np.floor(ys / p)) % 2).astype(np.float32)
     else:  # gradient
@@ -60,12 +102,13 @@ def _procedural(rng: np.random.Generator, width: int, height: int) -> np.ndarray
     return (a[None, None] * mix[..., None] + b[None, None] * (1 - mix[..., None])).astype(np.float32)
 
 
-def background(rng: np.random.Generator, cfg: RandomizationConfig, width: int, height: int) -> np.ndarray:
-    """A width x height RGB background: a random crop of a photograph (flipped, tinted) or a procedural texture."""
+def background(rng: np.random.Generator, cfg: RandomizationConfig, width: int, height: int, zoom: float = 1.0) -> np.ndarray:
+    """A width x height RGB background: a random crop of a photograph (flipped, tinted) or a procedural texture.
+    `zoom` < 1 shows that part of a frame's background: the photograph's crop shrinks by it."""
     if rng.uniform() < cfg.photo_background_prob:
-        photo = photographs()[rng.integers(len(PHOTOS))]
+        photo = photographs(cfg.photos)[rng.integers(len(cfg.photos))]
         h, w = photo.shape[:2]
-        scale = rng.uniform(0.4, 1.0)
+        scale = min(1.0, rng.uniform(*cfg.photo_scale) * zoom)
         ch, cw = max(8, int(h * scale)), max(8, int(min(w, h * width / height) * scale))
         y0, x0 = rng.integers(0, h - ch + 1), rng.integers(0, w - cw + 1)
         img = cv2.resize(photo[y0 : y0 + ch, x0 : x0 + cw], (width, height), interpolation=cv2.INTER_LINEAR)
@@ -73,7 +116,7 @@ def background(rng: np.random.Generator, cfg: RandomizationConfig, width: int, h
             img = img[:, ::-1]
         img = img * rng.uniform(0.8, 1.2, 3).astype(np.float32)
     else:
-        img = _procedural(rng, width, height)
+        img = _procedural(rng, width, height, cfg.textures)
     return np.clip(img, 0, 1).astype(np.float32)
 
 
@@ -82,7 +125,10 @@ def light(rng: np.random.Generator, cfg: RandomizationConfig) -> Light:
     d = rng.normal(size=3)
     d[2] = abs(d[2]) + 0.3  # travelling away from the camera: lights the visible side
     color = rng.uniform(*cfg.light_intensity) * np.clip(1 + rng.normal(0, cfg.light_color_jitter, 3), 0.5, 1.5)
-    return Light(d / np.linalg.norm(d), color, float(rng.uniform(*cfg.ambient)))
+    ambient = float(rng.uniform(*cfg.ambient))
+    if cfg.specular[1] <= 0:
+        return Light(d / np.linalg.norm(d), color, ambient)
+    return Light(d / np.linalg.norm(d), color, ambient, float(rng.uniform(*cfg.specular)), float(rng.uniform(*cfg.shininess)))
 
 
 def object_tint(rng: np.random.Generator, cfg: RandomizationConfig) -> np.ndarray:
@@ -118,15 +164,51 @@ def cutouts(rng: np.random.Generator, cfg: RandomizationConfig, image: np.ndarra
     return mask.astype(bool)
 
 
-def camera_effects(rng: np.random.Generator, cfg: RandomizationConfig, image: np.ndarray) -> np.ndarray:
-    """Optical blur and sensor noise; JPEG artefacts come from saving with a random quality."""
+def camera_effects(rng: np.random.Generator, cfg: RandomizationConfig, image: np.ndarray, scale: float = 1.0) -> np.ndarray:
+    """The camera between scene and pixels: optical and motion blur, white balance, contrast and saturation,
+    gamma, sensor noise (more of it in the dark where `noise_shot` says so); JPEG artefacts come from saving
+    (`jpeg` for in-memory images). `scale`: image pixels per frame pixel, for blur lengths given in frame pixels."""
     if rng.uniform() < cfg.blur_prob:
-        image = cv2.GaussianBlur(image, (0, 0), rng.uniform(*cfg.blur_sigma))
+        image = cv2.GaussianBlur(image, (0, 0), max(0.05, scale * rng.uniform(*cfg.blur_sigma)))
+    if cfg.motion_blur_prob > 0 and rng.uniform() < cfg.motion_blur_prob:
+        image = motion_blur(image, scale * rng.uniform(*cfg.motion_blur_px), rng.uniform(0, 180))
+    if cfg.white_balance > 0:
+        image = image * np.clip(1 + rng.normal(0, cfg.white_balance, 3), 0.6, 1.4).astype(np.float32)
+    if cfg.contrast > 0:
+        grey = image.mean(axis=-1, keepdims=True)
+        image = grey + (image - grey) * np.float32(np.clip(1 + rng.normal(0, 2 * cfg.contrast), 0.0, 2.0))
+        mean = float(grey.mean())
+        image = mean + (image - mean) * np.float32(np.clip(1 + rng.normal(0, cfg.contrast), 0.5, 1.5))
+    if cfg.gamma[1] > 0:
+        image = np.clip(image, 0, 1) ** np.float32(rng.uniform(*cfg.gamma))
     std = rng.uniform(*cfg.noise_std)
     if std > 0:
         # OpenCV's generator, seeded from ours, is several times faster than NumPy's for a full frame.
         cv2.setRNGSeed(int(rng.integers(2**31)))
         noise = np.empty(image.shape, np.float32)
         cv2.randn(noise, 0.0, float(std))
+        if cfg.noise_shot > 0:  # read noise plus a term that grows as the signal falls (gain in the dark)
+            noise *= 1 + cfg.noise_shot * (1 - np.clip(image.mean(axis=-1, keepdims=True), 0, 1))
         image = image + noise
     return np.clip(image, 0, 1)
+
+
+def motion_blur(image: np.ndarray, length: float, angle_deg: float) -> np.ndarray:
+    """Blur along a straight path of `length` pixels at `angle_deg` (a line kernel, normalised)."""
+    if length < 1.0:
+        return image
+    k = max(3, int(np.ceil(length)) | 1)
+    kernel = np.zeros((k, k), np.float32)
+    c = (k - 1) / 2
+    dx, dy = 0.5 * length * np.cos(np.radians(angle_deg)), 0.5 * length * np.sin(np.radians(angle_deg))
+    cv2.line(kernel, (round(16 * (c - dx)), round(16 * (c - dy))), (round(16 * (c + dx)), round(16 * (c + dy))), 1.0, 1, cv2.LINE_AA, 4)
+    return cv2.filter2D(image, -1, kernel / max(float(kernel.sum()), 1e-6), borderType=cv2.BORDER_REFLECT)
+
+
+def jpeg(image: np.ndarray, quality: int) -> np.ndarray:
+    """`image` (float RGB in [0,1]) through a JPEG encode and decode at `quality`, as a saved and reloaded frame."""
+    bgr = (np.clip(image[..., ::-1], 0, 1) * 255 + 0.5).astype(np.uint8)
+    ok, buf = cv2.imencode(".jpg", bgr, [cv2.IMWRITE_JPEG_QUALITY, int(quality)])
+    if not ok:
+        raise RuntimeError("OpenCV could not encode a JPEG")
+    return cv2.imdecode(buf, cv2.IMREAD_COLOR)[..., ::-1].astype(np.float32) / 255.0

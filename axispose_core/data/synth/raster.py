@@ -35,11 +35,14 @@ class RenderMesh:
 
 @dataclass(frozen=True)
 class Light:
-    """A directional light (camera frame, pointing from the light towards the scene) plus ambient."""
+    """A directional light (camera frame, pointing from the light towards the scene) plus ambient, and a
+    Blinn-Phong highlight of strength `specular` (0: matte) and exponent `shininess`."""
 
     direction: np.ndarray
     color: np.ndarray
     ambient: float
+    specular: float = 0.0
+    shininess: float = 16.0
 
 
 @dataclass
@@ -51,6 +54,29 @@ class RenderResult:
     depth: np.ndarray
     instance: np.ndarray
     full: np.ndarray
+
+
+def decimate(mesh: RenderMesh, cell: float) -> RenderMesh:
+    """Vertex clustering on a grid of `cell` metres: each occupied cell becomes one vertex with the mean position,
+    colour and normal of its vertices; faces that collapse are dropped, duplicates kept once. A cell under a
+    pixel leaves the picture as it was while the per-face work of `render` shrinks with the face count."""
+    if not cell > 0:
+        raise ValueError(f"decimation cell must be positive, got {cell}")
+    key = np.floor((mesh.vertices - mesh.vertices.min(axis=0)) / cell).astype(np.int64)
+    _, inverse, counts = np.unique(key, axis=0, return_inverse=True, return_counts=True)
+    inverse = inverse.ravel()
+
+    def mean(values: np.ndarray) -> np.ndarray:
+        out = np.zeros((len(counts), values.shape[1]))
+        np.add.at(out, inverse, values)
+        return out / counts[:, None]
+
+    normals = mean(mesh.normals)
+    normals /= np.maximum(np.linalg.norm(normals, axis=1, keepdims=True), 1e-12)
+    faces = inverse[mesh.faces]
+    faces = faces[(faces[:, 0] != faces[:, 1]) & (faces[:, 1] != faces[:, 2]) & (faces[:, 0] != faces[:, 2])]
+    _, first = np.unique(np.sort(faces, axis=1), axis=0, return_index=True)
+    return RenderMesh(mean(mesh.vertices), faces[np.sort(first)], mean(mesh.colors), normals)
 
 
 def vertex_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
@@ -154,6 +180,16 @@ def _splat(mesh: RenderMesh, R: np.ndarray, t: np.ndarray, K: np.ndarray, width:
     return _Samples(pix, p[:, 2], np.asarray(offsets), groups)
 
 
+def _highlight(light: Light, nor: np.ndarray, lam: np.ndarray, px: np.ndarray, K: np.ndarray, width: int) -> np.ndarray:
+    """Blinn-Phong specular intensity at the pixels `px` (flat indices) with unit normals `nor` (camera frame)."""
+    v, u = np.divmod(px, width)
+    y = ((v - K[1, 2]) / K[1, 1]).astype(np.float32)
+    ray = np.column_stack([((u - K[0, 2]) / K[0, 0]).astype(np.float32) - np.float32(K[0, 1] / K[0, 0]) * y, y, np.ones_like(y)])
+    half = -light.direction.astype(np.float32)[None, :] - ray / np.linalg.norm(ray, axis=1, keepdims=True)  # to light + to eye
+    cos = np.einsum("nc,nc->n", nor.astype(np.float32), half) / np.maximum(np.linalg.norm(half, axis=1), 1e-12)
+    return light.specular * np.clip(cos, 0.0, 1.0) ** np.float32(light.shininess) * (lam > 0)
+
+
 def render(meshes: list[tuple[RenderMesh, np.ndarray, np.ndarray]], K: np.ndarray, width: int, height: int, light: Light) -> RenderResult:
     """Render posed meshes [(mesh, R, t), ...] through K into a width x height image."""
     n_pix = height * width
@@ -187,6 +223,8 @@ def render(meshes: list[tuple[RenderMesh, np.ndarray, np.ndarray]], K: np.ndarra
         lam = np.clip(-(nor @ light.direction), 0.0, 1.0)
         shade = (light.ambient + (1.0 - light.ambient) * lam)[:, None] * light.color[None, :]
         rgb[px] = np.clip(col * shade, 0.0, 1.0)
+        if light.specular > 0:
+            rgb[px] = np.clip(rgb[px] + _highlight(light, nor, lam, px, K, width)[:, None] * light.color[None, :], 0.0, 1.0)
     return RenderResult(
         rgb[:n_pix].reshape(height, width, 3),
         depth[:n_pix].reshape(height, width),

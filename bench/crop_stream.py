@@ -1,0 +1,71 @@
+"""Throughput of the crop stream alone: samples per second through a DataLoader with W worker processes.
+
+Each worker renders whole samples (`CropStreamDataset`, batches of 32 collated as training would take them);
+the first batches, while workers start and load their meshes, are not timed. Prints a line and writes JSON.
+
+    python bench/crop_stream.py --seconds 60 --workers 2 --size 64 --json bench/results/crop_stream_64.json
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime
+import json
+import os
+import platform
+import time
+from pathlib import Path
+
+import torch
+from torch.utils.data import DataLoader
+
+from axispose_core.data.synth.config import StreamConfig
+from axispose_core.data.synth.stream import CropStream, CropStreamDataset
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--seconds", type=float, default=60.0)
+    ap.add_argument("--workers", type=int, default=2)
+    ap.add_argument("--size", type=int, default=64)
+    ap.add_argument("--batch", type=int, default=32)
+    ap.add_argument("--mesh-cell", type=float, default=None, help="override StreamConfig.mesh_cell")
+    ap.add_argument("--models", default=str(REPO.parent / "shared" / "data" / "lmo" / "models"))
+    ap.add_argument("--json", default=None)
+    args = ap.parse_args()
+    torch.set_num_threads(1)
+    cfg = StreamConfig(size=args.size) if args.mesh_cell is None else StreamConfig(size=args.size, mesh_cell=args.mesh_cell)
+    dataset = CropStreamDataset(CropStream(cfg, args.models))
+    loader = DataLoader(dataset, batch_size=args.batch, sampler=range(10**9), num_workers=args.workers,
+                        worker_init_fn=CropStreamDataset.worker_init, prefetch_factor=4 if args.workers else None)  # fmt: skip
+    it = iter(loader)
+    for _ in range(max(1, args.workers)):  # warm-up: every worker has started and delivered once
+        next(it)
+    n, start = 0, time.perf_counter()
+    while time.perf_counter() - start < args.seconds:
+        n += len(next(it)["crop"])
+    seconds = time.perf_counter() - start
+    del it
+    result = {
+        "crops_per_s": n / seconds,
+        "workers": args.workers,
+        "size": args.size,
+        "mesh_cell": cfg.mesh_cell,
+        "samples": n,
+        "seconds": seconds,
+        "cores": os.cpu_count(),
+        "machine": platform.processor() or platform.machine(),
+        "date": datetime.date.today().isoformat(),
+    }
+    print(
+        f"{result['crops_per_s']:.0f} crops/s ({n} in {seconds:.1f} s; {args.workers} workers, {args.size} px, mesh_cell {cfg.mesh_cell})"
+    )
+    if args.json:
+        Path(args.json).parent.mkdir(parents=True, exist_ok=True)
+        Path(args.json).write_text(json.dumps(result, indent=1))
+
+
+if __name__ == "__main__":
+    main()
