@@ -80,6 +80,21 @@ def _synth_preview(args: argparse.Namespace) -> int:
     return 0
 
 
+def _stream_preview(args: argparse.Namespace) -> int:
+    from axispose_core.data.bop import BopFormatError
+    from axispose_core.data.synth.config import StreamConfig
+    from axispose_core.data.synth.preview import stream_sheet
+    from axispose_core.data.synth.stream import CropStream
+
+    try:
+        stream = CropStream(StreamConfig(size=args.size, objects=tuple(args.objects), seed=args.seed), args.models)
+        print(f"wrote {stream_sheet(stream, args.out, start=args.start, count=args.count)}")
+    except (ValueError, BopFormatError) as err:
+        print(f"axispose stream-preview: {err}", file=sys.stderr)
+        return 2
+    return 0
+
+
 def _config(cls: type[C], path: str | None) -> C:
     """A training config dataclass from a YAML of its fields, or its defaults without one."""
     if not path:
@@ -335,6 +350,17 @@ def build_parser() -> argparse.ArgumentParser:
     sp.add_argument("--count", type=int, default=16)
     sp.add_argument("--tile-width", type=int, default=320, help="width of each frame in the sheet (px)")
     sp.set_defaults(func=_synth_preview)
+
+    st = sub.add_parser("stream-preview", help="contact sheet of crop-stream samples (AGM training crops) with their GT axes")
+    st.add_argument("--out", required=True, help="PNG to write")
+    st.add_argument("--models", default=str(Path(__file__).resolve().parents[2] / "shared" / "data" / "lmo" / "models"),
+                    help="BOP models folder (default: ../shared/data/lmo/models beside the clone)")  # fmt: skip
+    st.add_argument("--objects", type=_ids, default=[], help="comma-separated object ids (default: all in models_info.json)")
+    st.add_argument("--seed", type=int, default=0)
+    st.add_argument("--start", type=int, default=0, help="first sample index")
+    st.add_argument("--count", type=int, default=32)
+    st.add_argument("--size", type=int, default=64, help="crop size in pixels")
+    st.set_defaults(func=_stream_preview)
     return parser
 
 

@@ -1,6 +1,6 @@
 """Throughput of the crop stream alone: samples per second through a DataLoader with W worker processes.
 
-Each worker renders whole samples (`CropStreamDataset`, batches of 32 collated as training would take them);
+Each worker renders whole samples (`stream_loader`: batches of 32 collated as training would take them);
 the first batches, while workers start and load their meshes, are not timed. Prints a line and writes JSON.
 
     python bench/crop_stream.py --seconds 60 --workers 2 --size 64 --json bench/results/crop_stream_64.json
@@ -17,10 +17,9 @@ import time
 from pathlib import Path
 
 import torch
-from torch.utils.data import DataLoader
 
 from axispose_core.data.synth.config import StreamConfig
-from axispose_core.data.synth.stream import CropStream, CropStreamDataset
+from axispose_core.data.synth.stream import CropStream, stream_loader
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -37,10 +36,7 @@ def main() -> None:
     args = ap.parse_args()
     torch.set_num_threads(1)
     cfg = StreamConfig(size=args.size) if args.mesh_cell is None else StreamConfig(size=args.size, mesh_cell=args.mesh_cell)
-    dataset = CropStreamDataset(CropStream(cfg, args.models))
-    loader = DataLoader(dataset, batch_size=args.batch, sampler=range(10**9), num_workers=args.workers,
-                        worker_init_fn=CropStreamDataset.worker_init, prefetch_factor=4 if args.workers else None)  # fmt: skip
-    it = iter(loader)
+    it = iter(stream_loader(CropStream(cfg, args.models), args.batch, workers=args.workers))
     for _ in range(max(1, args.workers)):  # warm-up: every worker has started and delivered once
         next(it)
     n, start = 0, time.perf_counter()

@@ -57,9 +57,10 @@ class RenderResult:
 
 
 def decimate(mesh: RenderMesh, cell: float) -> RenderMesh:
-    """Vertex clustering on a grid of `cell` metres: each occupied cell becomes one vertex with the mean position,
-    colour and normal of its vertices; faces that collapse are dropped, duplicates kept once. A cell under a
-    pixel leaves the picture as it was while the per-face work of `render` shrinks with the face count."""
+    """Vertex clustering on a grid of `cell` metres: each occupied cell becomes one vertex, the one of its vertices
+    nearest their mean (a mean would pull convex surfaces in and shrink silhouettes), with their mean colour and
+    normal; faces that collapse are dropped, duplicates kept once. A cell of a pixel or two leaves the picture as
+    it was while the per-face work of `render` shrinks with the face count."""
     if not cell > 0:
         raise ValueError(f"decimation cell must be positive, got {cell}")
     key = np.floor((mesh.vertices - mesh.vertices.min(axis=0)) / cell).astype(np.int64)
@@ -73,10 +74,13 @@ def decimate(mesh: RenderMesh, cell: float) -> RenderMesh:
 
     normals = mean(mesh.normals)
     normals /= np.maximum(np.linalg.norm(normals, axis=1, keepdims=True), 1e-12)
+    gap = np.linalg.norm(mesh.vertices - mean(mesh.vertices)[inverse], axis=1)
+    order = np.lexsort((gap, inverse))
+    nearest = order[np.r_[0, np.flatnonzero(np.diff(inverse[order])) + 1]]
     faces = inverse[mesh.faces]
     faces = faces[(faces[:, 0] != faces[:, 1]) & (faces[:, 1] != faces[:, 2]) & (faces[:, 0] != faces[:, 2])]
     _, first = np.unique(np.sort(faces, axis=1), axis=0, return_index=True)
-    return RenderMesh(mean(mesh.vertices), faces[np.sort(first)], mean(mesh.colors), normals)
+    return RenderMesh(mesh.vertices[nearest], faces[np.sort(first)], mean(mesh.colors), normals)
 
 
 def vertex_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
@@ -112,20 +116,27 @@ class _Samples:
     offsets: np.ndarray
     groups: list[tuple[np.ndarray, np.ndarray, bool]]
     """(faces, weights, per_sample): per sample, or faces x lattice with the lattice repeated per face."""
+    _tables: tuple[np.ndarray, ...] | None = None
 
     def faces_and_weights(self, idx: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Face index and barycentric weights (N,3) of the samples `idx`."""
-        face = np.empty(len(idx), dtype=np.int64)
-        w = np.empty((len(idx), 3), dtype=np.float32)
+        """Face index and barycentric weights (N,3) of the samples `idx`, every group at once."""
+        if self._tables is None:
+            faces = [f for f, _, _ in self.groups]
+            weights = [w for _, w, _ in self.groups]
+            self._tables = (
+                np.concatenate(faces),
+                np.concatenate(weights).astype(np.float32),
+                np.cumsum([0] + [len(f) for f in faces[:-1]]),
+                np.cumsum([0] + [len(w) for w in weights[:-1]]),
+                np.array([1 if per_sample else len(w) for _, w, per_sample in self.groups]),
+                np.array([per_sample for _, _, per_sample in self.groups]),
+            )
+        faces, weights, face_start, weight_start, lattice, per_sample = self._tables
         g = np.searchsorted(self.offsets, idx, side="right") - 1
-        for k in np.unique(g):
-            sel = g == k
-            faces, weights, per_sample = self.groups[k]
-            local = idx[sel] - self.offsets[k]
-            if per_sample:
-                face[sel], w[sel] = faces[local], weights[local]
-            else:
-                face[sel], w[sel] = faces[local // len(weights)], weights[local % len(weights)]
+        local = idx - self.offsets[g]
+        # Per-sample groups index both tables by the sample; lattice groups by face x lattice point.
+        face = faces[face_start[g] + local // lattice[g]]
+        w = weights[weight_start[g] + np.where(per_sample[g], local, local % lattice[g])]
         return face, w
 
 
@@ -180,14 +191,18 @@ def _splat(mesh: RenderMesh, R: np.ndarray, t: np.ndarray, K: np.ndarray, width:
     return _Samples(pix, p[:, 2], np.asarray(offsets), groups)
 
 
-def _highlight(light: Light, nor: np.ndarray, lam: np.ndarray, px: np.ndarray, K: np.ndarray, width: int) -> np.ndarray:
-    """Blinn-Phong specular intensity at the pixels `px` (flat indices) with unit normals `nor` (camera frame)."""
+def _highlight(light: Light, nor: np.ndarray, px: np.ndarray, K: np.ndarray, width: int) -> np.ndarray:
+    """Blinn-Phong specular intensity at the pixels `px` (flat indices) with unit normals `nor` (camera frame),
+    all facing the light."""
     v, u = np.divmod(px, width)
     y = ((v - K[1, 2]) / K[1, 1]).astype(np.float32)
-    ray = np.column_stack([((u - K[0, 2]) / K[0, 0]).astype(np.float32) - np.float32(K[0, 1] / K[0, 0]) * y, y, np.ones_like(y)])
-    half = -light.direction.astype(np.float32)[None, :] - ray / np.linalg.norm(ray, axis=1, keepdims=True)  # to light + to eye
-    cos = np.einsum("nc,nc->n", nor.astype(np.float32), half) / np.maximum(np.linalg.norm(half, axis=1), 1e-12)
-    return light.specular * np.clip(cos, 0.0, 1.0) ** np.float32(light.shininess) * (lam > 0)
+    x = ((u - K[0, 2]) / K[0, 0]).astype(np.float32) - np.float32(K[0, 1] / K[0, 0]) * y
+    inv = 1.0 / np.sqrt(x * x + y * y + 1.0)  # unit ray towards the surface: (x, y, 1) * inv
+    d = light.direction.astype(np.float32)
+    hx, hy, hz = -d[0] - x * inv, -d[1] - y * inv, -d[2] - inv  # to the light + to the eye
+    nor = nor.astype(np.float32)
+    cos = (nor[:, 0] * hx + nor[:, 1] * hy + nor[:, 2] * hz) / np.maximum(np.sqrt(hx * hx + hy * hy + hz * hz), 1e-12)
+    return light.specular * np.clip(cos, 0.0, 1.0) ** np.float32(light.shininess)
 
 
 def render(meshes: list[tuple[RenderMesh, np.ndarray, np.ndarray]], K: np.ndarray, width: int, height: int, light: Light) -> RenderResult:
@@ -211,6 +226,7 @@ def render(meshes: list[tuple[RenderMesh, np.ndarray, np.ndarray]], K: np.ndarra
             owner_idx[smp.pix[nearest]] = nearest
     owner_mesh[n_pix] = -1
     rgb = np.zeros((n_pix + 1, 3), dtype=np.float32)
+    lit: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []  # (pixels, normals, Lambert) for the highlights
     for i, (mesh, R, _) in enumerate(meshes):
         px = np.nonzero(owner_mesh == i)[0]
         if not len(px):
@@ -223,8 +239,11 @@ def render(meshes: list[tuple[RenderMesh, np.ndarray, np.ndarray]], K: np.ndarra
         lam = np.clip(-(nor @ light.direction), 0.0, 1.0)
         shade = (light.ambient + (1.0 - light.ambient) * lam)[:, None] * light.color[None, :]
         rgb[px] = np.clip(col * shade, 0.0, 1.0)
-        if light.specular > 0:
-            rgb[px] = np.clip(rgb[px] + _highlight(light, nor, lam, px, K, width)[:, None] * light.color[None, :], 0.0, 1.0)
+        lit.append((px, nor, lam))
+    if light.specular > 0 and lit:
+        px, nor, lam = (np.concatenate(a) for a in zip(*lit, strict=True))
+        px, nor = px[lam > 0], nor[lam > 0]  # surfaces turned from the light get no highlight
+        rgb[px] = np.clip(rgb[px] + _highlight(light, nor, px, K, width)[:, None] * light.color[None, :], 0.0, 1.0)
     return RenderResult(
         rgb[:n_pix].reshape(height, width, 3),
         depth[:n_pix].reshape(height, width),

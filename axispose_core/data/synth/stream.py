@@ -31,7 +31,7 @@ from scipy.signal import fftconvolve
 from scipy.spatial import ConvexHull
 from scipy.spatial.transform import Rotation
 from scipy.stats import t as student_t
-from torch.utils.data import Dataset
+from torch.utils.data import DataLoader, Dataset
 
 from axispose_core.axis_image import axis_keypoints, render_axis_keypoints
 from axispose_core.camera import crop_intrinsics, square_around_box
@@ -46,6 +46,10 @@ from axispose_core.data.synth.scene import primitive, upright_rotation
 ATTEMPTS = 20
 """Fresh draws of one sample, from (seed, i, attempt), before giving up (a draw fails when its visible fraction
 misses the range, e.g. a small occluder cannot hide enough)."""
+LODS = 3
+"""Levels of detail per object: cells of mesh_cell crop pixels when it appears the target's usual size (the
+square of side `size` / pad), at half that size, and at a quarter; an object is drawn at the coarsest level that
+keeps its cells within mesh_cell pixels, never finer than the first (occluders up to 1.5x its size: 3 px)."""
 PRIMITIVES = 64
 """Unit-sized primitive shapes made once per stream and scaled and re-coloured per use (a convex hull per
 sample would cost as much as rendering one)."""
@@ -80,9 +84,13 @@ class CropSample:
 @dataclass(frozen=True)
 class _Model:
     spec: ObjectSpec
-    mesh: RenderMesh
+    lods: tuple[RenderMesh, ...]
+    """The mesh at LODS levels of detail (one: the full mesh, where mesh_cell is 0)."""
     hull: np.ndarray
     """Convex-hull vertices (m): the amodal box is theirs."""
+
+    def mesh(self, level: int) -> RenderMesh:
+        return self.lods[min(level, len(self.lods) - 1)]
 
 
 def _check_mesh(mesh: RenderMesh, path: Path) -> None:
@@ -113,9 +121,9 @@ class CropStream:
             mesh = load_render_mesh(models_dir, spec.obj_id, mesh_cache)
             _check_mesh(mesh, model_path(models_dir, spec.obj_id))
             hull = mesh.vertices[ConvexHull(mesh.vertices).vertices]
-            if cfg.mesh_cell > 0:  # about mesh_cell crop pixels per cell at the target's own scale
-                mesh = decimate(mesh, cfg.mesh_cell * spec.diameter * cfg.framing.pad / cfg.size)
-            self.models[spec.obj_id] = _Model(spec, mesh, hull)
+            cell = cfg.mesh_cell * spec.diameter * cfg.framing.pad / cfg.size  # metres per mesh_cell px at usual size
+            lods = tuple(decimate(mesh, cell * 2**level) for level in range(LODS)) if cfg.mesh_cell > 0 else (mesh,)
+            self.models[spec.obj_id] = _Model(spec, lods, hull)
         pool = np.random.default_rng([cfg.seed, 2**31])
         self.primitives = [primitive(pool, 1.0) for _ in range(PRIMITIVES)]
         # The t distribution's scale that gives the measured robust spread (1.4826 MAD).
@@ -150,8 +158,10 @@ class CropStream:
         log_scale = np.clip(f.scale_median[band] + rng.standard_t(f.dof) * self._t_scale * f.scale_std[band], -0.7, 0.7)
         return (cx + shift[0] * side, cy + shift[1] * side), side * float(np.exp(log_scale))
 
-    def _tinted(self, rng: np.random.Generator, obj_id: int) -> RenderMesh:
-        m = self.models[obj_id].mesh
+    def _tinted(self, rng: np.random.Generator, obj_id: int, apparent: float) -> RenderMesh:
+        """The object's mesh at the level of detail for `apparent` crop pixels across, re-tinted."""
+        level = int(np.clip(np.floor(np.log2(self.cfg.size / self.cfg.framing.pad / max(apparent, 1e-6))), 0, LODS - 1))
+        m = self.models[obj_id].mesh(level)
         return RenderMesh(m.vertices, m.faces, np.clip(m.colors * object_tint(rng, self.cfg.randomization), 0, 1), m.normals)
 
     def _primitive(self, rng: np.random.Generator, radius: float) -> RenderMesh:
@@ -160,12 +170,11 @@ class CropStream:
         colors = np.clip(p.colors - p.colors.mean(axis=0) + rng.uniform(0.05, 1.0, 3), 0, 1)
         return RenderMesh(p.vertices * radius, p.faces, colors, p.normals)
 
-    def _other(self, rng: np.random.Generator, obj_id: int) -> tuple[RenderMesh, float] | None:
-        """Another object of the set, re-tinted, with its radius; None where a primitive is to stand instead."""
+    def _other(self, rng: np.random.Generator, obj_id: int) -> int | None:
+        """Another object of the set; None where a primitive is to stand instead."""
         others = [i for i in self.models if i != obj_id]
         if others and rng.uniform() < self.cfg.object_prob:
-            other = others[int(rng.integers(len(others)))]
-            return self._tinted(rng, other), 0.5 * self.models[other].spec.diameter
+            return others[int(rng.integers(len(others)))]
         return None
 
     def _draw(self, rng: np.random.Generator) -> CropSample | None:
@@ -180,14 +189,13 @@ class CropStream:
         Kc = crop_intrinsics(self.K, center, side, S)
         lit = light(rng, rcfg)
         radius = 0.5 * model.spec.diameter
-        posed = [(self._tinted(rng, obj_id), R, t)]
+        f = 0.5 * (Kc[0, 0] + Kc[1, 1])
+        posed = [(self._tinted(rng, obj_id, 2 * radius * f / t[2]), R, t)]
         for _ in range(int(rng.integers(cfg.neighbours[0], cfg.neighbours[1] + 1))):
             other = self._other(rng, obj_id)
-            if other is None:
-                r = 0.5 * rng.uniform(*cfg.primitive_size)
-                other = self._primitive(rng, r), r
-            mesh, r = other
+            r = 0.5 * (self.models[other].spec.diameter if other is not None else rng.uniform(*cfg.primitive_size))
             z = t[2] + radius + r + rng.uniform(0.0, 0.3)
+            mesh = self._tinted(rng, other, 2 * r * f / z) if other is not None else self._primitive(rng, r)
             px = rng.uniform(-0.25, 1.25, 2) * S
             posed.append((mesh, Rotation.random(random_state=rng).as_matrix(), np.linalg.solve(Kc, [px[0], px[1], 1.0]) * z))
         res = render(posed, Kc, S, S, lit)
@@ -255,8 +263,9 @@ class CropStream:
         f = 0.5 * (Kc[0, 0] + Kc[1, 1])
         other = self._other(rng, obj_id)
         if other is not None:  # an object: its depth follows from its apparent size, and must lie in front
-            mesh, r = other
+            r = 0.5 * self.models[other].spec.diameter
             z = min(2 * r * f / apparent, z_front - r - 0.01)
+            mesh = self._tinted(rng, other, 2 * r * f / max(z, 1e-3))
         else:
             z = rng.uniform(0.35, 0.9) * z_front
             r = min(0.5 * apparent * z / f, z_front - z - 0.01)
@@ -327,7 +336,7 @@ class CropStream:
 
 class CropStreamDataset(Dataset):
     """The stream as training tensors (crop and axes in [-1, 1], channels first; object index; K', R, t; visible
-    fraction; keypoints). Index i is sample i: give DataLoader a sampler such as range(start, stop) to resume."""
+    fraction; keypoints). Index i is sample i; `stream_loader` batches it in worker processes."""
 
     def __init__(self, stream: CropStream) -> None:
         self.stream = stream
@@ -352,3 +361,22 @@ class CropStreamDataset(Dataset):
             "visib": torch.tensor(s.visib),
             "keypoints": torch.from_numpy(s.keypoints),
         }
+
+
+def stream_loader(stream: CropStream, batch_size: int, start: int = 0, stop: int | None = None, workers: int = 0) -> DataLoader:
+    """Batches of samples start, start + 1, ... (endless without `stop`), in order whatever the number of worker
+    processes, so a run resumes by starting at the samples it has used. Workers are spawned, not forked: a fork
+    of a process whose OpenCV thread pool has run can hang in the child."""
+    if batch_size < 1 or workers < 0:
+        raise ValueError(f"batch_size must be >= 1 and workers >= 0, got {batch_size} and {workers}")
+    sampler = range(start, stop if stop is not None else 2**62)
+    return DataLoader(
+        CropStreamDataset(stream),
+        batch_size=batch_size,
+        sampler=sampler,
+        num_workers=workers,
+        multiprocessing_context="spawn" if workers else None,
+        worker_init_fn=CropStreamDataset.worker_init if workers else None,
+        persistent_workers=workers > 0,
+        prefetch_factor=4 if workers else None,
+    )
