@@ -165,7 +165,8 @@ class StreamConfig:
     primitive_size: tuple[float, float] = (0.03, 0.15)
     """Diameter range (m) of the primitive neighbours."""
     mesh_cell: float = 2.0
-    """Meshes are decimated to about this many crop pixels per vertex at the target's scale (0: full meshes)."""
+    """Meshes are decimated to about this many crop pixels per cell at each object's apparent size (three levels
+    of detail, `stream.LODS`; 0: full meshes)."""
     framing: Framing = field(default_factory=Framing)
     randomization: RandomizationConfig = field(default_factory=lambda: STREAM_RANDOMIZATION)
 
