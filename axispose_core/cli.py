@@ -192,10 +192,12 @@ def _eval(args: argparse.Namespace) -> int:
             return 2
         direct = DirectEstimator.load(args.checkpoint)
         objects = [o for o in direct.model.config.objects if not args.objects or o.obj_id in args.objects]
+        notes: dict = {}
         records = evaluate(lambda image, K, boxes: [Prediction(p.R, p.t, p.ok) for p in direct.estimate(image, K, boxes)],
-                           args.data, args.models, objects, limit=args.limit, visib=tuple(args.visib), perturb=perturb)  # fmt: skip
+                           args.data, args.models, objects, limit=args.limit, visib=tuple(args.visib), perturb=perturb,
+                           notes=notes)  # fmt: skip
         config = {"checkpoint": str(args.checkpoint), "data": str(args.data), "model": DIRECT_KIND, "crops": args.crops,
-                  "visib": list(args.visib), "perturb": args.perturb}  # fmt: skip
+                  "visib": list(args.visib), "perturb": args.perturb, **notes}  # fmt: skip
         return _report(args, records, objects, config, None)
     est = Estimator.load(args.checkpoint)
     objects = [o for o in est.config.objects if not args.objects or o.obj_id in args.objects]
@@ -212,11 +214,12 @@ def _eval(args: argparse.Namespace) -> int:
             )
             return 2
         detector, counts = est.detect, {}
+    notes = {}
     records = evaluate(predict, args.data, args.models, objects, limit=args.limit, detector=detector, detection_counts=counts,
-                       visib=tuple(args.visib), perturb=perturb)  # fmt: skip
+                       visib=tuple(args.visib), perturb=perturb, notes=notes)  # fmt: skip
     config = {"checkpoint": str(args.checkpoint), "data": str(args.data), "steps": args.steps or est.config.ddim_steps,
               "guidance": est.config.guidance_scale if args.guidance is None else args.guidance, "crops": args.crops,
-              "hypotheses": args.hypotheses, "visib": list(args.visib), "perturb": args.perturb}  # fmt: skip
+              "hypotheses": args.hypotheses, "visib": list(args.visib), "perturb": args.perturb, **notes}  # fmt: skip
     return _report(args, records, objects, config, counts)
 
 
@@ -227,6 +230,12 @@ def _report(args: argparse.Namespace, records, objects, config: dict, counts: di
     report = summarize(records, objects, config, counts)
     write_report(report, args.report)
     print(format_table(report))
+    if config.get("visibility_estimated_scenes"):
+        print(
+            f"visibility estimated from the models (no scene_gt_info.json) in scene(s) {', '.join(config['visibility_estimated_scenes'])}"
+        )
+    if config.get("gt_rotations_projected"):
+        print(f"{config['gt_rotations_projected']} GT rotations were not orthonormal and were projected to the nearest rotation")
     if "spread" in report:
         q = report["spread"]
         print(f"spread vs rotation error: Spearman {q['spearman_spread_vs_rot_err']:.2f}; Reproj@15px {q['reproj_15px_all_posed']:.3f} "

@@ -1,6 +1,7 @@
 """`axispose eval`: pose metrics of an estimator on BOP scenes, as JSON, with error CDFs and a crop grid.
 
-Protocol (BOP19 / LM-O): instances with visib_fract < 0.1 are skipped (visibility from scene_gt_info.json);
+Protocol (BOP19 / LM-O): instances with visib_fract < 0.1 are skipped (visibility from scene_gt_info.json, or
+estimated from the models where a scene has none: `BopScene`);
 ADD-S replaces ADD for symmetric objects under the same keys; a pose the estimator cannot give counts as wrong
 at every threshold. With `--crops gt` the crop is the square around the GT box (the paper's protocol).
 
@@ -75,6 +76,7 @@ def evaluate(
     detection_counts: dict[int, dict[str, int]] | None = None,
     visib: tuple[float, float] = (MIN_VISIB, 1.0),
     perturb: Callable[[np.ndarray, np.random.Generator], np.ndarray] | None = None,
+    notes: dict | None = None,
 ) -> list[Record]:
     """Run `predict` on every frame's boxes (one batch per frame) and score each instance.
 
@@ -84,13 +86,21 @@ def evaluate(
     The boxes are the GT boxes, or with `detector` the detections matched to the GT instances (same object,
     IoU >= 0.5, greedy by score); an instance no detection matches counts as a pose failure, and per object
     `detection_counts` (filled in) gets the true positives, false positives and instances.
+
+    `notes` (filled in) says what the data needed: scenes whose visibility was estimated from the models (no
+    scene_gt_info.json) and GT rotations projected to the nearest rotation (`bop.read_scene_gt`).
     """
     if not MIN_VISIB <= visib[0] <= visib[1]:
         raise ValueError(f"visib must be a band ({MIN_VISIB} <= low <= high), got {visib}")
     specs = {o.obj_id: o for o in objects}
     points = {i: load_ply(model_path(models_dir, i)).vertices for i in specs}
     records: list[Record] = []
-    for scene, im_id in tqdm(bop_frames([data]), desc="eval", disable=not progress):
+    frames = bop_frames([data], models_dir)
+    if notes is not None:
+        scenes = {scene.root: scene for scene, _ in frames}.values()
+        notes["visibility_estimated_scenes"] = sorted(s.root.name for s in scenes if s.visibility_estimated)
+        notes["gt_rotations_projected"] = sum(s.rotations_projected for s in scenes)
+    for scene, im_id in tqdm(frames, desc="eval", disable=not progress):
         pairs = scene.instances(im_id)
         insts = [(g, info) for g, info in pairs if g.obj_id in specs and visib[0] <= info.visib_fract <= visib[1]]
         if not insts:

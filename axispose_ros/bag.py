@@ -138,7 +138,7 @@ def make_bag(
     out = Path(out)
     if out.exists():
         raise FileExistsError(f"{out} exists; rosbag2 writers refuse to overwrite a bag")
-    scene = BopScene(Path(scene_dir))
+    scene = BopScene(Path(scene_dir), models_dir)  # boxes and visibility from the models if the scene has no gt_info
     specs = {o.obj_id: o for o in objects}
     im_ids = scene.image_ids[:limit] if limit else scene.image_ids
     frames = instances = 0
@@ -164,11 +164,10 @@ def make_bag(
             except BopFormatError as err:
                 raise BagError(str(err)) from err
             h, w = rgb.shape[:2]
-            infos = scene.gt_info[im_id] if scene.gt_info is not None else [None] * len(scene.gt[im_id])
-            boxes = scene.boxes(im_id)
-            for g, info, box in zip(scene.gt[im_id], infos, boxes, strict=True):
-                if g.obj_id not in specs or (info is not None and info.visib_fract < MIN_VISIB):
+            for g, info in scene.instances(im_id):
+                if g.obj_id not in specs or info.visib_fract < MIN_VISIB:
                     continue
+                box = info.bbox_obj
                 name = specs[g.obj_id].name
                 write(GT_PREFIX + name, "geometry_msgs/msg/PoseStamped", _pose_stamped(g.R, g.t, header), stamp)
                 write(ROI_PREFIX + name, "sensor_msgs/msg/RegionOfInterest", _roi(box, w, h), stamp)

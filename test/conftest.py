@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import json
 import os
+import shutil
 from pathlib import Path
 
 import numpy as np
@@ -36,3 +38,24 @@ def frames(tmp_path_factory, lmo_dir) -> Path:
 @pytest.fixture
 def rng() -> np.random.Generator:
     return np.random.default_rng(1234)
+
+
+OFF_ORTHONORMAL = np.array([[0.005, 0.003, 0.0], [0.003, 0.004, 0.002], [0.0, 0.002, 0.005]])
+"""R (I + S) with this symmetric S is as far from a rotation as the official LM-O GT: |RR^T - I| 0.0093, det 1.014."""
+
+
+@pytest.fixture
+def official_like():
+    """Makes a copy of a BOP scene folder as real data comes: no scene_gt_info.json, no masks, and GT rotations as
+    far off orthonormal as the official LM-O annotations."""
+
+    def make(src: Path, dst: Path) -> Path:
+        shutil.copytree(src, dst, ignore=shutil.ignore_patterns("mask", "mask_visib", "scene_gt_info.json"))
+        gt = json.loads((dst / "scene_gt.json").read_text())
+        for insts in gt.values():
+            for e in insts:
+                e["cam_R_m2c"] = (np.reshape(e["cam_R_m2c"], (3, 3)) @ (np.eye(3) + OFF_ORTHONORMAL)).ravel().tolist()
+        (dst / "scene_gt.json").write_text(json.dumps(gt))
+        return dst
+
+    return make

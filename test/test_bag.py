@@ -167,6 +167,19 @@ def test_make_bag_refuses_bad_arguments(scene, objects, lmo_dir, tmp_path):
         make_bag(scene, tmp_path / "exists", objects, lmo_dir / "models_eval")
 
 
+def test_make_bag_of_a_scene_as_real_data_comes(scene, objects, lmo_dir, tmp_path, official_like):
+    """No scene_gt_info.json or masks: the ROIs are the boxes of the models at the GT pose, as the files'."""
+    real = official_like(scene, tmp_path / "real")
+    make_bag(real, tmp_path / "real.bag", objects, lmo_dir / "models", storage="mcap", progress=False)
+    make_bag(scene, tmp_path / "synth.bag", objects, lmo_dir / "models", storage="mcap", progress=False)
+
+    def rois(path):
+        return sorted((m.topic, m.stamp_ns, bytes(m.raw)) for m in read_bag(path) if m.topic.startswith("/roi/"))
+
+    estimated, files = rois(tmp_path / "real.bag"), rois(tmp_path / "synth.bag")
+    assert estimated and set(files) <= set(estimated)  # visibility estimated without cut-outs: no instance less
+
+
 REPO = Path(__file__).resolve().parents[1]
 
 

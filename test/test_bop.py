@@ -7,6 +7,7 @@ from scipy.spatial.transform import Rotation
 
 from axispose_core.data.bop import (
     MM,
+    ROTATION_TOL,
     BopFormatError,
     BopScene,
     GTInfo,
@@ -17,6 +18,7 @@ from axispose_core.data.bop import (
     load_scene_camera,
     load_scene_gt,
     model_path,
+    read_scene_gt,
     write_models_info,
     write_scene_camera,
     write_scene_gt,
@@ -79,22 +81,52 @@ def test_scene_round_trip_keeps_metres(tmp_path, rng):
     np.testing.assert_allclose(scene.gt[2][1].R, gt[2][1].R)
     np.testing.assert_allclose(scene.gt[2][1].t, gt[2][1].t)
     np.testing.assert_allclose(scene.cameras[0], LMO_K)
-    assert scene.boxes(1) == [(10, 20, 30, 40)] * 2
+    assert [info.bbox_obj for _, info in scene.instances(1)] == [(10, 20, 30, 40)] * 2
     pairs = scene.instances(2)
     assert [g.obj_id for g, _ in pairs] == [1, 5] and [info.visib_fract for _, info in pairs] == [0.5, 0.5]
 
 
-def test_boxes_from_models_when_gt_info_is_absent(tmp_path, rng):
-    gt = _scene(tmp_path, rng)
-    (tmp_path / "scene_gt_info.json").unlink()
-    scene = BopScene(tmp_path)
-    pts = {1: rng.uniform(-0.04, 0.04, (100, 3)), 5: rng.uniform(-0.08, 0.08, (100, 3))}
-    boxes = scene.boxes(0, pts)
-    assert boxes[1] == bbox_from_model(LMO_K, gt[0][1].R, gt[0][1].t, pts[5])
-    with pytest.raises(BopFormatError, match="scene_gt_info"):
-        scene.boxes(0)
-    with pytest.raises(BopFormatError, match="scene_gt_info"):  # visibility has no fallback
-        scene.instances(0)
+def test_boxes_and_visibility_from_models_when_gt_info_is_absent(tmp_path, lmo_dir):
+    # The ape a little in front of the can and beside it: it hides part of the can, which hides none of it.
+    gt = {0: [GTInstance(1, np.eye(3), np.array([0.0, 0.0, 0.7])), GTInstance(5, np.eye(3), np.array([0.03, 0.0, 0.85]))]}
+    write_scene_gt(tmp_path / "scene_gt.json", gt)
+    write_scene_camera(tmp_path / "scene_camera.json", {0: LMO_K})
+    (tmp_path / "rgb").mkdir()
+    cv2.imwrite(str(tmp_path / "rgb" / "000000.png"), np.zeros((480, 640, 3), np.uint8))
+    with pytest.raises(BopFormatError, match=r"no scene_gt_info\.json; give the object models"):
+        BopScene(tmp_path).instances(0)
+    scene = BopScene(tmp_path, lmo_dir / "models_eval")
+    assert scene.visibility_estimated
+    (_, i1), (g5, i5) = scene.instances(0)
+    pts = load_ply(model_path(lmo_dir / "models_eval", 5)).vertices
+    assert i5.bbox_obj == bbox_from_model(LMO_K, g5.R, g5.t, pts)
+    assert i1.visib_fract == 1.0 and 0.3 < i5.visib_fract < 0.95, (i1.visib_fract, i5.visib_fract)
+    assert i5.px_count_visib < i5.px_count_all == i5.px_count_valid
+    x, _, w, _ = i5.bbox_visib
+    assert i5.bbox_obj[0] <= x and x + w <= i5.bbox_obj[0] + i5.bbox_obj[2] + 1
+
+
+def test_rotations_a_little_off_orthonormal_are_projected_and_counted(tmp_path, caplog):
+    from conftest import OFF_ORTHONORMAL
+
+    R = Rotation.from_euler("xyz", [10, 20, 30], degrees=True).as_matrix()
+    off = R @ (np.eye(3) + OFF_ORTHONORMAL)  # as the official LM-O GT: |RR^T - I| 0.0093, det 1.014
+    entries = [{"cam_R_m2c": m.ravel().tolist(), "cam_t_m2c": [0, 0, 800], "obj_id": 1} for m in (off, R)]
+    (tmp_path / "scene_gt.json").write_text(json.dumps({"0": entries}))
+    with caplog.at_level("WARNING"):
+        gt = read_scene_gt(tmp_path / "scene_gt.json")
+    assert gt.projected == 1 and 0.009 < gt.worst < ROTATION_TOL
+    fixed = gt.instances[0][0].R
+    np.testing.assert_allclose(fixed @ fixed.T, np.eye(3), atol=1e-12)
+    assert np.linalg.det(fixed) == pytest.approx(1.0)
+    assert np.degrees(np.arccos((np.trace(fixed.T @ R) - 1) / 2)) < 1.0  # the rotation meant
+    np.testing.assert_array_equal(gt.instances[0][1].R, R)  # an exact rotation is left as it is
+    assert "1 GT rotations were not orthonormal" in caplog.text
+    for bad in (R @ np.diag([1.0, 1.0, 1.04]), R @ np.diag([1.0, 1.0, -1.0])):  # past the tolerance; a reflection
+        entries[0]["cam_R_m2c"] = bad.ravel().tolist()
+        (tmp_path / "scene_gt.json").write_text(json.dumps({"0": entries}))
+        with pytest.raises(BopFormatError, match="not a rotation matrix"):
+            read_scene_gt(tmp_path / "scene_gt.json")
 
 
 def test_rgb_reads_rgb_and_refuses_an_unreadable_file(tmp_path, rng):

@@ -1,7 +1,6 @@
 """The 2D localiser: decoding hand-made maps, targets round trip, matching, training, the estimator and eval."""
 
 import json
-import shutil
 from dataclasses import replace
 
 import numpy as np
@@ -123,17 +122,20 @@ def test_training_on_a_tiny_set_increases_recall(frames, trained):
     assert set(r1["objects"]) == {"1", "5"} and r1["ms_per_frame"]["median"] > 0
 
 
-def test_frames_without_scene_gt_info_are_a_format_error(frames, tmp_path):
-    copy = tmp_path / "frames"
-    shutil.copytree(frames, copy)
-    (info,) = copy.glob("*/scene_gt_info.json")
-    info.unlink()
+def test_frames_without_scene_gt_info_need_the_models(frames, tmp_path, lmo_dir, official_like):
+    copy = official_like(frames / "000000", tmp_path / "frames" / "000000")
     with pytest.raises(BopFormatError, match="scene_gt_info"):
         detection_scores(Localiser(TINY).eval(), [copy], min_visib=0.3, progress=False)
     with pytest.raises(BopFormatError, match="scene_gt_info"):
         DetectionDataset([copy], TINY, min_visib=0.1)
     with pytest.raises(BopFormatError, match="scene_gt_info"):  # the AGM's crops, too
         AxisCropDataset([copy], objects_from_models(frames, [1, 5]), 64)
+    # With the models, boxes come from them at the GT pose: the same as the files' for every instance.
+    real = DetectionDataset([frames], TINY, min_visib=0.1)
+    estimated = DetectionDataset([copy], TINY, min_visib=0.1, models_dir=lmo_dir / "models")
+    assert [b for _, b, _ in estimated.boxes(0)] == [b for _, b, _ in real.boxes(0)]
+    crops = AxisCropDataset([copy], objects_from_models(frames, [1, 5]), 64, models_dir=lmo_dir / "models")
+    assert len(crops) > 0 and crops[0]["crop"].shape == (3, 64, 64)
 
 
 def test_a_frame_without_objects_gives_no_detections(trained):

@@ -85,13 +85,17 @@ def test_contact_sheet_tiles_frames_and_refuses_an_unreadable_one(scenes, tmp_pa
         contact_sheet(broken, tmp_path / "broken.png")
 
 
-def test_evaluation_without_scene_gt_info_is_a_format_error(scenes, lmo_dir, tmp_path):
-    broken = tmp_path / "broken"
-    shutil.copytree(scenes, broken)
-    (broken / "000000" / "scene_gt_info.json").unlink()
+def test_evaluation_of_a_scene_as_real_data_comes(scenes, lmo_dir, tmp_path, official_like):
+    """No scene_gt_info.json, no masks, GT rotations off orthonormal as the official LM-O GT: visibility is
+    estimated from the models, the rotations are projected, and the report says both."""
+    real = official_like(scenes / "000000", tmp_path / "real" / "000000")
     objects = objects_from_models(scenes)
-    with pytest.raises(BopFormatError, match="scene_gt_info"):  # visibility decides which instances count
-        evaluate(_gt_predictor(scenes / "000000"), broken, lmo_dir / "models_eval", objects, progress=False)
+    notes: dict = {}
+    records = evaluate(_gt_predictor(real), real.parent, lmo_dir / "models_eval", objects, progress=False, notes=notes)
+    assert notes == {"visibility_estimated_scenes": ["000000"], "gt_rotations_projected": sum(len(v) for v in BopScene(real).gt.values())}
+    assert records and all(r.scores["add_0.1d"] == 1.0 for r in records)
+    # Unannotated distractors and cut-outs hide nothing in the estimate: it counts at least the files' instances.
+    assert len(records) >= len(evaluate(_gt_predictor(scenes / "000000"), scenes, lmo_dir / "models_eval", objects, progress=False))
 
 
 def test_failed_poses_count_as_wrong(scenes, lmo_dir):
@@ -109,7 +113,7 @@ def test_low_visibility_instances_are_skipped(scenes, lmo_dir):
     assert len(evaluate(_gt_predictor(scenes / "000000"), scenes, lmo_dir / "models_eval", objects, progress=False)) == visible
 
 
-def test_eval_cli_writes_the_report(scenes, lmo_dir, tmp_path):
+def test_eval_cli_writes_the_report(scenes, lmo_dir, tmp_path, official_like):
     from axispose_core.agm.denoiser import DenoiserConfig
     from axispose_core.agm.model import AGMConfig, AxisGenerator
     from axispose_core.estimator import Estimator, EstimatorConfig
@@ -128,6 +132,11 @@ def test_eval_cli_writes_the_report(scenes, lmo_dir, tmp_path):
     assert main(args) == 0
     report = json.loads((tmp_path / "rep.json").read_text())
     assert report["config"]["steps"] == 1 and report["objects"]
+    real = official_like(scenes / "000000", tmp_path / "r" / "000000")
+    official = [*args[:3], "--data", str(real), *args[5:7], "--report", str(tmp_path / "real.json"), "--limit", "2"]
+    assert main(official) == 0
+    config = json.loads((tmp_path / "real.json").read_text())["config"]
+    assert config["visibility_estimated_scenes"] == ["000000"] and config["gt_rotations_projected"] > 0
     stress = [*args[:-4], "--report", str(tmp_path / "stress.json"), "--hypotheses", "2"]
     stress += ["--perturb", "motion_blur", "--visib", "0.1", "0.9"]
     assert main(stress) == 0

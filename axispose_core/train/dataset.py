@@ -27,14 +27,16 @@ def scene_dirs(root: str | Path) -> list[Path]:
     return scenes
 
 
-def bop_frames(roots: list[str | Path]) -> list[tuple[BopScene, int]]:
+def bop_frames(roots: list[str | Path], models_dir: str | Path | None = None) -> list[tuple[BopScene, int]]:
     """Every (scene, image id) of the BOP folders (each a scene or a folder of scenes), in folder and image order.
-    Its users read the instances' boxes and visibility, which live only in scene_gt_info.json, so a scene without
-    one is a BopFormatError here, before any frame is read."""
-    scenes = [BopScene(sd) for root in roots for sd in scene_dirs(root)]
+    Its users read the instances' boxes and visibility: a scene without scene_gt_info.json has them estimated
+    from the models in `models_dir`, and without models it is a BopFormatError here, before any frame is read."""
+    scenes = [BopScene(sd, models_dir) for root in roots for sd in scene_dirs(root)]
     for scene in scenes:
-        if scene.gt_info is None:
-            raise BopFormatError(f"{scene.root}: scene_gt_info.json is needed for the instances' boxes and visibility")
+        if scene.gt_info is None and models_dir is None:
+            raise BopFormatError(
+                f"{scene.root}: no scene_gt_info.json; give the object models to estimate the instances' boxes and visibility"
+            )
     return [(scene, im_id) for scene in scenes for im_id in scene.image_ids]
 
 
@@ -52,7 +54,8 @@ class AxisCropDataset(Dataset):
     """(crop, axis image, object index, K', R, t) per annotated instance with visib_fract >= min_visib.
 
     Crops are jittered like a detector's boxes when `jitter` is given (training), centred otherwise; images
-    are in [-1, 1], channels first. The sample's randomness depends only on (seed, epoch, index).
+    are in [-1, 1], channels first. The sample's randomness depends only on (seed, epoch, index). Scenes without
+    scene_gt_info.json need `models_dir` (`bop_frames`).
     """
 
     def __init__(
@@ -64,6 +67,7 @@ class AxisCropDataset(Dataset):
         jitter: CropJitter | None = DEFAULT_JITTER,
         color_aug: bool = True,
         seed: int = 0,
+        models_dir: str | Path | None = None,
     ) -> None:
         self.objects = {o.obj_id: k for k, o in enumerate(objects)}
         self.specs = objects
@@ -71,7 +75,7 @@ class AxisCropDataset(Dataset):
         self.epoch = 0
         self.items: list[InstanceRef] = []
         self.scenes: dict[Path, BopScene] = {}
-        for scene, im_id in bop_frames(roots):
+        for scene, im_id in bop_frames(roots, models_dir):
             self.scenes[scene.root] = scene
             for k, (g, info) in enumerate(scene.instances(im_id)):
                 if g.obj_id in self.objects and info.visib_fract >= min_visib:

@@ -65,11 +65,12 @@ class DetectionDataset(Dataset):
         augment: bool = True,
         seed: int = 0,
         occluded_weight: float = 0.0,
+        models_dir: str | Path | None = None,
     ) -> None:
         self.config, self.augment, self.seed, self.epoch = config, augment, seed, 0
         self.occluded_weight = occluded_weight
         self.classes = {o: k for k, o in enumerate(config.obj_ids)}
-        self.frames = bop_frames(roots)
+        self.frames = bop_frames(roots, models_dir)
         self.min_visib = min_visib
 
     def __len__(self) -> int:

@@ -1,0 +1,53 @@
+"""Boxes and visibility of annotated instances where a scene has no scene_gt_info.json (real recordings, many
+published scenes): bbox_obj from the model at the GT pose, the visible mask from a z-buffer of the frame's
+annotated instances. Objects that were not annotated cannot hide anything here, so the visible fraction is an
+upper bound of the true one."""
+
+from __future__ import annotations
+
+from functools import lru_cache
+from pathlib import Path
+
+import numpy as np
+
+from axispose_core.data.bop import BopFormatError, GTInfo, GTInstance, bbox_from_model, model_path
+from axispose_core.data.synth.generate import load_render_mesh
+from axispose_core.data.synth.raster import Light, RenderMesh, render
+
+_LIGHT = Light(np.array([0.0, 0.0, 1.0]), np.ones(3), 1.0)  # shading is not looked at
+
+
+@lru_cache(maxsize=64)
+def _mesh(models_dir: Path, obj_id: int) -> RenderMesh:
+    if not model_path(models_dir, obj_id).exists():
+        raise BopFormatError(f"{model_path(models_dir, obj_id)}: no model for object {obj_id}, needed to estimate its visibility")
+    return load_render_mesh(models_dir, obj_id)
+
+
+def _box(mask: np.ndarray) -> tuple[int, int, int, int]:
+    ys, xs = np.nonzero(mask)
+    if not len(xs):
+        return (-1, -1, -1, -1)
+    return (int(xs.min()), int(ys.min()), int(xs.max() - xs.min() + 1), int(ys.max() - ys.min() + 1))
+
+
+def estimate_gt_info(K: np.ndarray, gts: list[GTInstance], models_dir: str | Path, width: int, height: int) -> list[GTInfo]:
+    """scene_gt_info.json entries for one frame's instances, from their models rendered together at the GT poses."""
+    models_dir = Path(models_dir)
+    meshes = [_mesh(models_dir, g.obj_id) for g in gts]
+    res = render([(m, g.R, g.t) for m, g in zip(meshes, gts, strict=True)], K, width, height, _LIGHT)
+    infos = []
+    for k, (m, g) in enumerate(zip(meshes, gts, strict=True)):
+        n_all, visible = int(res.full[k].sum()), res.instance == k
+        n_vis = int(visible.sum())
+        infos.append(
+            GTInfo(
+                bbox_obj=bbox_from_model(K, g.R, g.t, m.vertices),
+                bbox_visib=_box(visible),
+                px_count_all=n_all,
+                px_count_valid=n_all,
+                px_count_visib=n_vis,
+                visib_fract=n_vis / n_all if n_all else 0.0,
+            )
+        )
+    return infos
