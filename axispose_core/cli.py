@@ -10,6 +10,8 @@ from pathlib import Path
 from typing import TypeVar
 
 C = TypeVar("C")
+SHARED_LMO = Path(__file__).resolve().parents[2] / "shared" / "data" / "lmo"
+"""The LM-O data beside a clone of the repository (as CI has it)."""
 
 
 def _demo(args: argparse.Namespace) -> int:
@@ -113,7 +115,7 @@ def _train(args: argparse.Namespace) -> int:
 
     torch.set_num_threads(args.threads)
     cfg = _config(TrainConfig, args.config)
-    step = train_agm(cfg, args.data, args.out, init=args.init, **_training_kwargs(args))
+    step = train_agm(cfg, args.data, args.out, init=args.init, models=args.models, **_training_kwargs(args))
     print(f"stopped at step {step} of {cfg.steps}; checkpoint {args.out}")
     return 0
 
@@ -247,9 +249,12 @@ def _report(args: argparse.Namespace, records, objects, config: dict, counts: di
     return 0
 
 
-def _training_args(parser: argparse.ArgumentParser, what: str, config_cls: str, example: str) -> None:
-    """The options every trainer shares (data, output, config, resume, device, time cap, threads)."""
-    parser.add_argument("--data", nargs="+", required=True, help="BOP dataset folders written by `axispose synth`")
+def _training_args(parser: argparse.ArgumentParser, what: str, config_cls: str, example: str, data_help: str | None = None) -> None:
+    """The options every trainer shares (data, output, config, resume, device, time cap, threads); `data_help`
+    makes --data optional."""
+    parser.add_argument(
+        "--data", nargs="+", required=data_help is None, help=data_help or "BOP dataset folders written by `axispose synth`"
+    )
     parser.add_argument("--val", nargs="*", default=None, help="held-out BOP folders for periodic validation")
     parser.add_argument("--out", required=True, help=f"{what} to write (.safetensors); OUT.state.pt holds the resume state")
     parser.add_argument("--config", help=f"YAML with {config_cls} fields (e.g. {example})")
@@ -307,8 +312,11 @@ def build_parser() -> argparse.ArgumentParser:
     sy.add_argument("--workers", type=int, default=1, help="worker processes")
     sy.set_defaults(func=_synth)
 
-    tn = sub.add_parser("train", help="train the AGM (axis generation) on synthetic BOP data")
-    _training_args(tn, "estimator checkpoint", "TrainConfig", "config/train_agm.yaml")
+    tn = sub.add_parser("train", help="train the AGM (axis generation) on the crop stream, or on BOP folders")
+    _training_args(tn, "estimator checkpoint", "TrainConfig", "config/train_agm.yaml",
+                   data_help="BOP folders to train on instead of the crop stream (e.g. a user's own annotated frames)")  # fmt: skip
+    tn.add_argument("--models", default=str(SHARED_LMO / "models"),
+                    help="BOP models folder the crop stream renders (default: ../shared/data/lmo/models beside the clone)")  # fmt: skip
     tn.add_argument("--init", help="estimator checkpoint with the same AGM network to start from (its weights; a fresh "
                     "optimiser and schedule), e.g. the shipped model")  # fmt: skip
     tn.set_defaults(func=_train)
@@ -362,8 +370,9 @@ def build_parser() -> argparse.ArgumentParser:
 
     st = sub.add_parser("stream-preview", help="contact sheet of crop-stream samples (AGM training crops) with their GT axes")
     st.add_argument("--out", required=True, help="PNG to write")
-    st.add_argument("--models", default=str(Path(__file__).resolve().parents[2] / "shared" / "data" / "lmo" / "models"),
-                    help="BOP models folder (default: ../shared/data/lmo/models beside the clone)")  # fmt: skip
+    st.add_argument(
+        "--models", default=str(SHARED_LMO / "models"), help="BOP models folder (default: ../shared/data/lmo/models beside the clone)"
+    )
     st.add_argument("--objects", type=_ids, default=[], help="comma-separated object ids (default: all in models_info.json)")
     st.add_argument("--seed", type=int, default=0)
     st.add_argument("--start", type=int, default=0, help="first sample index")

@@ -1,16 +1,23 @@
-"""`axispose train`: the AGM on synthetic BOP crops — AdamW, warm-up + cosine, clipping, EMA, resumable.
+"""`axispose train`: the AGM on the crop stream (or on BOP folders) — AdamW, warm-up + cosine, clipping, EMA,
+resumable.
+
+By default every training sample is a crop-stream sample (`data/synth/stream.py`) never seen before: step s
+uses samples s*batch ... (s+1)*batch - 1, so a resumed run continues where it stopped and no data is stored.
+BOP folders (`data`) train on their annotated crops instead, e.g. to fine-tune on a user's own frames.
+Validation reads a fixed held-out batch: stream samples of seed `val_seed` (or crops of `val_data`).
 
 A run writes OUT (the estimator checkpoint, EMA weights, config inside) and OUT.state.pt (model, EMA,
 optimiser, step, RNG: what `--resume` needs), both atomically every `save_every` steps and at the end, and
-OUT.csv (loss, learning rate, wall time, periodic validation). `--max-minutes` stops cleanly, so long runs
-are chains of short ones. Under `torchrun`, DistributedDataParallel (gloo on CPU, nccl on CUDA) splits the
-batches; rank 0 writes.
+OUT.csv (loss, learning rate, crops seen, wall time, periodic held-out metrics). `--max-minutes` stops cleanly,
+so long runs are chains of short ones. Under `torchrun`, DistributedDataParallel (gloo on CPU, nccl on CUDA)
+splits the batches (rank r takes every world-th stream sample from r); rank 0 writes.
 """
 
 from __future__ import annotations
 
 import copy
 import csv
+import dataclasses
 import os
 import time
 from dataclasses import dataclass, field
@@ -23,8 +30,10 @@ from torch.utils.data import DataLoader, DistributedSampler, RandomSampler
 from tqdm import tqdm
 
 from axispose_core.agm.model import AGMConfig, AxisGenerator
+from axispose_core.axis_image import axis_keypoints
 from axispose_core.data.objects import LMO_NAMES, ObjectSpec, objects_from_models
-from axispose_core.data.synth.config import SynthConfig
+from axispose_core.data.synth.config import StreamConfig, SynthConfig
+from axispose_core.data.synth.stream import CropStream, CropStreamDataset, stream_loader
 from axispose_core.estimator import Estimator, EstimatorConfig
 from axispose_core.metrics import re
 from axispose_core.tbm.backproject import backproject
@@ -52,6 +61,10 @@ class TrainConfig:
     val_every: int = 500
     val_samples: int = 32
     val_steps: int = 4
+    stream: StreamConfig = field(default_factory=StreamConfig)
+    """The crop stream trained on when no BOP folders are given; its crop size must be the denoiser's."""
+    val_seed: int = 1_000_000
+    """Seed of the held-out stream samples: fixed, so that the curves of different runs read the same crops."""
 
 
 def dataset_objects(root: str | Path) -> list[ObjectSpec]:
@@ -64,20 +77,38 @@ def dataset_objects(root: str | Path) -> list[ObjectSpec]:
 def validate(
     agm: AxisGenerator, reader: KeypointReader, batch: dict[str, torch.Tensor], lengths: np.ndarray, steps: int
 ) -> dict[str, float]:
-    """Median rotation error and TBM success on a fixed batch of held-out crops."""
+    """On a fixed batch of held-out crops: median rotation error, TBM success within 15°, and the median keypoint
+    error (px, mean over origin and endpoints) of the reader on the generated axis images."""
     axes = agm.sample(batch["crop"], steps, generator=torch.Generator().manual_seed(0))
     readings = reader.read(((axes + 1) * 0.5).clamp(0, 1).cpu())
-    errs = []
+    errs, kp_errs = [], []
     for i, kp in enumerate(readings):
-        res = backproject(batch["K"][i].numpy(), kp.origin, kp.endpoints, lengths[i], refine=True) if kp.ok else None
-        errs.append(re(res.R, batch["R"][i].numpy()) if res is not None and res.ok else 180.0)
+        K, R, t = (batch[k][i].numpy() for k in ("K", "R", "t"))
+        res = backproject(K, kp.origin, kp.endpoints, lengths[i], refine=True) if kp.ok else None
+        errs.append(re(res.R, R) if res is not None and res.ok else 180.0)
+        if kp.ok:
+            found = np.vstack([kp.origin, kp.endpoints])
+            kp_errs.append(float(np.linalg.norm(found - axis_keypoints(K, R, t, lengths[i]), axis=1).mean()))
     errs_a = np.array(errs)
-    return {"val_rot_median_deg": float(np.median(errs_a)), "val_rot_within_15deg": float(np.mean(errs_a < 15.0))}
+    return {"val_rot_median_deg": float(np.median(errs_a)), "val_rot_within_15deg": float(np.mean(errs_a < 15.0)),
+            "val_kp_err_px": float(np.median(kp_errs)) if kp_errs else float("nan")}  # fmt: skip
+
+
+VAL_COLUMNS = ("val_rot_median_deg", "val_rot_within_15deg", "val_kp_err_px")
+
+
+def _stream_objects(stream: CropStream) -> list[ObjectSpec]:
+    """The stream's objects as a checkpoint names them (LM-O names by id, as `dataset_objects`)."""
+    return [dataclasses.replace(o, name=LMO_NAMES.get(o.obj_id, o.name)) for o in stream.objects]
+
+
+def _batch_of(items: list[dict[str, torch.Tensor]]) -> dict[str, torch.Tensor]:
+    return {k: torch.stack([it[k] for it in items]) for k in ("crop", "object", "K", "R", "t")}
 
 
 def train_agm(
     cfg: TrainConfig,
-    data: list[str | Path],
+    data: list[str | Path] | None,
     out: str | Path,
     val_data: list[str | Path] | None = None,
     reader_path: str | Path | None = None,
@@ -86,12 +117,15 @@ def train_agm(
     max_minutes: float | None = None,
     progress: bool = True,
     init: str | Path | None = None,
+    models: str | Path | None = None,
 ) -> int:
     """Train (or continue) the AGM; returns the step reached.
 
-    `init`: an estimator checkpoint with the same AGM network whose (EMA) weights a new run starts from, with a
-    fresh optimiser and schedule, e.g. to train the shipped model on; a resumed run restores its own weights and
-    keeps recording the checkpoint its first call started from.
+    Without `data` the samples come from the crop stream of `cfg.stream` over the BOP models folder `models`;
+    with it, from the annotated crops of those BOP folders. `init`: an estimator checkpoint with the same AGM
+    network whose (EMA) weights a new run starts from, with a fresh optimiser and schedule, e.g. to train the
+    shipped model on; a resumed run restores its own weights and keeps recording the checkpoint its first call
+    started from.
     """
     distributed = "RANK" in os.environ and "WORLD_SIZE" in os.environ
     if distributed and not dist.is_initialized():
@@ -103,13 +137,24 @@ def train_agm(
     out = Path(out)
     out.parent.mkdir(parents=True, exist_ok=True)
     torch.manual_seed(cfg.seed + rank)
-    objects = dataset_objects(data[0])
+    world = dist.get_world_size() if distributed else 1
+    size = cfg.agm.denoiser.size
     reader = load_reader(reader_path or SHIPPED_READER)
-    if reader.config.size != cfg.agm.denoiser.size:
-        raise ValueError(f"the keypoint reader reads {reader.config.size}px images; the AGM is configured for {cfg.agm.denoiser.size}px")
-    train_set = AxisCropDataset(data, objects, cfg.agm.denoiser.size, cfg.min_visib, seed=cfg.seed)
-    if not len(train_set):
-        raise ValueError(f"no training instances with visib_fract >= {cfg.min_visib} in {data}")
+    if reader.config.size != size:
+        raise ValueError(f"the keypoint reader reads {reader.config.size}px images; the AGM is configured for {size}px")
+    stream, train_set = None, None
+    if data:
+        objects = dataset_objects(data[0])
+        train_set = AxisCropDataset(data, objects, size, cfg.min_visib, seed=cfg.seed)
+        if not len(train_set):
+            raise ValueError(f"no training instances with visib_fract >= {cfg.min_visib} in {data}")
+    else:
+        if models is None:
+            raise ValueError("give BOP folders to train on, or the object models for the crop stream")
+        if cfg.stream.size != size:
+            raise ValueError(f"the crop stream renders {cfg.stream.size}px crops; the AGM is configured for {size}px")
+        stream = CropStream(cfg.stream, models)
+        objects = _stream_objects(stream)
     model = AxisGenerator(cfg.agm)
     if init and not resume:
         start_from = Estimator.load(init)
@@ -125,21 +170,40 @@ def train_agm(
         step, started_from = load_run_state(resume, cfg, model, ema, opt, sched)
     net = torch.nn.parallel.DistributedDataParallel(model) if distributed else model
     val_batch, val_lengths = None, None
-    if val_data and rank == 0:
-        val_set = AxisCropDataset(val_data, objects, cfg.agm.denoiser.size, 0.3, jitter=None, color_aug=False, seed=cfg.seed)
-        idx = np.linspace(0, len(val_set) - 1, min(cfg.val_samples, len(val_set))).astype(int)
-        items = [val_set[int(i)] for i in idx]
-        val_batch = {k: torch.stack([it[k] for it in items]) for k in items[0]}
+    if rank == 0 and (val_data or stream is not None):
+        if val_data:
+            val_set = AxisCropDataset(val_data, objects, size, 0.3, jitter=None, color_aug=False, seed=cfg.seed)
+            idx = np.linspace(0, len(val_set) - 1, min(cfg.val_samples, len(val_set))).astype(int)
+            items = [val_set[int(i)] for i in idx]
+        else:  # held-out stream samples: the same crops in every run of this stream configuration
+            held_out = CropStreamDataset(CropStream(dataclasses.replace(cfg.stream, seed=cfg.val_seed), models))
+            items = [held_out[i] for i in range(cfg.val_samples)]
+        val_batch = _batch_of(items)
         val_lengths = np.stack([objects[int(it["object"])].axes.lengths for it in items])
     log = open(out.with_suffix(".csv"), "a", newline="") if rank == 0 else None
     writer = csv.writer(log) if log else None
     if writer and step == 0:
-        writer.writerow(["step", "loss", "lr", "seconds", "val_rot_median_deg", "val_rot_within_15deg"])
+        writer.writerow(["step", "crops", "loss", "lr", "seconds", *VAL_COLUMNS])
     use_amp = dev.type == "cuda"
     start = time.time()
     bar = tqdm(total=cfg.steps, initial=step, desc="train agm", disable=not progress or rank != 0)
-    epoch = step * cfg.batch // max(1, len(train_set))
     gen = torch.Generator().manual_seed(cfg.seed * 1000 + step + rank)
+
+    def batches():
+        """Training batches from `step` on, endlessly: the stream's next samples, or epochs of the BOP crops."""
+        if stream is not None:
+            yield from stream_loader(stream, cfg.batch, start=step * cfg.batch * world + rank, stride=world, workers=cfg.workers)
+            return
+        epoch = step * cfg.batch // len(train_set)
+        while True:
+            train_set.epoch = epoch
+            sampler = (
+                DistributedSampler(train_set, seed=cfg.seed + epoch)
+                if distributed
+                else RandomSampler(train_set, generator=torch.Generator().manual_seed(cfg.seed + epoch))
+            )
+            yield from DataLoader(train_set, batch_size=cfg.batch, sampler=sampler, num_workers=cfg.workers, drop_last=True)
+            epoch += 1
 
     def out_of_time() -> bool:
         return max_minutes is not None and time.time() - start > 60 * max_minutes
@@ -151,45 +215,30 @@ def train_agm(
             agm=cfg.agm,
             reader=reader.config,
             objects=tuple(objects),
-            training=training_record(data, step, cfg.batch, time.time() - start, dev, started_from),
+            training=training_record(data or [f"crop stream of {models}"], step, cfg.batch, time.time() - start, dev, started_from),
         )
         Estimator(est_cfg, ema, reader, "cpu" if dev.type == "cpu" else str(dev)).save(out)
         save_run_state(state_path(out), cfg, model, ema, opt, sched, step, started_from)
 
     try:
-        while step < cfg.steps:
-            train_set.epoch = epoch
-            sampler = (
-                DistributedSampler(train_set, seed=cfg.seed + epoch)
-                if distributed
-                else RandomSampler(train_set, generator=torch.Generator().manual_seed(cfg.seed + epoch))
-            )
-            loader = DataLoader(
-                train_set, batch_size=cfg.batch, sampler=sampler, num_workers=cfg.workers, drop_last=True, persistent_workers=False
-            )
-            for batch in loader:
-                crops, axes = batch["crop"].to(dev), batch["axes"].to(dev)
-                with torch.autocast(dev.type, dtype=torch.bfloat16, enabled=use_amp):
-                    loss = net(crops, axes, gen)
-                optimizer_step(loss, model, ema, opt, sched, cfg.grad_clip, cfg.ema_decay)
-                step += 1
-                bar.update(1)
-                bar.set_postfix(loss=f"{loss.item():.4f}")
-                val = {}
-                if val_batch is not None and step % cfg.val_every == 0:
-                    val = validate(
-                        ema, reader, {k: v.to(dev) if k == "crop" else v for k, v in val_batch.items()}, val_lengths, cfg.val_steps
-                    )
-                if writer and (step % 10 == 0 or val):
-                    writer.writerow([step, f"{loss.item():.5f}", f"{sched.get_last_lr()[0]:.2e}", f"{time.time() - start:.1f}",
-                                     val.get("val_rot_median_deg", ""), val.get("val_rot_within_15deg", "")])  # fmt: skip
-                    log.flush()
-                if step % cfg.save_every == 0:
-                    save()
-                if step >= cfg.steps or out_of_time():
-                    break
-            epoch += 1
-            if out_of_time():
+        for batch in batches() if step < cfg.steps and not out_of_time() else ():
+            crops, axes = batch["crop"].to(dev), batch["axes"].to(dev)
+            with torch.autocast(dev.type, dtype=torch.bfloat16, enabled=use_amp):
+                loss = net(crops, axes, gen)
+            optimizer_step(loss, model, ema, opt, sched, cfg.grad_clip, cfg.ema_decay)
+            step += 1
+            bar.update(1)
+            bar.set_postfix(loss=f"{loss.item():.4f}")
+            val = {}
+            if val_batch is not None and step % cfg.val_every == 0:
+                val = validate(ema, reader, {k: v.to(dev) if k == "crop" else v for k, v in val_batch.items()}, val_lengths, cfg.val_steps)
+            if writer and (step % 10 == 0 or val):
+                writer.writerow([step, step * cfg.batch * world, f"{loss.item():.5f}", f"{sched.get_last_lr()[0]:.2e}",
+                                 f"{time.time() - start:.1f}", *(val.get(c, "") for c in VAL_COLUMNS)])  # fmt: skip
+                log.flush()
+            if step % cfg.save_every == 0:
+                save()
+            if step >= cfg.steps or out_of_time():
                 break
         save()
     finally:

@@ -363,13 +363,15 @@ class CropStreamDataset(Dataset):
         }
 
 
-def stream_loader(stream: CropStream, batch_size: int, start: int = 0, stop: int | None = None, workers: int = 0) -> DataLoader:
-    """Batches of samples start, start + 1, ... (endless without `stop`), in order whatever the number of worker
-    processes, so a run resumes by starting at the samples it has used. Workers are spawned, not forked: a fork
-    of a process whose OpenCV thread pool has run can hang in the child."""
-    if batch_size < 1 or workers < 0:
-        raise ValueError(f"batch_size must be >= 1 and workers >= 0, got {batch_size} and {workers}")
-    sampler = range(start, stop if stop is not None else 2**62)
+def stream_loader(
+    stream: CropStream, batch_size: int, start: int = 0, stop: int | None = None, workers: int = 0, stride: int = 1
+) -> DataLoader:
+    """Batches of samples start, start + stride, ... (endless without `stop`), in order whatever the number of
+    worker processes, so a run resumes by starting at the samples it has used (`stride`: one of several ranks).
+    Workers are spawned, not forked: a fork of a process whose OpenCV thread pool has run can hang in the child."""
+    if batch_size < 1 or workers < 0 or stride < 1:
+        raise ValueError(f"batch_size and stride must be >= 1 and workers >= 0, got {batch_size}, {stride} and {workers}")
+    sampler = range(start, stop if stop is not None else 2**62, stride)
     return DataLoader(
         CropStreamDataset(stream),
         batch_size=batch_size,
