@@ -108,7 +108,7 @@ def test_stream_training_is_seeded_resumable_and_validated(lmo_dir, tmp_path):
     assert all(torch.equal(v, b[k]) for k, v in a.items())
     assert {o.obj_id for o in runs[0].config.objects} == {1, 5} and "crop stream" in runs[0].config.training["data"][0]
     header, *rows = (tmp_path / "a.csv").read_text().splitlines()
-    assert header.split(",") == ["step", "crops", "loss", "lr", "seconds", "val_rot_median_deg", "val_rot_within_15deg", "val_kp_err_px"]
+    assert header.split(",")[:6] == ["step", "crops", "loss", "lr", "seconds", "val_loss"] and header.endswith("val_kp_err_px")
     last = rows[-1].split(",")
     assert last[:2] == ["3", "6"] and float(last[-1]) > 0  # 3 steps of batch 2; a keypoint error measured
     state = str(tmp_path / "a.safetensors") + ".state.pt"
