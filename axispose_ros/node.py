@@ -28,7 +28,7 @@ import rclpy.executors
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from geometry_msgs.msg import Point, Pose, PoseArray, PoseStamped, PoseWithCovarianceStamped
 from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor, SetParametersResult
-from rclpy.exceptions import ParameterUninitializedException
+from rclpy.exceptions import ParameterException, ParameterUninitializedException
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.qos import qos_profile_sensor_data
@@ -134,9 +134,11 @@ class AxisPoseNode(Node):
         dev = self.get_parameter("device").value
         if dev not in ("cpu", "cuda", "auto"):
             raise ValueError(f"parameter 'device' must be cpu, cuda or auto, got {dev!r}")
-        if dev == "auto":
-            import torch
+        import torch
 
+        if dev == "cuda" and not torch.cuda.is_available():
+            raise ValueError(f"parameter 'device' is cuda, but this torch ({torch.__version__}) finds no CUDA device: use cpu or auto")
+        if dev == "auto":
             self.set_parameters([Parameter("device", value="cuda" if torch.cuda.is_available() else "cpu")])
 
     def _on_set_parameters(self, params: list[Parameter]) -> SetParametersResult:
@@ -348,8 +350,8 @@ def main(args: list[str] | None = None) -> int:
     rclpy.init(args=args)
     try:
         node = AxisPoseNode()
-    except (CheckpointError, ValueError) as err:
-        print(f"axispose_node: {err}", file=sys.stderr)
+    except (CheckpointError, ValueError, ParameterException) as err:  # a parameter out of range or of the wrong type
+        print(f"axispose_node: {' '.join(str(err).split())}", file=sys.stderr)  # one line, whatever rclpy formats
         rclpy.try_shutdown()
         return 2
     try:

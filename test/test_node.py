@@ -1,11 +1,14 @@
 """The node, launch-free: in-process executors with their own Context, a tiny random checkpoint (plumbing only)."""
 
 import os
+import subprocess
+import sys
 import time
 
 import numpy as np
 import pytest
 import rclpy
+import torch
 from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PoseArray, PoseStamped, PoseWithCovarianceStamped
 from rclpy.executors import SingleThreadedExecutor
@@ -278,3 +281,17 @@ def test_without_rois_the_checkpoints_localiser_finds_the_objects(tmp_path):
         assert h.got["array"][1].poses == []
     finally:
         h.close()
+
+
+@pytest.mark.parametrize("param", ["ddim_steps:=0", "ddim_steps:=abc", "sync_slop:=-1.0", "num_threads:=0", "device:=cuda"])
+def test_bad_parameters_at_start_are_one_line_and_exit_2(checkpoint, param):
+    """Out of range, of the wrong type, or a device this torch has not: one clear line, exit code 2, no traceback."""
+    if param == "device:=cuda" and torch.cuda.is_available():
+        pytest.skip("this machine has CUDA")
+    proc = subprocess.run(
+        [sys.executable, "-m", "axispose_ros.node", "--ros-args", "-p", f"checkpoint:={checkpoint}", "-p", param],
+        capture_output=True, text=True, timeout=120,
+    )  # fmt: skip
+    lines = proc.stderr.strip().splitlines()
+    assert proc.returncode == 2 and len(lines) == 1 and lines[0].startswith("axispose_node: "), proc.stderr
+    assert param.split(":=")[0] in lines[0] and "Traceback" not in proc.stderr
