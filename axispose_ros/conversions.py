@@ -25,11 +25,17 @@ class InputError(ValueError):
         self.reason = reason
 
 
+def printable(text: str, limit: int = 32) -> str:
+    """A string from a message as it may be logged: quoted with escapes (no newline reaches the log), cut short."""
+    return repr(text[:limit]) + ("…" if len(text) > limit else "")
+
+
 def image_to_rgb(msg: Image) -> np.ndarray:
     """An HxWx3 uint8 RGB array (a copy) from an Image of a supported encoding and any row step."""
     enc = msg.encoding.lower()
     if enc not in CHANNELS:
-        raise InputError(f"encoding:{msg.encoding}", f"unsupported image encoding '{msg.encoding}' (supported: {', '.join(CHANNELS)})")
+        # One counter for every unsupported encoding: a stream of distinct strings must not grow the diagnostics.
+        raise InputError("encoding", f"unsupported image encoding {printable(msg.encoding)} (supported: {', '.join(CHANNELS)})")
     h, w, c = msg.height, msg.width, CHANNELS[enc]
     if h == 0 or w == 0:
         raise InputError("image_size", "image has zero size")

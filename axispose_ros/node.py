@@ -91,7 +91,6 @@ class AxisPoseNode(Node):
         self._stop = threading.Event()
         self._busy = False
         self._rois: dict[int, tuple[RegionOfInterest, float]] = {}
-        self._warned: set[str] = set()
         self.sync = StampSynchronizer(float(self.get_parameter("sync_slop").value), self._on_pair, self._on_drop)
         qos_opts = QoSOverridingOptions.with_default_policies()
         self.create_subscription(Image, "image", self._on_image, qos_profile_sensor_data, qos_overriding_options=qos_opts)
@@ -151,11 +150,6 @@ class AxisPoseNode(Node):
         return SetParametersResult(successful=True)
 
     # ------------------------------------------------------------------ inputs
-    def _warn_once(self, key: str, text: str) -> None:
-        if key not in self._warned:
-            self._warned.add(key)
-            self.get_logger().warning(text)
-
     def _on_image(self, msg: Image) -> None:
         self.counts["frames_in"] += 1
         self.sync.add_image(_stamp_seconds(msg.header), msg)
@@ -197,10 +191,7 @@ class AxisPoseNode(Node):
                 self._process(frame)
             except InputError as err:
                 self.counts[f"dropped_{err.reason}"] += 1
-                if err.reason.startswith("encoding:"):
-                    self._warn_once(err.reason, f"{err} — frames with it are dropped")
-                else:
-                    self.get_logger().error(str(err), throttle_duration_sec=5.0)
+                self.get_logger().error(f"dropped a frame: {err}", throttle_duration_sec=5.0)
             except Exception as err:
                 self.counts["dropped_error"] += 1
                 self.get_logger().error(f"inference failed on a frame: {err!r}", throttle_duration_sec=5.0)

@@ -175,7 +175,7 @@ def test_debug_image_only_when_subscribed(harness):
 @pytest.mark.parametrize(
     "kwargs, counter",
     [
-        ({"encoding": "16UC1"}, "dropped_encoding:16UC1"),
+        ({"encoding": "16UC1"}, "dropped_encoding"),
         ({"K": np.full((3, 3), np.nan)}, "dropped_camera_info_k"),
         ({"K": np.zeros((3, 3))}, "dropped_camera_info_k"),
         ({"info_size": (640, 400)}, "dropped_camera_info_mismatch"),
@@ -186,6 +186,15 @@ def test_bad_input_is_dropped_and_counted(harness, kwargs, counter):
     assert harness.spin_until(lambda: harness.node.counts[counter] >= 1)
     harness.frame(sec=11)  # still alive and processing
     assert harness.spin_until(lambda: harness.node.counts["frames_processed"] >= 1)
+
+
+def test_distinct_bad_encodings_share_one_counter(harness):
+    """A stream of ever new encoding strings (one with a newline) must not grow the counters or the diagnostics."""
+    for k in range(30):
+        harness.frame(sec=200 + k, encoding=f"junk{k}\nINJECTED" if k == 0 else f"junk{k}")
+        harness.spin_until(lambda n=k: harness.node.frames_done() >= n + 1, 2.0)
+    assert harness.spin_until(lambda: harness.node.counts["dropped_encoding"] >= 1)
+    assert [k for k in harness.node.counts if "encoding" in k] == ["dropped_encoding"]
 
 
 def test_image_without_camera_info_is_dropped(harness):
