@@ -42,6 +42,7 @@ from axispose_core.checkpoint import CheckpointError
 from axispose_core.data.synth.preview import draw_axes
 from axispose_core.estimator import Estimator
 from axispose_ros.conversions import InputError, camera_for_image, camera_from_info, image_to_rgb, rgb_to_image
+from axispose_ros.health import Health, HealthConfig
 from axispose_ros.sync import StampSynchronizer
 
 DEFAULT_CHECKPOINT = Path(__file__).resolve().parents[1] / "axispose_core" / "models" / "axispose_lmo.safetensors"
@@ -91,6 +92,7 @@ class AxisPoseNode(Node):
         self._stop = threading.Event()
         self._busy = False
         self._rois: dict[int, tuple[RegionOfInterest, float]] = {}
+        self.health = Health(HealthConfig(latency_budget_s=float(self.get_parameter("latency_budget").value)), time.monotonic())
         self.sync = StampSynchronizer(float(self.get_parameter("sync_slop").value), self._on_pair, self._on_drop)
         qos_opts = QoSOverridingOptions.with_default_policies()
         self.create_subscription(Image, "image", self._on_image, qos_profile_sensor_data, qos_overriding_options=qos_opts)
@@ -130,6 +132,9 @@ class AxisPoseNode(Node):
         self.declare_parameter("num_threads", 2, desc("torch CPU threads for inference", ints=(1, 64)))
         self.declare_parameter("roi_timeout", 1.0, desc("age in s after which an ROI is ignored", floats=(0.0, 3600.0)))
         self.declare_parameter("score_threshold", 0.3, desc("least localiser score of an instance", floats=(0.0, 1.0)))
+        self.declare_parameter(
+            "latency_budget", 2.0, desc("median latency (s) over which /diagnostics warns; at start", floats=(0.01, 60.0))
+        )
         dev = self.get_parameter("device").value
         if dev not in ("cpu", "cuda", "auto"):
             raise ValueError(f"parameter 'device' must be cpu, cuda or auto, got {dev!r}")
@@ -141,7 +146,7 @@ class AxisPoseNode(Node):
             self.set_parameters([Parameter("device", value="cuda" if torch.cuda.is_available() else "cpu")])
 
     def _on_set_parameters(self, params: list[Parameter]) -> SetParametersResult:
-        fixed = {"checkpoint", "device", "objects", "use_rectified", "sync_slop", "num_threads"}
+        fixed = {"checkpoint", "device", "objects", "use_rectified", "sync_slop", "num_threads", "latency_budget"}
         for p in params:
             if p.name in fixed:
                 return SetParametersResult(successful=False, reason=f"'{p.name}' is read at start only; restart the node to change it")
@@ -152,6 +157,7 @@ class AxisPoseNode(Node):
     # ------------------------------------------------------------------ inputs
     def _on_image(self, msg: Image) -> None:
         self.counts["frames_in"] += 1
+        self.health.image(time.monotonic())
         self.sync.add_image(_stamp_seconds(msg.header), msg)
 
     def _on_info(self, msg: CameraInfo) -> None:
@@ -167,6 +173,7 @@ class AxisPoseNode(Node):
 
     def _on_drop(self, _: Image, reason: str) -> None:
         self.counts[f"dropped_{reason}"] += 1
+        self.health.drop(time.monotonic(), reason)
         self.get_logger().warning(f"dropped a frame: {reason}", throttle_duration_sec=5.0)
 
     def _on_pair(self, image: Image, info: CameraInfo) -> None:
@@ -191,9 +198,11 @@ class AxisPoseNode(Node):
                 self._process(frame)
             except InputError as err:
                 self.counts[f"dropped_{err.reason}"] += 1
+                self.health.drop(time.monotonic(), err.reason)
                 self.get_logger().error(f"dropped a frame: {err}", throttle_duration_sec=5.0)
             except Exception as err:
                 self.counts["dropped_error"] += 1
+                self.health.drop(time.monotonic(), "error")
                 self.get_logger().error(f"inference failed on a frame: {err!r}", throttle_duration_sec=5.0)
             finally:
                 with self._slot_lock:
@@ -274,14 +283,14 @@ class AxisPoseNode(Node):
         if self.pub_debug.get_subscription_count() > 0:
             self.pub_debug.publish(rgb_to_image(_debug_overlay(rgb, camera.K, estimates, self.estimator), header))
         self.counts["frames_processed"] += 1
-        self.latency.append(time.monotonic() - frame.received)
+        now = time.monotonic()
+        self.latency.append(now - frame.received)
         self.latency = self.latency[-100:]
+        self.health.output(now, now - frame.received)
 
     def _publish_diagnostics(self) -> None:
         status = DiagnosticStatus(name="axispose: pose estimation", hardware_id=self.get_name())
-        dropped = sum(v for k, v in self.counts.items() if k.startswith("dropped_"))
-        status.level = DiagnosticStatus.OK if dropped == 0 or self.counts["frames_processed"] else DiagnosticStatus.WARN
-        status.message = f"{self.counts['frames_processed']} processed, {dropped} dropped"
+        status.level, status.message = self.health.judge(time.monotonic())  # the recent window; counters below are totals
         values = dict(self.counts)
         if self.latency:
             values["latency_median_ms"] = 1000 * float(np.median(self.latency))

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 import rclpy
 import torch
-from diagnostic_msgs.msg import DiagnosticArray
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 from geometry_msgs.msg import PoseArray, PoseStamped, PoseWithCovarianceStamped
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.parameter import Parameter
@@ -186,6 +186,20 @@ def test_bad_input_is_dropped_and_counted(harness, kwargs, counter):
     assert harness.spin_until(lambda: harness.node.counts[counter] >= 1)
     harness.frame(sec=11)  # still alive and processing
     assert harness.spin_until(lambda: harness.node.counts["frames_processed"] >= 1)
+
+
+def test_diagnostics_stop_saying_ok_when_frames_stop_going_through(harness):
+    """One good frame, then only frames it must drop: the health of the recent window is no longer OK."""
+    harness.frame(sec=300)
+    assert harness.spin_until(lambda: harness.node.counts["frames_processed"] >= 1)
+    for k in range(6):
+        harness.frame(sec=301 + k, encoding="16UC1")
+        harness.spin_until(lambda n=k: harness.node.counts["dropped_encoding"] >= n + 1, 2.0)
+
+    def warned() -> bool:
+        return any(s.level != DiagnosticStatus.OK and "dropped" in s.message for d in harness.got["diag"] for s in d.status)
+
+    assert harness.spin_until(warned, 5.0)
 
 
 def test_distinct_bad_encodings_share_one_counter(harness):

@@ -1,0 +1,53 @@
+"""The node's health: judged on the recent window, so that it cannot say OK forever once one frame went through."""
+
+from diagnostic_msgs.msg import DiagnosticStatus
+
+from axispose_ros.health import Health, HealthConfig
+
+CFG = HealthConfig(window_s=10.0, stale_s=5.0, max_drop_ratio=0.5, latency_budget_s=1.0)
+
+
+def _healthy(start: float = 0.0) -> Health:
+    h = Health(CFG, start)
+    for k in range(8):
+        h.image(start + k)
+        h.output(start + k + 0.3, 0.3)
+    return h
+
+
+def test_ok_while_frames_go_through_in_budget():
+    level, message = _healthy().judge(8.0)
+    assert level == DiagnosticStatus.OK and "8 frames processed" in message
+
+
+def test_warn_without_images():
+    level, message = _healthy().judge(30.0)  # the camera went quiet 22 s ago
+    assert level == DiagnosticStatus.WARN and "no images" in message
+    assert Health(CFG, 0.0).judge(1.0)[0] == DiagnosticStatus.WARN  # before the first image
+
+
+def test_error_when_images_come_but_nothing_goes_out():
+    """The fuzzing run's case: frames processed early, then only drops. Totals since start said OK forever."""
+    h = _healthy()
+    for k in range(40):
+        h.image(20.0 + 0.25 * k)
+        h.drop(20.0 + 0.25 * k, "encoding")
+    level, message = h.judge(30.0)
+    assert level == DiagnosticStatus.ERROR and "no pose output" in message and "encoding 40" in message
+
+
+def test_warn_when_most_frames_are_dropped_or_late():
+    h = _healthy()
+    for k in range(3):
+        h.drop(8.5 + k * 0.1, "no_camera_info")  # 3 of 11 verdicts: fine
+    assert h.judge(9.0)[0] == DiagnosticStatus.OK
+    for k in range(10):
+        h.drop(9.0 + k * 0.05, "no_camera_info")  # 13 of 21
+    level, message = h.judge(9.6)
+    assert level == DiagnosticStatus.WARN and "13 of 21 frames dropped" in message
+    slow = Health(CFG, 0.0)
+    for k in range(5):
+        slow.image(k)
+        slow.output(k + 0.1, 1.5)
+    level, message = slow.judge(5.0)
+    assert level == DiagnosticStatus.WARN and "over the 1 s budget" in message
