@@ -92,6 +92,7 @@ class AxisPoseNode(Node):
         self._stop = threading.Event()
         self._busy = False
         self._rois: dict[int, tuple[RegionOfInterest, float]] = {}
+        self._state_lock = threading.Lock()  # counts and _rois: the executor and the inference thread share them
         self.health = Health(HealthConfig(latency_budget_s=float(self.get_parameter("latency_budget").value)), time.monotonic())
         self.sync = StampSynchronizer(float(self.get_parameter("sync_slop").value), self._on_pair, self._on_drop)
         qos_opts = QoSOverridingOptions.with_default_policies()
@@ -156,7 +157,7 @@ class AxisPoseNode(Node):
 
     # ------------------------------------------------------------------ inputs
     def _on_image(self, msg: Image) -> None:
-        self.counts["frames_in"] += 1
+        self._count("frames_in")
         self.health.image(time.monotonic())
         self.sync.add_image(_stamp_seconds(msg.header), msg)
 
@@ -164,7 +165,8 @@ class AxisPoseNode(Node):
         self.sync.add_info(_stamp_seconds(msg.header), msg)
 
     def _on_roi(self, obj_id: int, msg: RegionOfInterest) -> None:
-        self._rois[obj_id] = (msg, time.monotonic())
+        with self._state_lock:
+            self._rois[obj_id] = (msg, time.monotonic())
 
     def latest_roi(self, obj_id: int) -> RegionOfInterest | None:
         """The last box received for an object (None before any)."""
@@ -172,14 +174,14 @@ class AxisPoseNode(Node):
         return entry[0] if entry else None
 
     def _on_drop(self, _: Image, reason: str) -> None:
-        self.counts[f"dropped_{reason}"] += 1
+        self._count(f"dropped_{reason}")
         self.health.drop(time.monotonic(), reason)
         self.get_logger().warning(f"dropped a frame: {reason}", throttle_duration_sec=5.0)
 
     def _on_pair(self, image: Image, info: CameraInfo) -> None:
         with self._slot_lock:
             if self._slot is not None:
-                self.counts["dropped_stale"] += 1
+                self._count("dropped_stale")
             self._slot = Frame(image, info, time.monotonic())
         self._wake.set()
 
@@ -197,11 +199,11 @@ class AxisPoseNode(Node):
             try:
                 self._process(frame)
             except InputError as err:
-                self.counts[f"dropped_{err.reason}"] += 1
+                self._count(f"dropped_{err.reason}")
                 self.health.drop(time.monotonic(), err.reason)
                 self.get_logger().error(f"dropped a frame: {err}", throttle_duration_sec=5.0)
             except Exception as err:
-                self.counts["dropped_error"] += 1
+                self._count("dropped_error")
                 self.health.drop(time.monotonic(), "error")
                 self.get_logger().error(f"inference failed on a frame: {err!r}", throttle_duration_sec=5.0)
             finally:
@@ -210,7 +212,17 @@ class AxisPoseNode(Node):
 
     def frames_done(self) -> int:
         """Frames that left the node: processed, or dropped for a reason."""
-        return self.counts["frames_processed"] + sum(v for k, v in self.counts.items() if k.startswith("dropped_"))
+        counts = self.counters()
+        return counts.get("frames_processed", 0) + sum(v for k, v in counts.items() if k.startswith("dropped_"))
+
+    def _count(self, key: str) -> None:
+        with self._state_lock:
+            self.counts[key] += 1
+
+    def counters(self) -> dict[str, int]:
+        """A consistent copy of the counters (iterating `counts` while the other thread adds a key would fail)."""
+        with self._state_lock:
+            return dict(self.counts)
 
     def idle(self) -> bool:
         """No frame waits for, or is in, inference (frames still waiting for their CameraInfo do not count)."""
@@ -220,11 +232,13 @@ class AxisPoseNode(Node):
     def _boxes(self, width: int, height: int) -> list[tuple[int, tuple[float, float, float, float]]]:
         now, timeout = time.monotonic(), float(self.get_parameter("roi_timeout").value)
         boxes = []
-        for obj_id, (roi, seen) in self._rois.items():
+        with self._state_lock:
+            rois = list(self._rois.items())
+        for obj_id, (roi, seen) in rois:
             if now - seen > timeout or roi.width == 0 or roi.height == 0:
                 continue
             if roi.x_offset + roi.width > width or roi.y_offset + roi.height > height:
-                self.counts["roi_outside"] += 1
+                self._count("roi_outside")
                 continue
             boxes.append((obj_id, (roi.x_offset, roi.y_offset, roi.width, roi.height)))
         return boxes
@@ -261,7 +275,7 @@ class AxisPoseNode(Node):
         best: dict[int, tuple[float, PoseStamped, np.ndarray | None]] = {}
         for est, score in zip(estimates, scores, strict=True):
             if not est.ok:
-                self.counts["pose_refused"] += 1
+                self._count("pose_refused")
                 continue
             pose = _pose(est.R, est.t)
             array.poses.append(pose)
@@ -282,7 +296,7 @@ class AxisPoseNode(Node):
             self.pub_markers.publish(markers)
         if self.pub_debug.get_subscription_count() > 0:
             self.pub_debug.publish(rgb_to_image(_debug_overlay(rgb, camera.K, estimates, self.estimator), header))
-        self.counts["frames_processed"] += 1
+        self._count("frames_processed")
         now = time.monotonic()
         self.latency.append(now - frame.received)
         self.latency = self.latency[-100:]
@@ -291,7 +305,7 @@ class AxisPoseNode(Node):
     def _publish_diagnostics(self) -> None:
         status = DiagnosticStatus(name="axispose: pose estimation", hardware_id=self.get_name())
         status.level, status.message = self.health.judge(time.monotonic())  # the recent window; counters below are totals
-        values = dict(self.counts)
+        values: dict[str, float] = dict(self.counters())
         if self.latency:
             values["latency_median_ms"] = 1000 * float(np.median(self.latency))
         status.values = [KeyValue(key=k, value=f"{v:.1f}" if isinstance(v, float) else str(v)) for k, v in sorted(values.items())]

@@ -202,6 +202,32 @@ def test_diagnostics_stop_saying_ok_when_frames_stop_going_through(harness):
     assert harness.spin_until(warned, 5.0)
 
 
+def test_counters_are_safe_to_read_while_the_other_thread_adds_keys(harness):
+    """The executor reads the counters (diagnostics, frames_done) while drops add new keys from another thread."""
+    import threading
+
+    node, errors = harness.node, []
+
+    def drops() -> None:
+        for k in range(300):
+            node._on_drop(None, f"race{k}")
+
+    writer = threading.Thread(target=drops)
+    writer.start()
+    reads = 0
+    while writer.is_alive():
+        try:
+            node.frames_done()
+            if reads % 200 == 0:
+                node._publish_diagnostics()
+            reads += 1
+        except RuntimeError as err:  # "dictionary changed size during iteration"
+            errors.append(err)
+            break
+    writer.join()
+    assert not errors and node.counters()["dropped_race299"] == 1
+
+
 def test_distinct_bad_encodings_share_one_counter(harness):
     """A stream of ever new encoding strings (one with a newline) must not grow the counters or the diagnostics."""
     for k in range(30):
