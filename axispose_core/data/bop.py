@@ -369,6 +369,14 @@ def bbox_from_model(K: np.ndarray, R: np.ndarray, t: np.ndarray, pts: np.ndarray
     return int(x0), int(y0), int(x1 - x0 + 1), int(y1 - y0 + 1)
 
 
+def bbox_from_mask(mask: np.ndarray) -> tuple[int, int, int, int]:
+    """(x, y, w, h) of a mask's pixels, (-1, -1, -1, -1) for an empty one (BOP's bbox_visib)."""
+    ys, xs = np.nonzero(mask)
+    if not len(xs):
+        return (-1, -1, -1, -1)
+    return (int(xs.min()), int(ys.min()), int(xs.max() - xs.min() + 1), int(ys.max() - ys.min() + 1))
+
+
 def read_bgr(path: str | Path) -> np.ndarray:
     """An image file as HxWx3 uint8 BGR (OpenCV's order, for drawing and writing); an unreadable file is a
     BopFormatError rather than cv2.imread's None."""

@@ -10,7 +10,7 @@ from pathlib import Path
 
 import numpy as np
 
-from axispose_core.data.bop import BopFormatError, GTInfo, GTInstance, bbox_from_model, model_path
+from axispose_core.data.bop import BopFormatError, GTInfo, GTInstance, bbox_from_mask, bbox_from_model, model_path
 from axispose_core.data.synth.generate import load_render_mesh
 from axispose_core.data.synth.raster import Light, RenderMesh, render
 
@@ -22,13 +22,6 @@ def _mesh(models_dir: Path, obj_id: int) -> RenderMesh:
     if not model_path(models_dir, obj_id).exists():
         raise BopFormatError(f"{model_path(models_dir, obj_id)}: no model for object {obj_id}, needed to estimate its visibility")
     return load_render_mesh(models_dir, obj_id)
-
-
-def _box(mask: np.ndarray) -> tuple[int, int, int, int]:
-    ys, xs = np.nonzero(mask)
-    if not len(xs):
-        return (-1, -1, -1, -1)
-    return (int(xs.min()), int(ys.min()), int(xs.max() - xs.min() + 1), int(ys.max() - ys.min() + 1))
 
 
 def estimate_gt_info(K: np.ndarray, gts: list[GTInstance], models_dir: str | Path, width: int, height: int) -> list[GTInfo]:
@@ -43,7 +36,7 @@ def estimate_gt_info(K: np.ndarray, gts: list[GTInstance], models_dir: str | Pat
         infos.append(
             GTInfo(
                 bbox_obj=bbox_from_model(K, g.R, g.t, m.vertices),
-                bbox_visib=_box(visible),
+                bbox_visib=bbox_from_mask(visible),
                 px_count_all=n_all,
                 px_count_valid=n_all,
                 px_count_visib=n_vis,

@@ -23,6 +23,7 @@ from tqdm import tqdm
 from axispose_core.data.bop import (
     GTInfo,
     GTInstance,
+    bbox_from_mask,
     bbox_from_model,
     load_models_info,
     load_ply,
@@ -72,13 +73,6 @@ class SynthImage:
     depth: np.ndarray
 
 
-def _bbox(mask: np.ndarray) -> tuple[int, int, int, int]:
-    ys, xs = np.nonzero(mask)
-    if not len(xs):
-        return (-1, -1, -1, -1)
-    return (int(xs.min()), int(ys.min()), int(xs.max() - xs.min() + 1), int(ys.max() - ys.min() + 1))
-
-
 def render_image(cfg: SynthConfig, meshes: dict[int, RenderMesh], diameters: dict[int, float], scene_id: int, im_id: int) -> SynthImage:
     """Sample, render and randomise one frame deterministically from (cfg.seed, scene_id, im_id)."""
     rng = np.random.default_rng([cfg.seed, scene_id, im_id])
@@ -112,7 +106,7 @@ def render_image(cfg: SynthConfig, meshes: dict[int, RenderMesh], diameters: dic
         info.append(
             GTInfo(
                 bbox_obj=bbox_from_model(K, p.R, p.t, meshes[p.obj_id].vertices),
-                bbox_visib=_bbox(visib),
+                bbox_visib=bbox_from_mask(visib),
                 px_count_all=n_all,
                 px_count_valid=n_all,
                 px_count_visib=n_vis,
