@@ -173,9 +173,13 @@ class AxisPoseNode(Node):
         entry = self._rois.get(obj_id)
         return entry[0] if entry else None
 
-    def _on_drop(self, _: Image, reason: str) -> None:
+    def _dropped(self, reason: str) -> None:
+        """A frame dropped for a reason: its counter, and the health of the recent window."""
         self._count(f"dropped_{reason}")
         self.health.drop(time.monotonic(), reason)
+
+    def _on_drop(self, _: Image, reason: str) -> None:
+        self._dropped(reason)
         self.get_logger().warning(f"dropped a frame: {reason}", throttle_duration_sec=5.0)
 
     def _on_pair(self, image: Image, info: CameraInfo) -> None:
@@ -199,12 +203,10 @@ class AxisPoseNode(Node):
             try:
                 self._process(frame)
             except InputError as err:
-                self._count(f"dropped_{err.reason}")
-                self.health.drop(time.monotonic(), err.reason)
+                self._dropped(err.reason)
                 self.get_logger().error(f"dropped a frame: {err}", throttle_duration_sec=5.0)
             except Exception as err:
-                self._count("dropped_error")
-                self.health.drop(time.monotonic(), "error")
+                self._dropped("error")
                 self.get_logger().error(f"inference failed on a frame: {err!r}", throttle_duration_sec=5.0)
             finally:
                 with self._slot_lock:
