@@ -18,10 +18,9 @@ from pathlib import Path
 
 import torch
 
+from axispose_core.cli import SHARED_LMO
 from axispose_core.data.synth.config import StreamConfig
 from axispose_core.data.synth.stream import CropStream, stream_loader
-
-REPO = Path(__file__).resolve().parents[1]
 
 
 def main() -> None:
@@ -31,7 +30,7 @@ def main() -> None:
     ap.add_argument("--size", type=int, default=64)
     ap.add_argument("--batch", type=int, default=32)
     ap.add_argument("--mesh-cell", type=float, default=None, help="override StreamConfig.mesh_cell")
-    ap.add_argument("--models", default=str(REPO.parent / "shared" / "data" / "lmo" / "models"))
+    ap.add_argument("--models", default=str(SHARED_LMO / "models"))
     ap.add_argument("--json", default=None)
     args = ap.parse_args()
     torch.set_num_threads(1)
