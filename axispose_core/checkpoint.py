@@ -63,13 +63,20 @@ def config_from_dict(cls: type[C], data: dict[str, Any], source: str = "config")
 
 
 def save_checkpoint(
-    path: str | Path, kind: str, config: Any, modules: dict[str, torch.nn.Module], extra: dict[str, Any] | None = None
+    path: str | Path,
+    kind: str,
+    config: Any,
+    modules: dict[str, torch.nn.Module],
+    extra: dict[str, Any] | None = None,
+    half: bool = False,
 ) -> None:
-    """Write the modules' state dicts (prefixed by their names) and the config dataclass into one safetensors file."""
+    """Write the modules' state dicts (prefixed by their names) and the config dataclass into one safetensors file;
+    `half` stores floating-point tensors as float16 (half the size; loading casts them back to the module's dtype)."""
     tensors = {}
     for prefix, module in modules.items():
         for key, value in module.state_dict().items():
-            tensors[f"{prefix}.{key}"] = value.detach().cpu().contiguous()
+            value = value.detach().cpu()
+            tensors[f"{prefix}.{key}"] = (value.half() if half and value.is_floating_point() else value).contiguous()
     meta = {
         "format": FORMAT,
         "kind": kind,

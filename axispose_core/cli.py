@@ -127,7 +127,7 @@ def _train_direct(args: argparse.Namespace) -> int:
 
     torch.set_num_threads(args.threads)
     cfg = _config(DirectTrainConfig, args.config)
-    step = train_direct(cfg, args.data, args.out, **_training_kwargs(args))
+    step = train_direct(cfg, args.data, args.out, models=args.models, **_training_kwargs(args))
     print(f"stopped at step {step} of {cfg.steps}; direct-regression baseline {args.out}")
     return 0
 
@@ -335,7 +335,10 @@ def build_parser() -> argparse.ArgumentParser:
     tv.set_defaults(func=_train_verifier)
 
     tr = sub.add_parser("train-direct", help="train the direct-regression baseline (keypoints from the crop, no diffusion)")
-    _training_args(tr, "regressor checkpoint", "DirectTrainConfig", "config/train_direct.yaml")
+    _training_args(tr, "regressor checkpoint", "DirectTrainConfig", "config/train_direct.yaml",
+                   data_help="BOP folders to train on instead of the crop stream")  # fmt: skip
+    tr.add_argument("--models", default=str(SHARED_LMO / "models"),
+                    help="BOP models folder the crop stream renders (default: ../shared/data/lmo/models beside the clone)")  # fmt: skip
     tr.set_defaults(func=_train_direct)
 
     ev = sub.add_parser("eval", help="pose metrics of a checkpoint on BOP scenes (JSON report, plots)")

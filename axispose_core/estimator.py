@@ -8,6 +8,7 @@ The node, `axispose eval` and the demos all go through `Estimator`, so what is m
 
 from __future__ import annotations
 
+import json
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
@@ -15,10 +16,10 @@ import numpy as np
 import torch
 
 from axispose_core.agm.guidance import self_consistency_target
-from axispose_core.agm.model import AGMConfig, AxisGenerator
+from axispose_core.agm.model import VERSION, AGMConfig, AxisGenerator, depth_from_log
 from axispose_core.axis_image import AxisSpec
 from axispose_core.camera import validate_intrinsics
-from axispose_core.checkpoint import CheckpointError, load_state, read_checkpoint, save_checkpoint
+from axispose_core.checkpoint import CheckpointError, load_state, read_checkpoint, read_metadata, save_checkpoint
 from axispose_core.consensus import consensus
 from axispose_core.data.crops import InstanceCrop, instance_crop
 from axispose_core.data.objects import ObjectSpec
@@ -40,6 +41,9 @@ class EstimatorConfig:
     crop_pad: float = 1.25
     ddim_steps: int = 4
     guidance_scale: float = 0.0
+    head_depth_weight: float = 0.5
+    """Weight of the encoder's depth in the fused log depth (0: the TBM's from the drawn axis lengths alone, 1: the
+    encoder's alone); the translation keeps the TBM's ray. Set from the two sources' measured errors."""
     training: dict = field(default_factory=dict)
     """Provenance: data recipe, steps, wall time, hardware."""
     localiser: LocaliserConfig | None = None
@@ -89,6 +93,8 @@ class Estimator:
     def __init__(
         self, config: EstimatorConfig, agm: AxisGenerator, reader: KeypointReader, device: str = "cpu", localiser: Localiser | None = None
     ) -> None:
+        if len(config.objects) > agm.config.denoiser.encoder.objects:
+            raise ValueError(f"{len(config.objects)} objects, but the AGM's encoder embeds {agm.config.denoiser.encoder.objects}")
         if agm.config.denoiser.size != reader.config.size:
             raise ValueError(f"AGM draws {agm.config.denoiser.size}px axis images, the reader reads {reader.config.size}px")
         if (localiser is None) != (config.localiser is None) or (localiser is not None and localiser.config != config.localiser):
@@ -102,14 +108,16 @@ class Estimator:
         self.localiser = localiser.to(self.device).eval() if localiser is not None else None
         self._detector = self.localiser.fused() if self.localiser is not None else None
         self.objects = {o.obj_id: o for o in config.objects}
+        self.index = {o.obj_id: k for k, o in enumerate(config.objects)}
 
     @property
     def size(self) -> int:
         return self.config.agm.denoiser.size
 
-    def save(self, path: str | Path) -> None:
+    def save(self, path: str | Path, half: bool = False) -> None:
+        """Write the checkpoint; `half`: weights in float16, as the shipped one (runs in float32 after loading)."""
         modules = {"agm": self.agm.denoiser, "reader": self.reader} | ({"localiser": self.localiser} if self.localiser else {})
-        save_checkpoint(path, KIND, self.config, modules)
+        save_checkpoint(path, KIND, self.config, modules, half=half)
 
     def with_localiser(self, localiser: Localiser) -> Estimator:
         """This estimator carrying `localiser` (replacing any it had), so one checkpoint serves the node."""
@@ -123,6 +131,15 @@ class Estimator:
 
     @classmethod
     def load(cls, path: str | Path, device: str = "cpu") -> Estimator:
+        try:
+            agm = json.loads(read_metadata(path, KIND).get("config", "{}")).get("agm", {})
+        except (json.JSONDecodeError, AttributeError):
+            agm = {"version": VERSION}  # unreadable: read_checkpoint says so
+        if isinstance(agm, dict) and agm.get("version") != VERSION:
+            raise CheckpointError(
+                f"{path}: made by an earlier AxisPose (AGM version {agm.get('version', 1)}, this one runs {VERSION}); "
+                "retrain it with `axispose train`"
+            )
         config, states, _ = read_checkpoint(path, KIND, EstimatorConfig)
         agm = AxisGenerator(config.agm)
         load_state(agm.denoiser, states.get("agm", {}), f"{path} (agm)")
@@ -135,6 +152,15 @@ class Estimator:
         elif "localiser" in states:
             raise CheckpointError(f"{path}: holds localiser weights but no localiser config")
         return cls(config, agm, reader, device, localiser)
+
+    def _fused(self, t: np.ndarray, log_depth: float, K_patch: np.ndarray, scale: float) -> np.ndarray:
+        """The TBM's translation moved along its ray to the fused depth (geometric mean weighted by
+        head_depth_weight of the TBM's and the encoder's); both scale with λ_O, so the result does too."""
+        w = self.config.head_depth_weight
+        if w <= 0 or t[2] <= 0:
+            return t
+        z_head = depth_from_log(log_depth, K_patch, scale, self.size)
+        return t * float(np.exp(w * (np.log(z_head) - np.log(t[2]))))
 
     def estimate(
         self,
@@ -165,7 +191,7 @@ class Estimator:
         for obj_id, _ in boxes:
             spec = self.objects[obj_id]
             lengths.append(AxisSpec((scales or {}).get(obj_id, spec.scale), spec.ratio_b, spec.ratio_c).lengths)
-        x = x.to(self.device).repeat_interleave(hypotheses, dim=0)
+        objects = torch.tensor([self.index[obj_id] for obj_id, _ in boxes], device=self.device)
         Kp_all, lengths_all = np.repeat(np.stack(Kp), hypotheses, axis=0), np.repeat(np.stack(lengths), hypotheses, axis=0)
 
         def guidance(x0: torch.Tensor):
@@ -173,7 +199,11 @@ class Estimator:
 
         gen = torch.Generator().manual_seed(seed)
         with torch.inference_mode(scale <= 0):
-            axes = self.agm.sample(x, steps, generator=gen, guidance=guidance if scale > 0 else None, guidance_scale=scale)
+            enc = self.agm.encode(x.to(self.device), objects)
+            axes = self.agm.sample(
+                enc.repeat(hypotheses), steps, generator=gen, guidance=guidance if scale > 0 else None, guidance_scale=scale
+            )
+        log_depth = enc.log_depth.float().cpu().numpy()
         images = ((axes + 1) * 0.5).clamp(0, 1)
         readings = self.reader.read(images)
         out = []
@@ -183,7 +213,7 @@ class Estimator:
                 kp = readings[k]
                 res = backproject(cut.K_patch, kp.origin, kp.endpoints, L, refine=True) if kp.ok else None
                 if res is not None and res.ok:
-                    poses.append((k, res.R, res.t))
+                    poses.append((k, res.R, self._fused(res.t, float(log_depth[i]), cut.K_patch, float(L[0]))))
                 else:
                     reasons.append(kp.reason if res is None else res.reason)
             pick = dict(obj_id=obj_id, K_patch=cut.K_patch, center=cut.center, side=cut.side, samples=hypotheses, samples_ok=len(poses))

@@ -1,9 +1,9 @@
-"""Latency on this machine: the AGM sampler by conditioning, steps, objects per frame and threads; the full
-crop -> AGM -> reader -> TBM path of a checkpoint; the localiser per frame.
+"""Latency on this machine: the AGM's encoder (once per crop) against one denoiser step (per step and
+hypothesis), by objects per frame and threads; the full crop -> AGM -> reader -> TBM path of a checkpoint; the
+localiser per frame.
 
-Part 1 times `AxisGenerator.sample` for both conditionings at the same network size (the paper's `concat`,
-which runs the crop through the UNet at every step, against `encoder`, which encodes the crop once), with
-random weights (timing does not depend on them). Part 2 times `Estimator.estimate` of a trained checkpoint on
+Part 1 times `AxisGenerator.encode` and one `Denoiser` call of the checkpoint's network, so that the cost of
+steps and hypotheses can be read off (encoder + steps x hypotheses x step). Part 2 times `Estimator.estimate` on
 a real frame (TBM cost depends on what the reader sees). Part 3 times the checkpoint's localiser, if any.
 
     python bench/agm_latency.py --checkpoint runs/main/agm.safetensors --json bench/results/agm_latency.json
@@ -12,7 +12,6 @@ a real frame (TBM cost depends on what the reader sees). Part 3 times the checkp
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import json
 import platform
 import time
@@ -21,7 +20,6 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from axispose_core.agm.model import AxisGenerator
 from axispose_core.estimator import Estimator
 from axispose_core.train.dataset import bop_frames
 from axispose_core.train.detector import frame_instances
@@ -50,24 +48,24 @@ def main() -> None:
     est = Estimator.load(args.checkpoint)
     size = est.size
     sampler_rows, path_rows, localiser_rows = [], [], []
-    print("part 1: AGM sampler, ms per call (batch = objects)")
-    for conditioning in ("concat", "encoder"):
-        cfg = dataclasses.replace(est.config.agm, denoiser=dataclasses.replace(est.config.agm.denoiser, conditioning=conditioning))
-        agm = AxisGenerator(cfg).eval()
-        for threads in args.threads:
-            torch.set_num_threads(threads)
-            for n in args.objects:
-                crops = torch.rand(n, 3, size, size) * 2 - 1
-                for steps in args.steps:
-                    with torch.inference_mode():
-                        ms = _median_ms(lambda agm=agm, crops=crops, steps=steps: agm.sample(crops, steps), args.repeats)
-                    sampler_rows.append({"conditioning": conditioning, "threads": threads, "objects": n, "steps": steps, "ms": ms})
-                    print(f"  {conditioning:<8} threads {threads} objects {n} steps {steps:>2}: {ms:7.1f} ms ({ms / n:6.1f} per object)")
+    print("part 1: AGM encoder (per crop) and one denoiser step (per step and hypothesis), ms per call (batch = objects)")
+    agm = est.agm
+    for threads in args.threads:
+        torch.set_num_threads(threads)
+        for n in args.objects:
+            crops, objects = torch.rand(n, 3, size, size) * 2 - 1, torch.zeros(n, dtype=torch.long)
+            with torch.inference_mode():
+                enc = agm.encode(crops, objects)
+                x, t = torch.randn(n, 3, size, size), torch.full((n,), 500)
+                enc_ms = _median_ms(lambda crops=crops, objects=objects: agm.encode(crops, objects), args.repeats)
+                step_ms = _median_ms(lambda x=x, t=t, enc=enc: agm.denoiser(x, t, enc), args.repeats)
+            sampler_rows.append({"threads": threads, "objects": n, "encoder_ms": enc_ms, "step_ms": step_ms})
+            print(f"  threads {threads} objects {n}: encoder {enc_ms:6.1f} ms, one step {step_ms:6.1f} ms")
     scene, im_id = bop_frames([args.data])[0]
     rgb = scene.rgb(im_id)
     K = scene.cameras[im_id]
     boxes = [(obj_id, box) for obj_id, box, _ in frame_instances(scene, im_id, tuple(est.objects))]
-    print(f"part 2: full path of {args.checkpoint} ({est.config.agm.denoiser.conditioning}), ms per frame")
+    print(f"part 2: full path of {args.checkpoint}, ms per frame")
     for threads in args.threads:
         torch.set_num_threads(threads)
         for n in args.objects:

@@ -70,7 +70,7 @@ def main() -> None:
 
                 def call(agm=agm, crops=crops, steps=steps, mode=mode) -> torch.Tensor:
                     with torch.inference_mode(), torch.autocast("cuda", torch.bfloat16, enabled=mode != "fp32"):
-                        return agm.sample(crops, steps)
+                        return agm.sample(agm.encode(crops, torch.zeros(len(crops), dtype=torch.long, device="cuda")), steps)
 
                 start = time.perf_counter()
                 try:

@@ -1,12 +1,17 @@
 """AGM: scheduler maths, sampler determinism, guidance gradient, training behaviour, checkpoint round trip."""
 
+import json
+import math
+
 import numpy as np
 import pytest
 import torch
+from conftest import TINY_AGM
+from safetensors import safe_open
+from safetensors.torch import load_file, save_file
 
-from axispose_core.agm.denoiser import DenoiserConfig
 from axispose_core.agm.guidance import AxisGeometry, axis_geometry, exact_gradient, geo_loss, guided_eps, inject
-from axispose_core.agm.model import AGMConfig, AxisGenerator
+from axispose_core.agm.model import AGMConfig, AxisGenerator, depth_from_log, log_depth_target
 from axispose_core.agm.scheduler import DDIMScheduler, SchedulerConfig
 from axispose_core.axis_image import axis_keypoints, render_axis_keypoints
 from axispose_core.checkpoint import CheckpointError, save_checkpoint
@@ -15,7 +20,7 @@ from axispose_core.estimator import Estimator, EstimatorConfig
 from axispose_core.pose_sampling import sample_patch
 from axispose_core.tbm.reader import SHIPPED_READER, load_reader
 
-TINY = DenoiserConfig(size=64, channels=8, multipliers=(1, 2), groups=4)
+TINY = TINY_AGM.denoiser
 
 
 def test_schedule_and_timesteps_are_validated():
@@ -143,10 +148,16 @@ def test_sampler_is_deterministic_under_a_seed():
     for p in agm.parameters():  # a non-trivial network: zero-initialised output layers would hide differences
         p.data.normal_(0, 0.05)
     crops = torch.rand(2, 3, 64, 64) * 2 - 1
-    a = agm.sample(crops, 4, generator=torch.Generator().manual_seed(7))
-    b = agm.sample(crops, 4, generator=torch.Generator().manual_seed(7))
-    c = agm.sample(crops, 4, generator=torch.Generator().manual_seed(8))
+    enc = agm.encode(crops, torch.tensor([0, 1]))
+    a = agm.sample(enc, 4, generator=torch.Generator().manual_seed(7))
+    b = agm.sample(enc, 4, generator=torch.Generator().manual_seed(7))
+    c = agm.sample(enc, 4, generator=torch.Generator().manual_seed(8))
     assert a.shape == (2, 3, 64, 64) and torch.equal(a, b) and not torch.equal(a, c)
+    # the object conditions the generation: the same crop told another object draws another image
+    other = agm.sample(agm.encode(crops, torch.tensor([2, 1])), 4, generator=torch.Generator().manual_seed(7))
+    assert not torch.equal(other[0], a[0]) and torch.equal(other[1], a[1])
+    # hypotheses share the crop's encoding
+    assert torch.equal(enc.repeat(3).context[3:6], enc.context[1:2].expand(3, -1))
     assert a.min() >= -1 and a.max() <= 1
 
 
@@ -158,8 +169,9 @@ def test_loss_falls_on_a_tiny_set(guided, rng):
     agm = AxisGenerator(AGMConfig(denoiser=TINY, train_guidance=guided))
     opt = torch.optim.Adam(agm.parameters(), lr=2e-3)
     losses = []
+    batch = {"crop": crops, "axes": targets, "object": torch.arange(4)}
     for i in range(120):
-        loss = agm.loss(crops, targets, torch.Generator().manual_seed(i % 8))
+        loss = agm(batch, torch.Generator().manual_seed(i % 8))
         opt.zero_grad()
         loss.backward()
         opt.step()
@@ -186,6 +198,38 @@ def test_estimator_checkpoint_round_trip(tmp_path):
     save_checkpoint(tmp_path / "reader.safetensors", "tbm_reader", reader.config, {"reader": reader})
     with pytest.raises(CheckpointError, match="expected 'estimator'"):
         Estimator.load(tmp_path / "reader.safetensors")
+
+
+def test_a_checkpoint_of_the_earlier_agm_is_refused_in_one_line(tmp_path):
+    """An estimator saved before the AGM's version 2 (no `version`, the old denoiser fields) says what it is."""
+    path = tmp_path / "old.safetensors"
+    reader = load_reader(SHIPPED_READER)
+    cfg = EstimatorConfig(agm=AGMConfig(denoiser=TINY), reader=reader.config, objects=tuple(lmo_objects()[:1]))
+    Estimator(cfg, AxisGenerator(cfg.agm), reader).save(path)
+    meta = dict(safe_open(str(path), framework="pt").metadata())
+    config = json.loads(meta["config"])
+    del config["agm"]["version"]
+    config["agm"]["denoiser"] = {"size": 64, "channels": 32, "multipliers": [1, 2, 4], "blocks_per_level": 1, "conditioning": "encoder"}
+    save_file(load_file(str(path)), str(path), metadata=meta | {"config": json.dumps(config)})
+    with pytest.raises(CheckpointError, match=r"made by an earlier AxisPose \(AGM version 1") as err:
+        Estimator.load(path)
+    assert "\n" not in str(err.value)
+
+
+def test_depth_target_round_trip_and_fusion_scale_with_the_object_size():
+    K = torch.tensor([[[300.0, 0, 32], [0, 310.0, 30], [0, 0, 1]]], dtype=torch.float64)
+    t = torch.tensor([[0.05, -0.02, 0.8]], dtype=torch.float64)
+    log_depth = log_depth_target(K, t, torch.tensor([0.05], dtype=torch.float64), 64)
+    assert depth_from_log(float(log_depth[0]), K[0].numpy(), 0.05, 64) == pytest.approx(0.8)
+    assert depth_from_log(float(log_depth[0]), K[0].numpy(), 0.10, 64) == pytest.approx(1.6)  # linear in λ_O
+    reader = load_reader(SHIPPED_READER)
+    cfg = EstimatorConfig(agm=AGMConfig(denoiser=TINY), reader=reader.config, objects=tuple(lmo_objects()[:1]), head_depth_weight=0.5)
+    est = Estimator(cfg, AxisGenerator(cfg.agm), reader)
+    tbm = np.array([0.1, 0.0, 1.0])
+    head = math.log(0.81 * 64 / (305.0 * 0.05))  # the encoder says 0.81 m, the TBM 1.0 m
+    fused = est._fused(tbm, head, K[0].numpy(), 0.05)
+    assert fused[2] == pytest.approx(0.9) and np.allclose(fused / fused[2], tbm / tbm[2])  # geometric mean, same ray
+    np.testing.assert_allclose(est._fused(2 * tbm, head, K[0].numpy(), 0.10), 2 * fused)  # λ_O x2: translation x2
 
 
 def test_geo_loss_is_zero_on_target(rng):

@@ -7,10 +7,10 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
+from conftest import TINY_AGM
 from scipy.spatial.transform import Rotation
 
-from axispose_core.agm.denoiser import DenoiserConfig
-from axispose_core.agm.model import AGMConfig, AxisGenerator
+from axispose_core.agm.model import AxisGenerator
 from axispose_core.data.bop import BopScene, load_ply, model_path
 from axispose_core.data.objects import objects_from_models
 from axispose_core.data.synth.config import SynthConfig
@@ -40,7 +40,7 @@ def objects(scene):
 def checkpoint(tmp_path_factory, objects):
     reader = load_reader(SHIPPED_READER)
     cfg = EstimatorConfig(
-        agm=AGMConfig(denoiser=DenoiserConfig(channels=8, multipliers=(1, 2), groups=4)),
+        agm=TINY_AGM,
         reader=reader.config,
         objects=tuple(objects),
         ddim_steps=1,

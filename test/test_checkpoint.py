@@ -29,6 +29,21 @@ def test_nested_config_round_trip(tmp_path):
     assert extra == {"steps": 3}
 
 
+def test_half_storage_halves_the_file_and_loads_back_into_float32(tmp_path):
+    from axispose_core.checkpoint import load_state
+
+    net = torch.nn.Sequential(torch.nn.Linear(64, 64), torch.nn.BatchNorm1d(64))
+    save_checkpoint(tmp_path / "full.safetensors", "test", Outer("x"), {"net": net})
+    save_checkpoint(tmp_path / "half.safetensors", "test", Outer("x"), {"net": net}, half=True)
+    assert (tmp_path / "half.safetensors").stat().st_size < 0.6 * (tmp_path / "full.safetensors").stat().st_size
+    _, states, _ = read_checkpoint(tmp_path / "half.safetensors", "test", Outer)
+    assert states["net"]["0.weight"].dtype == torch.float16 and states["net"]["1.num_batches_tracked"].dtype == torch.int64
+    again = torch.nn.Sequential(torch.nn.Linear(64, 64), torch.nn.BatchNorm1d(64))
+    load_state(again, states["net"], "half")
+    assert again[0].weight.dtype == torch.float32
+    torch.testing.assert_close(again[0].weight, net[0].weight, atol=1e-3, rtol=1e-3)
+
+
 def test_config_errors_name_the_key():
     with pytest.raises(CheckpointError, match="missing key 'name'"):
         config_from_dict(Outer, {})

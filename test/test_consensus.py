@@ -1,12 +1,14 @@
 """Multi-hypothesis poses: the consensus of sampled poses, its spread and covariance, and the estimator's K samples."""
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 import torch
+from conftest import TINY_AGM
 from scipy.spatial.transform import Rotation
 
-from axispose_core.agm.denoiser import DenoiserConfig
-from axispose_core.agm.model import AGMConfig, AxisGenerator
+from axispose_core.agm.model import AxisGenerator
 from axispose_core.axis_image import render_axis_image
 from axispose_core.camera import project
 from axispose_core.consensus import ROT_FLOOR_RAD, TRANS_FLOOR_M, consensus
@@ -88,13 +90,14 @@ class _OracleAGM(AxisGenerator):
         self.K_patch, self.R, self.t, self.lengths, self.sigma = K_patch, R, t, lengths, np.radians(sigma_deg)
         self.batches: list[int] = []
 
-    def sample(self, crops, steps, eta=0.0, generator=None, guidance=None, guidance_scale=0.0):
-        self.batches.append(len(crops))
+    def sample(self, enc, steps, eta=0.0, generator=None, guidance=None, guidance_scale=0.0):
+        n = len(enc.context)
+        self.batches.append(n)
         seed = int(torch.randint(0, 2**31 - 1, (1,), generator=generator))
         rng = np.random.default_rng(seed)
-        S = crops.shape[-1]
+        S = self.config.denoiser.size
         out = []
-        for _ in range(len(crops)):
+        for _ in range(n):
             tilt = Rotation.from_rotvec(rng.normal(0, self.sigma, 3)).as_matrix()
             out.append(render_axis_image(self.K_patch, tilt @ self.R, self.t, self.lengths, S))
         return torch.from_numpy(np.stack(out)).permute(0, 3, 1, 2) * 2 - 1
@@ -112,8 +115,9 @@ def oracle_setup():
     image = np.zeros((480, 640, 3), np.uint8)
     S = reader.config.size
     K_patch = instance_crop(image, K, box, S, pad=1.25).K_patch
-    cfg = EstimatorConfig(agm=AGMConfig(denoiser=DenoiserConfig(size=S, channels=8, multipliers=(1,), groups=4)), reader=reader.config,
-                          objects=(spec,), ddim_steps=1)  # fmt: skip
+    agm = replace(TINY_AGM, denoiser=replace(TINY_AGM.denoiser, size=S))
+    # The oracle draws exact axis images; the untrained encoder's depth would only move the TBM's translation.
+    cfg = EstimatorConfig(agm=agm, reader=reader.config, objects=(spec,), ddim_steps=1, head_depth_weight=0.0)
 
     def make(sigma_deg: float) -> Estimator:
         return Estimator(cfg, _OracleAGM(cfg.agm, K_patch, R, t, spec.axes.lengths, sigma_deg), reader)

@@ -6,9 +6,9 @@ from dataclasses import replace
 import numpy as np
 import pytest
 import torch
+from conftest import TINY_AGM
 
-from axispose_core.agm.denoiser import DenoiserConfig
-from axispose_core.agm.model import AGMConfig, AxisGenerator
+from axispose_core.agm.model import AxisGenerator
 from axispose_core.camera import crop_transform, project
 from axispose_core.checkpoint import CheckpointError, read_checkpoint
 from axispose_core.cli import main
@@ -192,7 +192,7 @@ def test_the_fused_inference_copy_finds_what_the_trained_localiser_finds(frames,
 def estimator_with_localiser(frames, trained, tmp_path_factory):
     reader = load_reader(SHIPPED_READER)
     objects = objects_from_models(frames, [1, 5], names={1: "ape", 5: "can"})
-    cfg = EstimatorConfig(agm=AGMConfig(denoiser=DenoiserConfig(channels=8, multipliers=(1, 2), groups=4)), reader=reader.config,
+    cfg = EstimatorConfig(agm=TINY_AGM, reader=reader.config,
                           objects=tuple(objects), ddim_steps=1)  # fmt: skip
     path = tmp_path_factory.mktemp("est") / "est.safetensors"
     Estimator(cfg, AxisGenerator(cfg.agm), reader).with_localiser(load_localiser(trained[1])).save(path)

@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 import torch
 import yaml
+from conftest import TINY_AGM_YAML, TINY_ENCODER
 
-from axispose_core.agm.denoiser import DenoiserConfig
 from axispose_core.axis_image import axis_keypoints
 from axispose_core.baseline.direct import DirectConfig, DirectEstimator, DirectRegressor, keypoints_to_normalised, regression_loss
 from axispose_core.checkpoint import CheckpointError
@@ -19,7 +19,7 @@ from axispose_core.data.synth.generate import generate
 from axispose_core.metrics import re, te
 from axispose_core.train.direct import KeypointCropDataset
 
-TINY = DenoiserConfig(size=64, channels=8, multipliers=(1, 2), groups=4)
+TINY = TINY_ENCODER
 
 
 @pytest.fixture(scope="module")
@@ -32,9 +32,10 @@ def data(tmp_path_factory, lmo_dir):
 def test_keypoint_units_round_trip():
     model = DirectRegressor(DirectConfig(encoder=TINY))
     crops = torch.rand(3, 3, 64, 64) * 2 - 1
-    out = model.keypoints(crops)
+    objects = torch.tensor([0, 1, 0])
+    out = model.keypoints(crops, objects)
     assert out.shape == (3, 4, 2)
-    torch.testing.assert_close(keypoints_to_normalised(out, 64), model(crops))
+    torch.testing.assert_close(keypoints_to_normalised(out, 64), model(crops, objects))
 
 
 def test_exact_keypoints_give_the_exact_pose():
@@ -47,7 +48,7 @@ def test_exact_keypoints_give_the_exact_pose():
     image = np.zeros((480, 640, 3), np.uint8)
     K_patch = instance_crop(image, K, box, 64, pad=1.25).K_patch
     kp = torch.from_numpy(axis_keypoints(K_patch, R, t, spec.axes.lengths)).float()
-    est.model.keypoints = lambda crops: kp.expand(len(crops), 4, 2)  # an oracle regressor
+    est.model.keypoints = lambda crops, objects: kp.expand(len(crops), 4, 2)  # an oracle regressor
     (res,) = est.estimate(image, K, [(spec.obj_id, box)])
     assert res.ok and re(res.R, R) < 0.05 and te(res.t, t) < 1e-4
     with pytest.raises(ValueError, match="not in this checkpoint"):
@@ -57,7 +58,7 @@ def test_exact_keypoints_give_the_exact_pose():
 def test_loss_falls_on_a_tiny_set(data):
     objects = [o for o in lmo_objects() if o.obj_id in (1, 5, 6)]
     ds = KeypointCropDataset([data], objects, 64, jitter=None, color_aug=False)
-    batch = {k: torch.stack([ds[i][k] for i in range(min(8, len(ds)))]) for k in ("crop", "keypoints")}
+    batch = {k: torch.stack([ds[i][k] for i in range(min(8, len(ds)))]) for k in ("crop", "keypoints", "object")}
     torch.manual_seed(0)
     model = DirectRegressor(DirectConfig(encoder=TINY))
     opt = torch.optim.Adam(model.parameters(), lr=2e-3)
@@ -73,7 +74,7 @@ def test_loss_falls_on_a_tiny_set(data):
 def test_train_direct_cli_then_eval_and_resume(data, lmo_dir, tmp_path):
     cfg = tmp_path / "cfg.yaml"
     fields = {"steps": 4, "batch": 2, "workers": 0, "warmup": 1, "save_every": 2, "val_every": 2, "val_samples": 4,
-              "encoder": {"size": 64, "channels": 8, "multipliers": [1, 2], "groups": 4}}  # fmt: skip
+              "size": 64, "encoder": TINY_AGM_YAML["denoiser"]["encoder"]}  # fmt: skip
     cfg.write_text(yaml.safe_dump(fields))
     out = tmp_path / "direct.safetensors"
     args = ["train-direct", "--data", str(data), "--val", str(data), "--out", str(out), "--config", str(cfg), "--threads", "1"]

@@ -114,14 +114,15 @@ def test_low_visibility_instances_are_skipped(scenes, lmo_dir):
 
 
 def test_eval_cli_writes_the_report(scenes, lmo_dir, tmp_path, official_like):
-    from axispose_core.agm.denoiser import DenoiserConfig
-    from axispose_core.agm.model import AGMConfig, AxisGenerator
+    from conftest import TINY_AGM
+
+    from axispose_core.agm.model import AxisGenerator
     from axispose_core.estimator import Estimator, EstimatorConfig
     from axispose_core.tbm.reader import SHIPPED_READER, load_reader
 
     reader = load_reader(SHIPPED_READER)
     cfg = EstimatorConfig(
-        agm=AGMConfig(denoiser=DenoiserConfig(channels=8, multipliers=(1, 2), groups=4)),
+        agm=TINY_AGM,
         reader=reader.config,
         objects=tuple(objects_from_models(scenes)),
         ddim_steps=1,

@@ -9,14 +9,14 @@ import numpy as np
 import pytest
 import rclpy
 import torch
+from conftest import TINY_AGM
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 from geometry_msgs.msg import PoseArray, PoseStamped, PoseWithCovarianceStamped
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.parameter import Parameter
 from sensor_msgs.msg import CameraInfo, Image, RegionOfInterest
 
-from axispose_core.agm.denoiser import DenoiserConfig
-from axispose_core.agm.model import AGMConfig, AxisGenerator
+from axispose_core.agm.model import AxisGenerator
 from axispose_core.checkpoint import CheckpointError
 from axispose_core.data.objects import lmo_objects
 from axispose_core.detect.model import Localiser, LocaliserConfig
@@ -30,7 +30,7 @@ from axispose_ros.node import AxisPoseNode
 def checkpoint(tmp_path_factory):
     reader = load_reader(SHIPPED_READER)
     cfg = EstimatorConfig(
-        agm=AGMConfig(denoiser=DenoiserConfig(channels=8, multipliers=(1, 2), groups=4)),
+        agm=TINY_AGM,
         reader=reader.config,
         objects=tuple(lmo_objects()[:2]),  # ape (1), can (5)
         ddim_steps=1,
@@ -314,7 +314,7 @@ def test_without_rois_the_checkpoints_localiser_finds_the_objects(tmp_path):
     reader = load_reader(SHIPPED_READER)
     localiser = Localiser(LocaliserConfig(obj_ids=(1, 5), input_size=(160, 128), channels=(8, 16, 24, 32), max_per_object=2))
     cfg = EstimatorConfig(
-        agm=AGMConfig(denoiser=DenoiserConfig(channels=8, multipliers=(1, 2), groups=4)), reader=reader.config,
+        agm=TINY_AGM, reader=reader.config,
         objects=tuple(lmo_objects()[:2]), ddim_steps=1,
     )  # fmt: skip
     Estimator(cfg, AxisGenerator(cfg.agm), reader).with_localiser(localiser).save(tmp_path / "loc.safetensors")

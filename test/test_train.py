@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 import torch
 import yaml
+from conftest import TINY_AGM_YAML
 
 from axispose_core.cli import main
 from axispose_core.data.synth.config import SynthConfig
@@ -23,7 +24,7 @@ TINY = {
     "val_every": 2,
     "val_samples": 2,
     "val_steps": 1,
-    "agm": {"denoiser": {"size": 64, "channels": 8, "multipliers": [1, 2], "groups": 4}},
+    "agm": TINY_AGM_YAML,
 }
 
 
@@ -108,9 +109,12 @@ def test_stream_training_is_seeded_resumable_and_validated(lmo_dir, tmp_path):
     assert all(torch.equal(v, b[k]) for k, v in a.items())
     assert {o.obj_id for o in runs[0].config.objects} == {1, 5} and "crop stream" in runs[0].config.training["data"][0]
     header, *rows = (tmp_path / "a.csv").read_text().splitlines()
-    assert header.split(",")[:6] == ["step", "crops", "loss", "lr", "seconds", "val_loss"] and header.endswith("val_kp_err_px")
-    last = rows[-1].split(",")
-    assert last[:2] == ["3", "6"] and float(last[-1]) > 0  # 3 steps of batch 2; a keypoint error measured
+    columns = header.split(",")
+    assert columns[:6] == ["step", "crops", "loss", "lr", "seconds", "val_loss"]
+    last = dict(zip(columns, rows[-1].split(","), strict=True))
+    assert last["step"] == "3" and last["crops"] == "6"  # 3 steps of batch 2
+    # held-out metrics of every part measured: keypoints, both depth sources' errors, the surface points
+    assert float(last["val_kp_err_px"]) > 0 and float(last["val_depth_head"]) > 0 and float(last["val_points_err"]) > 0
     state = str(tmp_path / "a.safetensors") + ".state.pt"
     longer = _config(tmp_path, steps=5, val_every=3, stream={"objects": [1, 5]})
     assert main(["train", "--models", str(lmo_dir / "models"), "--out", str(tmp_path / "a.safetensors"), "--config", longer,
@@ -123,25 +127,28 @@ def test_stream_training_is_seeded_resumable_and_validated(lmo_dir, tmp_path):
 
 def test_loss_falls_on_the_stream(lmo_dir):
     """A small AGM trained for 40 steps on fresh stream crops lowers its loss on a fixed held-out batch."""
-    from axispose_core.agm.denoiser import DenoiserConfig
-    from axispose_core.agm.model import AGMConfig, AxisGenerator
+    from dataclasses import replace
+
+    from conftest import TINY_AGM
+
+    from axispose_core.agm.model import AxisGenerator
     from axispose_core.data.synth.config import StreamConfig
     from axispose_core.data.synth.stream import CropStream, CropStreamDataset, stream_loader
 
     torch.manual_seed(0)
-    model = AxisGenerator(AGMConfig(denoiser=DenoiserConfig(channels=8, multipliers=(1, 2), groups=4), train_guidance=False))
+    model = AxisGenerator(replace(TINY_AGM, train_guidance=False))
     stream = CropStream(StreamConfig(objects=(1,), seed=3), lmo_dir / "models")
     held = [CropStreamDataset(CropStream(StreamConfig(objects=(1,), seed=4), lmo_dir / "models"))[i] for i in range(8)]
-    crops, axes = torch.stack([h["crop"] for h in held]), torch.stack([h["axes"] for h in held])
+    batch = {k: torch.stack([h[k] for h in held]) for k in ("crop", "axes", "object", "points", "mask_visib")}
 
     def held_out_loss() -> float:
         with torch.no_grad():
-            return float(np.mean([model.loss(crops, axes, torch.Generator().manual_seed(k)).item() for k in range(4)]))
+            return float(np.mean([model(batch, torch.Generator().manual_seed(k)).item() for k in range(4)]))
 
     before = held_out_loss()
     opt = torch.optim.Adam(model.parameters(), lr=3e-3)
-    for batch in stream_loader(stream, 8, stop=8 * 40):
+    for fresh in stream_loader(stream, 8, stop=8 * 40):
         opt.zero_grad()
-        model.loss(batch["crop"], batch["axes"]).backward()
+        model(fresh).backward()
         opt.step()
     assert held_out_loss() < 0.8 * before

@@ -7,9 +7,9 @@ from dataclasses import replace
 import numpy as np
 import pytest
 import torch
+from conftest import TINY_AGM
 
-from axispose_core.agm.denoiser import DenoiserConfig
-from axispose_core.agm.model import AGMConfig, AxisGenerator
+from axispose_core.agm.model import AxisGenerator
 from axispose_core.checkpoint import read_checkpoint, save_checkpoint
 from axispose_core.cli import main
 from axispose_core.data.bop import BopScene
@@ -151,7 +151,7 @@ def test_a_verifier_travels_in_the_localiser_and_estimator_checkpoints(frames, l
     for k, v in both.state_dict().items():
         assert torch.equal(again.state_dict()[k], v), k
     reader = load_reader(SHIPPED_READER)
-    cfg = EstimatorConfig(agm=AGMConfig(denoiser=DenoiserConfig(channels=8, multipliers=(1, 2), groups=4)), reader=reader.config,
+    cfg = EstimatorConfig(agm=TINY_AGM, reader=reader.config,
                           objects=tuple(objects_from_models(frames, [1, 5])), ddim_steps=1)  # fmt: skip
     Estimator(cfg, AxisGenerator(cfg.agm), reader).with_localiser(again).save(tmp_path / "est.safetensors")
     est = Estimator.load(tmp_path / "est.safetensors")
@@ -201,7 +201,7 @@ def test_cli_trains_a_verifier_and_attaches_it(frames, localiser_path, tmp_path)
     import yaml
 
     reader = load_reader(SHIPPED_READER)
-    cfg = EstimatorConfig(agm=AGMConfig(denoiser=DenoiserConfig(channels=8, multipliers=(1, 2), groups=4)), reader=reader.config,
+    cfg = EstimatorConfig(agm=TINY_AGM, reader=reader.config,
                           objects=tuple(objects_from_models(frames, [1, 5])), ddim_steps=1)  # fmt: skip
     est_path = tmp_path / "est.safetensors"
     Estimator(cfg, AxisGenerator(cfg.agm), reader).with_localiser(load_localiser(localiser_path)).save(est_path)

@@ -1,16 +1,22 @@
-"""The AGM's conditional UNet: noisy axis image + object crop + timestep -> ε, x0 or v.
+"""The AGM's networks: a crop encoder that runs once per object, and a light denoiser that runs per DDIM step.
 
-Two ways to see the crop (`DenoiserConfig.conditioning`):
-- "concat": the paper's — the RGB crop is concatenated to the noisy axis image at the input, so every DDIM
-  step re-reads the crop;
-- "encoder": a crop encoder runs once per object and its features are added at every UNet scale, so each
-  further DDIM step costs only the denoiser.
+The encoder carries the perception. It sees the whole crop (strided stages down to 1/16 of it, then the 4 x 4
+layout flattened into one context vector) and is told which object it looks at (an embedding that scales and
+shifts every stage). Besides the features the denoiser reads, it predicts what supervises it densely: the
+visible surface's model coordinates and mask at half resolution (the correspondences of GDR-Net-style methods:
+every pixel says something about the pose) and a scale-invariant depth (GDR-Net's SITE: depth relative to the
+crop's focal length and the object's size λ_O, so λ_O scales the translation linearly).
+
+The denoiser works at half the axis image's resolution (pixel-unshuffled), reads the encoder's maps at each of
+its levels and the context vector with the timestep embedding, so that a DDIM step or one more hypothesis costs
+a fraction of the encoder.
 """
 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
+from typing import NamedTuple
 
 import torch
 import torch.nn.functional as F
@@ -18,13 +24,31 @@ from torch import nn
 
 
 @dataclass(frozen=True)
+class EncoderConfig:
+    widths: tuple[int, ...] = (32, 64, 128, 256)
+    """Channels of the stages at 1/2, 1/4, 1/8 and 1/16 of the crop (64 px: 32, 16, 8 and 4 px)."""
+    blocks: tuple[int, ...] = (1, 2, 2, 1)
+    """Residual blocks per stage."""
+    objects: int = 8
+    """Rows of the object embedding: the estimator's objects by their position in its list."""
+    embed: int = 64
+    context: int = 256
+    """Length of the global context vector (the crop's layout at the last stage, flattened)."""
+    dense: int = 64
+    """Channels of the half-resolution map the dense head and the denoiser's first level read."""
+    groups: int = 8
+
+
+@dataclass(frozen=True)
 class DenoiserConfig:
     size: int = 64
+    """Side of the crop and of the axis image (px)."""
     channels: int = 32
+    """Channels at the denoiser's first level (half the axis image's resolution)."""
     multipliers: tuple[int, ...] = (1, 2, 4)
-    blocks_per_level: int = 1
-    conditioning: str = "encoder"
+    """Channel multipliers of its levels at 1/2, 1/4, 1/8 ...: at most as many as the encoder has stages."""
     groups: int = 8
+    encoder: EncoderConfig = field(default_factory=EncoderConfig)
 
 
 def timestep_embedding(t: torch.Tensor, dim: int) -> torch.Tensor:
@@ -36,112 +60,154 @@ def timestep_embedding(t: torch.Tensor, dim: int) -> torch.Tensor:
 
 
 class ResBlock(nn.Module):
-    """GroupNorm-SiLU-conv twice, with the time embedding added in between."""
+    """GroupNorm-SiLU-conv twice, with an embedding (time, context) added in between when given."""
 
-    def __init__(self, cin: int, cout: int, tdim: int, groups: int) -> None:
+    def __init__(self, cin: int, cout: int, groups: int, edim: int = 0) -> None:
         super().__init__()
         self.norm1 = nn.GroupNorm(groups, cin)
         self.conv1 = nn.Conv2d(cin, cout, 3, padding=1)
-        self.temb = nn.Linear(tdim, cout)
+        self.emb = nn.Linear(edim, cout) if edim else None
         self.norm2 = nn.GroupNorm(groups, cout)
         self.conv2 = nn.Conv2d(cout, cout, 3, padding=1)
         self.skip = nn.Conv2d(cin, cout, 1) if cin != cout else nn.Identity()
 
-    def forward(self, x: torch.Tensor, temb: torch.Tensor) -> torch.Tensor:
+    def forward(self, x: torch.Tensor, emb: torch.Tensor | None = None) -> torch.Tensor:
         h = self.conv1(F.silu(self.norm1(x)))
-        h = h + self.temb(temb)[:, :, None, None]
+        if self.emb is not None and emb is not None:
+            h = h + self.emb(emb)[:, :, None, None]
         h = self.conv2(F.silu(self.norm2(h)))
         return self.skip(x) + h
 
 
+class Encoding(NamedTuple):
+    """What the encoder computes once per crop."""
+
+    maps: list[torch.Tensor]
+    """Feature maps for the denoiser's levels: the dense map at 1/2, then the stages at 1/4, 1/8, ..."""
+    context: torch.Tensor
+    """(B, context): the whole crop and the object in one vector."""
+    points: torch.Tensor
+    """(B, 3, S/2, S/2): the visible surface's model coordinates in units of the object's radius."""
+    mask: torch.Tensor
+    """(B, 1, S/2, S/2): logits of the object's visible mask."""
+    log_depth: torch.Tensor
+    """(B,): log(z S / (f λ_O)), the depth relative to the crop's focal length f (px) and the object's size."""
+
+    def repeat(self, k: int) -> Encoding:
+        """Each crop's encoding k times in a row (k hypotheses of one crop share its encoder pass)."""
+        return Encoding(
+            *([m.repeat_interleave(k, dim=0) for m in v] if isinstance(v, list) else v.repeat_interleave(k, dim=0) for v in self)
+        )
+
+
 class CropEncoder(nn.Module):
-    """Crop -> one feature map per UNet level (full, 1/2, 1/4, ... resolution)."""
+    """Crop (B,3,S,S) in [-1,1] + object index (B,) -> `Encoding`."""
 
-    def __init__(self, config: DenoiserConfig) -> None:
+    def __init__(self, config: EncoderConfig, size: int) -> None:
         super().__init__()
-        ch = [config.channels * m for m in config.multipliers]
-        self.stem = nn.Sequential(nn.Conv2d(3, ch[0], 3, padding=1), nn.GroupNorm(config.groups, ch[0]), nn.SiLU())
-        self.levels = nn.ModuleList()
-        cin = ch[0]
-        for i, c in enumerate(ch):
-            stride = 1 if i == 0 else 2
-            self.levels.append(
-                nn.Sequential(
-                    nn.Conv2d(cin, c, 3, stride=stride, padding=1), nn.GroupNorm(config.groups, c), nn.SiLU(),
-                    nn.Conv2d(c, c, 3, padding=1), nn.GroupNorm(config.groups, c), nn.SiLU(),
-                )
-            )  # fmt: skip
-            cin = c
+        n = len(config.widths)
+        if size % 2**n:
+            raise ValueError(f"crop size {size} must be divisible by {2**n} (the encoder has {n} stride-2 stages)")
+        if len(config.blocks) != n or config.objects < 1:
+            raise ValueError("the encoder needs one block count per stage and at least one object")
+        self.config = config
+        w = config.widths
+        self.embedding = nn.Embedding(config.objects, config.embed)
+        self.stem = nn.Sequential(nn.Conv2d(3, w[0], 3, stride=2, padding=1), nn.GroupNorm(config.groups, w[0]), nn.SiLU())
+        self.down = nn.ModuleList([nn.Identity()] + [nn.Conv2d(w[i - 1], w[i], 3, stride=2, padding=1) for i in range(1, n)])
+        self.stages = nn.ModuleList(
+            nn.ModuleList(ResBlock(c, c, config.groups) for _ in range(b)) for c, b in zip(w, config.blocks, strict=True)
+        )
+        # FiLM by the object: zero-initialised, so an untrained network starts as if unconditioned.
+        self.film = nn.ModuleList(nn.Linear(config.embed, 2 * c) for c in w)
+        for lin in self.film:
+            nn.init.zeros_(lin.weight)
+            nn.init.zeros_(lin.bias)
+        last = size // 2**n
+        self.context = nn.Sequential(
+            nn.Flatten(),
+            nn.Linear(w[-1] * last * last + config.embed, config.context),
+            nn.SiLU(),
+            nn.Linear(config.context, config.context),
+        )
+        self.lateral = nn.ModuleList(nn.Conv2d(c, config.dense, 1) for c in w[:3])
+        self.dense = ResBlock(config.dense, config.dense, config.groups, config.context)
+        self.dense_out = nn.Sequential(nn.GroupNorm(config.groups, config.dense), nn.SiLU(), nn.Conv2d(config.dense, 4, 1))
+        self.depth = nn.Sequential(nn.SiLU(), nn.Linear(config.context, 1))
 
-    def forward(self, crop: torch.Tensor) -> list[torch.Tensor]:
+    def forward(self, crop: torch.Tensor, obj: torch.Tensor) -> Encoding:
+        e = self.embedding(obj)
         h = self.stem(crop)
         feats = []
-        for level in self.levels:
-            h = level(h)
+        for down, blocks, film in zip(self.down, self.stages, self.film, strict=True):
+            h = down(h)
+            for block in blocks:
+                h = block(h)
+            scale, shift = film(e)[:, :, None, None].chunk(2, dim=1)
+            h = h * (1 + scale) + shift
             feats.append(h)
-        return feats
+        context = self.context(torch.cat([h.flatten(1), e], dim=1))
+        # The dense map: the first three stages brought to 1/2 resolution and summed, then told the context.
+        top = feats[0].shape[-1]
+        lat = sum(F.interpolate(lat(f), size=top, mode="nearest") if f.shape[-1] != top else lat(f)
+                  for lat, f in zip(self.lateral, feats[:3], strict=True))  # fmt: skip
+        dense = self.dense(lat, context)
+        out = self.dense_out(dense)
+        return Encoding([dense, *feats[1:]], context, out[:, :3], out[:, 3:], self.depth(context)[:, 0])
 
 
 class Denoiser(nn.Module):
-    """UNet over the axis image; `encode(crop)` once, then `forward(x_t, t, cond)` per step."""
+    """UNet over the pixel-unshuffled axis image; `encode(crop, obj)` once, then `forward(x_t, t, enc)` per step."""
 
     def __init__(self, config: DenoiserConfig) -> None:
         super().__init__()
-        if config.conditioning not in ("concat", "encoder"):
-            raise ValueError(f"conditioning must be 'concat' or 'encoder', got {config.conditioning!r}")
-        if config.size % (2 ** (len(config.multipliers) - 1)):
-            raise ValueError(f"size {config.size} must be divisible by {2 ** (len(config.multipliers) - 1)}")
+        enc = config.encoder
+        levels = len(config.multipliers)
+        if not 1 <= levels <= len(enc.widths):
+            raise ValueError(f"the denoiser's {levels} levels need as many encoder stages (it has {len(enc.widths)})")
+        if config.size % 2:
+            raise ValueError(f"size {config.size} must be even")
         self.config = config
+        self.encoder = CropEncoder(enc, config.size)
         ch = [config.channels * m for m in config.multipliers]
-        tdim = 4 * config.channels
-        self.time_mlp = nn.Sequential(nn.Linear(config.channels, tdim), nn.SiLU(), nn.Linear(tdim, tdim))
-        cin = 6 if config.conditioning == "concat" else 3
-        self.inp = nn.Conv2d(cin, ch[0], 3, padding=1)
-        self.encoder = CropEncoder(config) if config.conditioning == "encoder" else None
-        self.inject = nn.ModuleList([nn.Conv2d(c, c, 1) for c in ch]) if self.encoder is not None else None
+        edim = 4 * config.channels
+        self.time_mlp = nn.Sequential(nn.Linear(config.channels, edim), nn.SiLU(), nn.Linear(edim, edim))
+        self.context_proj = nn.Linear(enc.context, edim)
+        self.inp = nn.Conv2d(12, ch[0], 3, padding=1)
+        sources = [enc.dense, *enc.widths[1:]]
+        self.inject = nn.ModuleList(nn.Conv2d(sources[i], c, 1) for i, c in enumerate(ch))
         self.down = nn.ModuleList()
         self.downsample = nn.ModuleList()
         c_prev = ch[0]
         for i, c in enumerate(ch):
-            blocks = nn.ModuleList()
-            for _ in range(config.blocks_per_level):
-                blocks.append(ResBlock(c_prev, c, tdim, config.groups))
-                c_prev = c
-            self.down.append(blocks)
-            self.downsample.append(nn.Conv2d(c, c, 3, stride=2, padding=1) if i < len(ch) - 1 else nn.Identity())
-        self.mid = ResBlock(c_prev, c_prev, tdim, config.groups)
+            self.down.append(ResBlock(c_prev, c, config.groups, edim))
+            c_prev = c
+            self.downsample.append(nn.Conv2d(c, c, 3, stride=2, padding=1) if i < levels - 1 else nn.Identity())
+        self.mid = ResBlock(c_prev, c_prev, config.groups, edim)
         self.up = nn.ModuleList()
         self.upsample = nn.ModuleList()
-        for i in reversed(range(len(ch))):
-            # The first block of a level also reads that level's skip connection.
-            blocks = nn.ModuleList([ResBlock(c_prev + ch[i], ch[i], tdim, config.groups)])
-            blocks.extend(ResBlock(ch[i], ch[i], tdim, config.groups) for _ in range(config.blocks_per_level - 1))
-            self.up.append(blocks)
+        for i in reversed(range(levels)):
+            self.up.append(ResBlock(c_prev + ch[i], ch[i], config.groups, edim))
             self.upsample.append(nn.ConvTranspose2d(ch[i], ch[i - 1], 2, stride=2) if i > 0 else nn.Identity())
             c_prev = ch[max(i - 1, 0)]
-        self.out = nn.Sequential(nn.GroupNorm(config.groups, ch[0]), nn.SiLU(), nn.Conv2d(ch[0], 3, 3, padding=1))
+        self.out = nn.Sequential(nn.GroupNorm(config.groups, ch[0]), nn.SiLU(), nn.Conv2d(ch[0], 12, 3, padding=1))
         nn.init.zeros_(self.out[-1].weight)
         nn.init.zeros_(self.out[-1].bias)
 
-    def encode(self, crop: torch.Tensor) -> torch.Tensor | list[torch.Tensor]:
-        """Per-object conditioning, computed once: encoder features, or the crop itself for "concat"."""
-        return self.encoder(crop) if self.encoder is not None else crop
+    def encode(self, crop: torch.Tensor, obj: torch.Tensor) -> Encoding:
+        """Per-object conditioning, computed once per crop (and shared by its hypotheses and DDIM steps)."""
+        return self.encoder(crop, obj)
 
-    def forward(self, x: torch.Tensor, t: torch.Tensor, cond: torch.Tensor | list[torch.Tensor]) -> torch.Tensor:
-        temb = self.time_mlp(timestep_embedding(t.expand(x.shape[0]) if t.ndim == 0 else t, self.config.channels))
-        h = self.inp(torch.cat([x, cond], dim=1) if self.encoder is None else x)
+    def forward(self, x: torch.Tensor, t: torch.Tensor, enc: Encoding) -> torch.Tensor:
+        t = t.expand(x.shape[0]) if t.ndim == 0 else t
+        emb = self.time_mlp(timestep_embedding(t, self.config.channels)) + self.context_proj(enc.context)
+        h = self.inp(F.pixel_unshuffle(x, 2))
         skips = []
-        for i, (blocks, down) in enumerate(zip(self.down, self.downsample, strict=True)):
-            for block in blocks:
-                h = block(h, temb)
-            if self.inject is not None:
-                h = h + self.inject[i](cond[i])
+        for i, (block, down) in enumerate(zip(self.down, self.downsample, strict=True)):
+            h = block(h, emb) + self.inject[i](enc.maps[i])
             skips.append(h)
             h = down(h)
-        h = self.mid(h, temb)
-        for blocks, up in zip(self.up, self.upsample, strict=True):
-            h = torch.cat([h, skips.pop()], dim=1)
-            for block in blocks:
-                h = block(h, temb)
-            h = up(h)
-        return self.out(h)
+        h = self.mid(h, emb)
+        for block, up in zip(self.up, self.upsample, strict=True):
+            h = up(block(torch.cat([h, skips.pop()], dim=1), emb))
+        return F.pixel_shuffle(self.out(h), 2)

@@ -1,20 +1,63 @@
-"""The Axis Generation Module: denoiser + DDIM schedule, its training loss and its sampler."""
+"""The Axis Generation Module: encoder + denoiser + DDIM schedule, its training loss and its sampler."""
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
+import numpy as np
 import torch
+import torch.nn.functional as F
 from torch import nn
 
-from axispose_core.agm.denoiser import Denoiser, DenoiserConfig
+from axispose_core.agm.denoiser import Denoiser, DenoiserConfig, Encoding
 from axispose_core.agm.guidance import AxisGeometry, axis_geometry, guided_eps
 from axispose_core.agm.scheduler import DDIMScheduler, SchedulerConfig
+
+VERSION = 2
+"""The AGM's network generation: 2 is the object-conditioned encoder with dense and depth heads; checkpoints
+without it were made by an earlier AxisPose, whose networks this one cannot run."""
+
+
+def log_depth_target(K: torch.Tensor, t: torch.Tensor, scale: torch.Tensor, size: int) -> torch.Tensor:
+    """The encoder's depth target log(z S / (f λ_O)) for crop intrinsics K (B,3,3), translations t (B,3) and object
+    scales λ_O (B,): f is the crop's mean focal length in px, S its side."""
+    f = 0.5 * (K[:, 0, 0] + K[:, 1, 1])
+    return torch.log(t[:, 2] * size / (f * scale)).float()
+
+
+def depth_from_log(log_depth: float, K: np.ndarray, scale: float, size: int) -> float:
+    """Inverse of `log_depth_target` for one crop: metres, linear in λ_O."""
+    return math.exp(log_depth) * 0.5 * float(K[0, 0] + K[1, 1]) * scale / size
+
+
+def encoder_losses(enc: Encoding, batch: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
+    """The encoder's dense and depth losses on the targets the batch has: "points" (L1 over the visible pixels, in
+    object radii), "mask" (binary cross-entropy), "depth" (L1 on log depth); and "unused", 0 times every head, so
+    that a head without its target still enters the graph (DistributedDataParallel wants every parameter used)."""
+    parts = {"unused": 0.0 * (enc.points.sum() + enc.mask.sum() + enc.log_depth.sum()).float()}
+    if "points" in batch:
+        m = batch["mask_visib"]
+        parts["points"] = (m * (enc.points.float() - batch["points"]).abs()).sum() / (3 * m.sum() + 1)
+        parts["mask"] = F.binary_cross_entropy_with_logits(enc.mask.float(), m)
+    if "log_depth" in batch:
+        parts["depth"] = (enc.log_depth.float() - batch["log_depth"]).abs().mean()
+    return parts
+
+
+def weighted_total(parts: dict[str, torch.Tensor], main: str, weights: dict[str, float]) -> torch.Tensor:
+    """parts[main] + the encoder's losses weighted by `weights` (those the batch had)."""
+    total = parts[main] + parts["unused"]
+    for name, w in weights.items():
+        if name in parts:
+            total = total + w * parts[name]
+    return total
 
 
 @dataclass(frozen=True)
 class AGMConfig:
+    version: int = VERSION
     denoiser: DenoiserConfig = field(default_factory=DenoiserConfig)
     scheduler: SchedulerConfig = field(default_factory=lambda: SchedulerConfig(prediction_type="sample"))
     train_guidance: bool = True
@@ -24,56 +67,77 @@ class AGMConfig:
     line_weight: float = 10.0
     """Extra loss weight on the pixels the target's axes cover (~5 % of a 64 px image): without it the loss is
     met by an all-background image, which is what an unweighted run converged to."""
+    points_weight: float = 1.0
+    """Weight of the encoder's dense surface-coordinate loss (L1 over the visible pixels) where samples have it."""
+    mask_weight: float = 0.5
+    """Weight of its visible-mask loss (binary cross-entropy)."""
+    depth_weight: float = 1.0
+    """Weight of its scale-invariant depth loss (L1 on the log)."""
 
 
 class AxisGenerator(nn.Module):
-    """Crop (B,3,S,S) in [-1,1] -> axis image (B,3,S,S) in [-1,1] by DDIM."""
+    """Crop (B,3,S,S) in [-1,1] and object index (B,) -> axis image (B,3,S,S) in [-1,1] by DDIM."""
 
     def __init__(self, config: AGMConfig) -> None:
         super().__init__()
+        if config.version != VERSION:
+            raise ValueError(f"AGM version {config.version} is not this AxisPose's ({VERSION})")
         self.config = config
         self.denoiser = Denoiser(config.denoiser)
         self.scheduler = DDIMScheduler(config.scheduler)
 
-    def loss(self, crops: torch.Tensor, x0: torch.Tensor, generator: torch.Generator | None = None) -> torch.Tensor:
-        """Diffusion loss at random timesteps; with train_guidance the guided estimate ε' is what the loss sees."""
+    def encode(self, crops: torch.Tensor, objects: torch.Tensor) -> Encoding:
+        return self.denoiser.encode(crops, objects)
+
+    def losses(self, batch: dict[str, torch.Tensor], generator: torch.Generator | None = None) -> dict[str, torch.Tensor]:
+        """The training losses of a batch (crop, object, axes; points + mask_visib and log_depth where known):
+        "diffusion" at random timesteps (with train_guidance, the guided estimate ε' is what it sees), the
+        encoder's "points", "mask" and "depth", and their weighted "total"."""
+        crops, x0 = batch["crop"], batch["axes"]
+        cfg, sched = self.config, self.scheduler
         b = x0.shape[0]
-        sched = self.scheduler
         t = torch.randint(0, sched.config.num_train_timesteps, (b,), generator=generator).to(x0.device)
         noise = torch.randn(x0.shape, generator=generator).to(x0.device)
         x_t = sched.add_noise(x0, noise, t)
-        out = self.denoiser(x_t, t, self.denoiser.encode(crops))
-        if self.config.train_guidance:
+        enc = self.encode(crops, batch["object"])
+        out = self.denoiser(x_t, t, enc)
+        if cfg.train_guidance:
             abar = sched.alphas_cumprod.to(x0.device)[t].to(x0.dtype).view(-1, 1, 1, 1)
             eps, _ = sched.to_eps_x0(out, t, x_t, clip=False)
-            eps_g = guided_eps(eps, x_t, abar, axis_geometry(x0), self.config.guidance_sigma, create_graph=True)
+            eps_g = guided_eps(eps, x_t, abar, axis_geometry(x0), cfg.guidance_sigma, create_graph=True)
             # ε-prediction: the ε-loss sees ε' (the paper). Other parametrisations: ε' is mapped back with x̂0
             # clamped to the image range, as sampling does: unclamped, the 1/√ᾱ_t factors blow up at large t.
             out = sched.from_eps(eps_g, t, x_t, clip=sched.config.prediction_type != "epsilon")
-        weight = 1 + self.config.line_weight * (x0 > -1).any(dim=1, keepdim=True).to(x0.dtype)
-        return (weight * (out - sched.target(x0, noise, t)) ** 2).mean()
+        weight = 1 + cfg.line_weight * (x0 > -1).any(dim=1, keepdim=True).to(x0.dtype)
+        parts = {"diffusion": (weight * (out.float() - sched.target(x0, noise, t)) ** 2).mean(), **encoder_losses(enc, batch)}
+        parts["total"] = weighted_total(
+            parts, "diffusion", {"points": cfg.points_weight, "mask": cfg.mask_weight, "depth": cfg.depth_weight}
+        )
+        return parts
 
-    def forward(self, crops: torch.Tensor, x0: torch.Tensor, generator: torch.Generator | None = None) -> torch.Tensor:
-        """The training loss (so that DistributedDataParallel wraps it)."""
-        return self.loss(crops, x0, generator)
+    def forward(self, batch: dict[str, torch.Tensor], generator: torch.Generator | None = None) -> torch.Tensor:
+        """The total training loss (so that DistributedDataParallel wraps it)."""
+        return self.losses(batch, generator)["total"]
 
     @torch.no_grad()
     def sample(
         self,
-        crops: torch.Tensor,
+        enc: Encoding,
         steps: int,
         eta: float = 0.0,
         generator: torch.Generator | None = None,
         guidance: Callable[[torch.Tensor], AxisGeometry] | None = None,
         guidance_scale: float = 0.0,
     ) -> torch.Tensor:
-        """Generate axis images; `guidance(x̂0) -> g` supplies the measurement for run-time guidance."""
+        """Generate one axis image per row of `enc` (`Encoding.repeat` for several per crop); `guidance(x̂0) -> g`
+        supplies the measurement for run-time guidance."""
         sched = self.scheduler
         sched.set_timesteps(steps)
-        x = torch.randn(crops.shape, generator=generator, dtype=crops.dtype).to(crops.device)
-        cond = self.denoiser.encode(crops)
+        S = self.config.denoiser.size
+        ref = enc.context
+        x = torch.randn((ref.shape[0], 3, S, S), generator=generator, dtype=ref.dtype).to(ref.device)
         for t in sched.timesteps.tolist():
-            out = self.denoiser(x, torch.full((x.shape[0],), t, device=x.device), cond)
+            out = self.denoiser(x, torch.full((x.shape[0],), t, device=x.device), enc)
             eps_override = None
             if guidance is not None and guidance_scale > 0:
                 eps, x0 = sched.to_eps_x0(out, t, x)

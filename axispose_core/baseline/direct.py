@@ -1,5 +1,6 @@
-"""The direct-regression baseline: the AGM's crop encoder regresses the origin and three axis endpoints in one
-forward pass (no diffusion, no axis image), and the same TBM back-projection turns them into a pose.
+"""The direct-regression baseline: the AGM's crop encoder regresses the origin and three axis endpoints from its
+context vector in one forward pass (no diffusion, no axis image), and the same TBM back-projection turns them
+into a pose. It is trained with the same auxiliary heads (surface points, mask, depth) as the AGM's encoder.
 
 It answers the question the benchmark asks of the method: with the same backbone, data and training budget,
 is generating an axis image worth its cost over regressing the four keypoints it encodes?
@@ -15,7 +16,8 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from axispose_core.agm.denoiser import CropEncoder, DenoiserConfig
+from axispose_core.agm.denoiser import CropEncoder, EncoderConfig
+from axispose_core.agm.model import encoder_losses, weighted_total
 from axispose_core.checkpoint import load_state, read_checkpoint, save_checkpoint
 from axispose_core.data.objects import ObjectSpec
 from axispose_core.estimator import crop_batch
@@ -27,36 +29,46 @@ Box = tuple[int, tuple[float, float, float, float]]
 
 @dataclass(frozen=True)
 class DirectConfig:
-    encoder: DenoiserConfig = field(default_factory=DenoiserConfig)
-    """The backbone: the AGM's crop encoder with these widths (only size, channels, multipliers, groups matter)."""
+    encoder: EncoderConfig = field(default_factory=EncoderConfig)
+    """The backbone: the AGM's crop encoder."""
+    size: int = 64
     objects: tuple[ObjectSpec, ...] = ()
     crop_pad: float = 1.25
+    points_weight: float = 1.0
+    mask_weight: float = 0.5
+    depth_weight: float = 1.0
+    """The encoder's auxiliary losses, weighted as the AGM's (`AGMConfig`), so that both learn from the same signal."""
 
 
 class DirectRegressor(nn.Module):
-    """Crop (B,3,S,S) in [-1,1] -> keypoints (B,4,2): origin, end X, end Y, end Z in crop pixels."""
+    """Crop (B,3,S,S) in [-1,1] + object index (B,) -> keypoints (B,4,2): origin, end X, end Y, end Z."""
 
     def __init__(self, config: DirectConfig) -> None:
         super().__init__()
         self.config = config
-        enc = config.encoder
-        self.encoder = CropEncoder(enc)
-        c = enc.channels * enc.multipliers[-1]
-        side = enc.size // 2 ** (len(enc.multipliers) - 1) // 2
-        # Keep the layout (where things are) up to the last layer: pooling would throw away the positions it regresses.
-        self.head = nn.Sequential(
-            nn.Conv2d(c, c, 3, stride=2, padding=1), nn.GroupNorm(enc.groups, c), nn.SiLU(), nn.Conv2d(c, 32, 1), nn.SiLU(),
-            nn.Flatten(), nn.Linear(32 * side * side, 256), nn.SiLU(), nn.Linear(256, 8),
-        )  # fmt: skip
+        self.encoder = CropEncoder(config.encoder, config.size)
+        self.head = nn.Sequential(nn.SiLU(), nn.Linear(config.encoder.context, 8))
 
-    def forward(self, crops: torch.Tensor) -> torch.Tensor:
+    def forward(self, crops: torch.Tensor, objects: torch.Tensor) -> torch.Tensor:
         """Keypoints in normalised crop coordinates (-1, 1 at the crop's edges), (B,4,2)."""
-        return self.head(self.encoder(crops)[-1]).view(-1, 4, 2)
+        return self.head(self.encoder(crops, objects).context).view(-1, 4, 2)
 
-    def keypoints(self, crops: torch.Tensor) -> torch.Tensor:
+    def losses(self, batch: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
+        """ "keypoints": smooth L1 to the true keypoints (normalised units; `batch["keypoints"]` in pixels), the
+        encoder's losses where the batch has their targets, and their weighted "total"."""
+        enc = self.encoder(batch["crop"], batch["object"])
+        kp = self.head(enc.context).view(-1, 4, 2)
+        target = keypoints_to_normalised(batch["keypoints"].to(kp.dtype), self.config.size)
+        parts = {"keypoints": F.smooth_l1_loss(kp.float(), target.float(), beta=0.02), **encoder_losses(enc, batch)}
+        cfg = self.config
+        parts["total"] = weighted_total(
+            parts, "keypoints", {"points": cfg.points_weight, "mask": cfg.mask_weight, "depth": cfg.depth_weight}
+        )
+        return parts
+
+    def keypoints(self, crops: torch.Tensor, objects: torch.Tensor) -> torch.Tensor:
         """Keypoints in crop pixels (pixel centres at integers), (B,4,2)."""
-        S = self.config.encoder.size
-        return (self(crops) + 1) * 0.5 * S - 0.5
+        return (self(crops, objects) + 1) * 0.5 * self.config.size - 0.5
 
 
 def keypoints_to_normalised(kp: torch.Tensor, size: int) -> torch.Tensor:
@@ -65,9 +77,8 @@ def keypoints_to_normalised(kp: torch.Tensor, size: int) -> torch.Tensor:
 
 
 def regression_loss(model: DirectRegressor, batch: dict[str, torch.Tensor]) -> torch.Tensor:
-    """Smooth L1 between the regressed and the true keypoints (normalised units); `batch["keypoints"]` in pixels."""
-    target = keypoints_to_normalised(batch["keypoints"], model.config.encoder.size)
-    return F.smooth_l1_loss(model(batch["crop"]), target, beta=0.02)
+    """The training loss: `DirectRegressor.losses`' total."""
+    return model.losses(batch)["total"]
 
 
 class DirectEstimator:
@@ -90,10 +101,11 @@ class DirectEstimator:
     @torch.inference_mode()
     def estimate(self, image_rgb: np.ndarray, K: np.ndarray, boxes: list[Box]) -> list[Backprojection]:
         """One pose per (obj_id, (x, y, w, h)) box; a refused one says why in `reason`, as the TBM's do."""
-        cuts, x = crop_batch(image_rgb, K, boxes, self.objects, self.model.config.encoder.size, self.model.config.crop_pad)
+        cuts, x = crop_batch(image_rgb, K, boxes, self.objects, self.model.config.size, self.model.config.crop_pad)
         if not boxes:
             return []
-        kps = self.model.keypoints(x).double().numpy()
+        index = {o.obj_id: k for k, o in enumerate(self.model.config.objects)}
+        kps = self.model.keypoints(x, torch.tensor([index[obj_id] for obj_id, _ in boxes])).double().numpy()
         return [
             backproject(cut.K_patch, kp[0], kp[1:], self.objects[obj_id].axes.lengths, refine=True)
             for (obj_id, _), cut, kp in zip(boxes, cuts, kps, strict=True)

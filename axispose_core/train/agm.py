@@ -29,7 +29,7 @@ import torch.distributed as dist
 from torch.utils.data import DataLoader, DistributedSampler, RandomSampler
 from tqdm import tqdm
 
-from axispose_core.agm.model import AGMConfig, AxisGenerator
+from axispose_core.agm.model import AGMConfig, AxisGenerator, depth_from_log, log_depth_target
 from axispose_core.axis_image import axis_keypoints
 from axispose_core.data.objects import LMO_NAMES, ObjectSpec, objects_from_models
 from axispose_core.data.synth.config import StreamConfig, SynthConfig
@@ -65,6 +65,8 @@ class TrainConfig:
     """The crop stream trained on when no BOP folders are given; its crop size must be the denoiser's."""
     val_seed: int = 1_000_000
     """Seed of the held-out stream samples: fixed, so that the curves of different runs read the same crops."""
+    bf16: bool = True
+    """Mixed precision (bfloat16 autocast) on the CPU as on CUDA: 1.6x faster steps on a CPU with AVX-512 BF16."""
 
 
 def dataset_objects(root: str | Path) -> list[ObjectSpec]:
@@ -77,36 +79,66 @@ def dataset_objects(root: str | Path) -> list[ObjectSpec]:
 def validate(
     agm: AxisGenerator, reader: KeypointReader, batch: dict[str, torch.Tensor], lengths: np.ndarray, steps: int
 ) -> dict[str, float]:
-    """On a fixed batch of held-out crops: the diffusion loss at fixed timesteps and noise (four draws), median
-    rotation error, TBM success within 15°, and the median keypoint error (px, mean over origin and endpoints)
-    of the reader on the generated axis images."""
+    """On a fixed batch of held-out crops: the diffusion loss at fixed timesteps and noise (four draws); median
+    rotation error and the share within 15°; the reader's median keypoint error (px, mean over origin and
+    endpoints) on the generated axis images; the median relative depth error of the TBM (from the drawn axis
+    lengths) and of the encoder's depth head; the encoder's median surface-point error (object radii)."""
     with torch.no_grad():
-        loss = float(np.mean([agm.loss(batch["crop"], batch["axes"], torch.Generator().manual_seed(k)).item() for k in range(4)]))
-    axes = agm.sample(batch["crop"], steps, generator=torch.Generator().manual_seed(0))
+        loss = float(np.mean([agm.losses(batch, torch.Generator().manual_seed(k))["diffusion"].item() for k in range(4)]))
+        enc = agm.encode(batch["crop"], batch["object"])
+        axes = agm.sample(enc, steps, generator=torch.Generator().manual_seed(0))
     readings = reader.read(((axes + 1) * 0.5).clamp(0, 1).cpu())
-    errs, kp_errs = [], []
+    size = batch["crop"].shape[-1]
+    errs, kp_errs, tbm_depth, head_depth = [], [], [], []
     for i, kp in enumerate(readings):
-        K, R, t = (batch[k][i].numpy() for k in ("K", "R", "t"))
+        K, R, t = (batch[k][i].cpu().numpy() for k in ("K", "R", "t"))
+        z = depth_from_log(float(enc.log_depth[i]), K, float(lengths[i][0]), size)
+        head_depth.append(abs(z / t[2] - 1))
         res = backproject(K, kp.origin, kp.endpoints, lengths[i], refine=True) if kp.ok else None
         errs.append(re(res.R, R) if res is not None and res.ok else 180.0)
+        if res is not None and res.ok:
+            tbm_depth.append(abs(res.t[2] / t[2] - 1))
         if kp.ok:
             found = np.vstack([kp.origin, kp.endpoints])
             kp_errs.append(float(np.linalg.norm(found - axis_keypoints(K, R, t, lengths[i]), axis=1).mean()))
+    point_err = float("nan")
+    if "points" in batch:  # crop-stream samples know their surface points
+        m = batch["mask_visib"]
+        err = ((enc.points - batch["points"]).abs().mean(dim=1, keepdim=True) * m).sum(dim=(1, 2, 3)) / m.sum(dim=(1, 2, 3)).clamp(min=1)
+        point_err = float(err.median())
     errs_a = np.array(errs)
+
+    def median(v: list[float]) -> float:
+        return float(np.median(v)) if v else float("nan")
+
     return {"val_loss": loss, "val_rot_median_deg": float(np.median(errs_a)), "val_rot_within_15deg": float(np.mean(errs_a < 15.0)),
-            "val_kp_err_px": float(np.median(kp_errs)) if kp_errs else float("nan")}  # fmt: skip
+            "val_kp_err_px": median(kp_errs), "val_depth_tbm": median(tbm_depth), "val_depth_head": median(head_depth),
+            "val_points_err": point_err}  # fmt: skip
 
 
-VAL_COLUMNS = ("val_loss", "val_rot_median_deg", "val_rot_within_15deg", "val_kp_err_px")
+VAL_COLUMNS = (
+    "val_loss",
+    "val_rot_median_deg",
+    "val_rot_within_15deg",
+    "val_kp_err_px",
+    "val_depth_tbm",
+    "val_depth_head",
+    "val_points_err",
+)
 
 
-def _stream_objects(stream: CropStream) -> list[ObjectSpec]:
+def stream_objects(stream: CropStream) -> list[ObjectSpec]:
     """The stream's objects as a checkpoint names them (LM-O names by id, as `dataset_objects`)."""
     return [dataclasses.replace(o, name=LMO_NAMES.get(o.obj_id, o.name)) for o in stream.objects]
 
 
 def _batch_of(items: list[dict[str, torch.Tensor]]) -> dict[str, torch.Tensor]:
-    return {k: torch.stack([it[k] for it in items]) for k in ("crop", "axes", "object", "K", "R", "t")}
+    return {k: torch.stack([it[k] for it in items]) for k in items[0] if k != "keypoints"}
+
+
+def with_depth_target(batch: dict[str, torch.Tensor], scales: torch.Tensor, size: int) -> dict[str, torch.Tensor]:
+    """The batch with the encoder's depth target (from K', t and the objects' λ_O) added."""
+    return batch | {"log_depth": log_depth_target(batch["K"], batch["t"], scales[batch["object"]], size)}
 
 
 def train_agm(
@@ -157,7 +189,10 @@ def train_agm(
         if cfg.stream.size != size:
             raise ValueError(f"the crop stream renders {cfg.stream.size}px crops; the AGM is configured for {size}px")
         stream = CropStream(cfg.stream, models)
-        objects = _stream_objects(stream)
+        objects = stream_objects(stream)
+    if len(objects) > cfg.agm.denoiser.encoder.objects:
+        n = cfg.agm.denoiser.encoder.objects
+        raise ValueError(f"{len(objects)} objects to train on, but the AGM's encoder embeds {n} (agm.denoiser.encoder.objects)")
     model = AxisGenerator(cfg.agm)
     if init and not resume:
         start_from = Estimator.load(init)
@@ -172,6 +207,7 @@ def train_agm(
     if resume:  # its weights are the run's own; the record keeps naming what its first call started from
         step, started_from = load_run_state(resume, cfg, model, ema, opt, sched)
     net = torch.nn.parallel.DistributedDataParallel(model) if distributed else model
+    scales = torch.tensor([o.scale for o in objects], dtype=torch.float64)
     val_batch, val_lengths = None, None
     if rank == 0 and (val_data or stream is not None):
         if val_data:
@@ -181,13 +217,13 @@ def train_agm(
         else:  # held-out stream samples: the same crops in every run of this stream configuration
             held_out = CropStreamDataset(CropStream(dataclasses.replace(cfg.stream, seed=cfg.val_seed), models))
             items = [held_out[i] for i in range(cfg.val_samples)]
-        val_batch = _batch_of(items)
+        val_batch = with_depth_target(_batch_of(items), scales, size)
         val_lengths = np.stack([objects[int(it["object"])].axes.lengths for it in items])
     log = open(out.with_suffix(".csv"), "a", newline="") if rank == 0 else None
     writer = csv.writer(log) if log else None
     if writer and step == 0:
         writer.writerow(["step", "crops", "loss", "lr", "seconds", *VAL_COLUMNS])
-    use_amp = dev.type == "cuda"
+    use_amp = cfg.bf16
     start = time.time()
     bar = tqdm(total=cfg.steps, initial=step, desc="train agm", disable=not progress or rank != 0)
     gen = torch.Generator().manual_seed(cfg.seed * 1000 + step + rank)
@@ -225,17 +261,17 @@ def train_agm(
 
     try:
         for batch in batches() if step < cfg.steps and not out_of_time() else ():
-            crops, axes = batch["crop"].to(dev), batch["axes"].to(dev)
+            batch = {k: v.to(dev) for k, v in with_depth_target(batch, scales, size).items()}
             with torch.autocast(dev.type, dtype=torch.bfloat16, enabled=use_amp):
-                loss = net(crops, axes, gen)
+                loss = net(batch, gen)
             optimizer_step(loss, model, ema, opt, sched, cfg.grad_clip, cfg.ema_decay)
             step += 1
             bar.update(1)
             bar.set_postfix(loss=f"{loss.item():.4f}")
             val = {}
             if val_batch is not None and step % cfg.val_every == 0:
-                val = validate(ema, reader, {k: v.to(dev) if k in ("crop", "axes") else v for k, v in val_batch.items()}, val_lengths,
-                               cfg.val_steps)  # fmt: skip
+                with torch.autocast(dev.type, dtype=torch.bfloat16, enabled=use_amp):
+                    val = validate(ema, reader, {k: v.to(dev) for k, v in val_batch.items()}, val_lengths, cfg.val_steps)
             if writer and (step % 10 == 0 or val):
                 writer.writerow([step, step * cfg.batch * world, f"{loss.item():.5f}", f"{sched.get_last_lr()[0]:.2e}",
                                  f"{time.time() - start:.1f}", *(val.get(c, "") for c in VAL_COLUMNS)])  # fmt: skip

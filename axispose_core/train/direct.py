@@ -1,27 +1,33 @@
-"""`axispose train-direct`: the direct-regression baseline (baseline/direct.py) on the AGM's training crops,
-with the localiser's training loop (train/loop.py). Same crops, jitter and colour augmentation as the AGM."""
+"""`axispose train-direct`: the direct-regression baseline (baseline/direct.py) with the shared training loop
+(train/loop.py), on the AGM's data: the crop stream by default (the same samples, held-out crops and metrics as
+`axispose train`), or the annotated crops of BOP folders with the AGM's jitter and colour augmentation."""
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 import torch
 
-from axispose_core.agm.denoiser import DenoiserConfig
+from axispose_core.agm.denoiser import EncoderConfig
+from axispose_core.agm.model import depth_from_log
 from axispose_core.axis_image import axis_keypoints
 from axispose_core.baseline.direct import DirectConfig, DirectEstimator, DirectRegressor, regression_loss
+from axispose_core.data.synth.config import StreamConfig
+from axispose_core.data.synth.stream import CropStream, CropStreamDataset, stream_loader
 from axispose_core.metrics import re
 from axispose_core.tbm.backproject import backproject
-from axispose_core.train.agm import dataset_objects
+from axispose_core.train.agm import dataset_objects, stream_objects, with_depth_target
 from axispose_core.train.dataset import AxisCropDataset
 from axispose_core.train.loop import fit, training_device, training_record
 
 
 @dataclass(frozen=True)
 class DirectTrainConfig:
-    encoder: DenoiserConfig = field(default_factory=DenoiserConfig)
+    encoder: EncoderConfig = field(default_factory=EncoderConfig)
+    size: int = 64
     steps: int = 3000
     batch: int = 16
     lr: float = 1e-3
@@ -35,6 +41,9 @@ class DirectTrainConfig:
     save_every: int = 200
     val_every: int = 500
     val_samples: int = 64
+    stream: StreamConfig = field(default_factory=StreamConfig)
+    val_seed: int = 1_000_000
+    bf16: bool = True
 
 
 class KeypointCropDataset(AxisCropDataset):
@@ -44,49 +53,76 @@ class KeypointCropDataset(AxisCropDataset):
         item = super().__getitem__(i)
         lengths = self.specs[int(item["object"])].axes.lengths
         kp = axis_keypoints(item["K"].numpy(), item["R"].numpy(), item["t"].numpy(), lengths)
-        return {"crop": item["crop"], "keypoints": torch.from_numpy(kp).float(), "object": item["object"],
-                "K": item["K"], "R": item["R"]}  # fmt: skip
+        return {k: item[k] for k in ("crop", "object", "K", "R", "t")} | {"keypoints": torch.from_numpy(kp).float()}
 
 
 def train_direct(
     cfg: DirectTrainConfig,
-    data: list[str | Path],
+    data: list[str | Path] | None,
     out: str | Path,
     val_data: list[str | Path] | None = None,
     resume: str | Path | None = None,
     device: str = "auto",
     max_minutes: float | None = None,
     progress: bool = True,
+    models: str | Path | None = None,
 ) -> int:
     """Train (or continue) the regressor; OUT holds the EMA weights with their config. Returns the step reached."""
     dev = training_device(device)
     out = Path(out)
     out.parent.mkdir(parents=True, exist_ok=True)
-    objects = dataset_objects(data[0])
-    config = DirectConfig(encoder=cfg.encoder, objects=tuple(objects))
+    stream, train_set = None, None
+    if data:
+        objects = dataset_objects(data[0])
+        train_set = KeypointCropDataset(data, objects, cfg.size, cfg.min_visib, seed=cfg.seed)
+        if not len(train_set):
+            raise ValueError(f"no training instances with visib_fract >= {cfg.min_visib} in {data}")
+    else:
+        if models is None:
+            raise ValueError("give BOP folders to train on, or the object models for the crop stream")
+        if cfg.stream.size != cfg.size:
+            raise ValueError(f"the crop stream renders {cfg.stream.size}px crops; the regressor is configured for {cfg.size}px")
+        stream = CropStream(cfg.stream, models)
+        objects = stream_objects(stream)
+    config = DirectConfig(encoder=cfg.encoder, size=cfg.size, objects=tuple(objects))
     torch.manual_seed(cfg.seed)
-    train_set = KeypointCropDataset(data, objects, cfg.encoder.size, cfg.min_visib, seed=cfg.seed)
-    if not len(train_set):
-        raise ValueError(f"no training instances with visib_fract >= {cfg.min_visib} in {data}")
+    scales = torch.tensor([o.scale for o in objects], dtype=torch.float64)
     val_batch = None
     if val_data:
-        val_set = KeypointCropDataset(val_data, objects, cfg.encoder.size, 0.3, jitter=None, color_aug=False, seed=cfg.seed)
+        val_set = KeypointCropDataset(val_data, objects, cfg.size, 0.3, jitter=None, color_aug=False, seed=cfg.seed)
         items = [val_set[int(i)] for i in np.linspace(0, len(val_set) - 1, min(cfg.val_samples, len(val_set))).astype(int)]
+        val_batch = {k: torch.stack([it[k] for it in items]) for k in items[0]}
+    elif stream is not None:  # the AGM trainer's held-out crops
+        held_out = CropStreamDataset(CropStream(dataclasses.replace(cfg.stream, seed=cfg.val_seed), models))
+        items = [held_out[i] for i in range(cfg.val_samples)]
         val_batch = {k: torch.stack([it[k] for it in items]) for k in items[0]}
 
     def save(ema: torch.nn.Module, step: int, seconds: float, init: str | None) -> None:
-        DirectEstimator(ema).save(out, extra={"training": training_record(data, step, cfg.batch, seconds, dev, init)})
+        record = training_record(data or [f"crop stream of {models}"], step, cfg.batch, seconds, dev, init)
+        DirectEstimator(ema).save(out, extra={"training": record})
 
     def validate(ema: torch.nn.Module) -> dict[str, float]:
-        with torch.inference_mode():
-            kps = ema.keypoints(val_batch["crop"].to(dev)).double().cpu().numpy()
-        errs = []
-        for kp, K, R, obj in zip(kps, val_batch["K"].numpy(), val_batch["R"].numpy(), val_batch["object"], strict=True):
-            res = backproject(K, kp[0], kp[1:], objects[int(obj)].axes.lengths, refine=True)
+        with torch.inference_mode(), torch.autocast(dev.type, dtype=torch.bfloat16, enabled=cfg.bf16):
+            enc = ema.encoder(val_batch["crop"].to(dev), val_batch["object"].to(dev))
+            kps = ((ema.head(enc.context).view(-1, 4, 2).float() + 1) * 0.5 * cfg.size - 0.5).double().cpu().numpy()
+        errs, kp_errs, depth = [], [], []
+        for i, (kp, K, R, t, obj) in enumerate(zip(kps, *(val_batch[k].numpy() for k in ("K", "R", "t", "object")), strict=True)):
+            lengths = objects[int(obj)].axes.lengths
+            res = backproject(K, kp[0], kp[1:], lengths, refine=True)
             errs.append(re(res.R, R) if res.ok else 180.0)
-        return {"val_rot_median_deg": float(np.median(errs)), "val_rot_within_15deg": float(np.mean(np.array(errs) < 15.0))}
+            kp_errs.append(float(np.linalg.norm(kp - axis_keypoints(K, R, t, lengths), axis=1).mean()))
+            depth.append(abs(depth_from_log(float(enc.log_depth[i]), K, lengths[0], cfg.size) / t[2] - 1))
+        return {"val_rot_median_deg": float(np.median(errs)), "val_rot_within_15deg": float(np.mean(np.array(errs) < 15.0)),
+                "val_kp_err_px": float(np.median(kp_errs)), "val_depth_head": float(np.median(depth))}  # fmt: skip
+
+    def loss(model: torch.nn.Module, batch: dict[str, torch.Tensor]) -> torch.Tensor:
+        return regression_loss(model, with_depth_target(batch, scales.to(batch["t"].device), cfg.size))
+
+    def batches(step: int):
+        return stream_loader(stream, cfg.batch, start=step * cfg.batch, workers=cfg.workers)
 
     return fit(
-        cfg, DirectRegressor(config), train_set, regression_loss, out, save, validate if val_batch else None,
-        ("val_rot_median_deg", "val_rot_within_15deg"), resume, dev, max_minutes, progress, "train direct",
+        cfg, DirectRegressor(config), train_set, loss, out, save, validate if val_batch else None,
+        ("val_rot_median_deg", "val_rot_within_15deg", "val_kp_err_px", "val_depth_head"), resume, dev, max_minutes, progress,
+        "train direct", batches=batches if stream is not None else None,
     )  # fmt: skip

@@ -12,7 +12,7 @@ import copy
 import csv
 import platform
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from pathlib import Path
 from typing import Any
 
@@ -73,11 +73,14 @@ def fit(
     progress: bool = True,
     desc: str = "train",
     init: str | None = None,
+    batches: Callable[[int], Iterable[dict[str, torch.Tensor]]] | None = None,
 ) -> int:
     """Train `model` for cfg.steps (fields: steps, batch, lr, weight_decay, warmup, grad_clip, ema_decay, seed,
-    workers, save_every, val_every); `save(ema, step, seconds, init)` writes the checkpoint. Returns the step reached.
-    Seed torch before building `model`, so its initial weights follow cfg.seed too. `init` names the checkpoint
-    `model` was warm-started from; a resumed run takes it from its state instead, so every call records it."""
+    workers, save_every, val_every; bf16 if it has one); `save(ema, step, seconds, init)` writes the checkpoint.
+    Returns the step reached. Seed torch before building `model`, so its initial weights follow cfg.seed too.
+    `init` names the checkpoint `model` was warm-started from; a resumed run takes it from its state instead, so
+    every call records it. `batches(step)`, where given, yields the training batches from `step` on (e.g. the
+    crop stream's) instead of seeded epochs of `train_set`."""
     model = model.to(device)
     ema = copy.deepcopy(model).eval()
     opt = torch.optim.AdamW(model.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
@@ -99,15 +102,27 @@ def fit(
         return max_minutes is not None and time.time() - start > 60 * max_minutes
 
     bar = tqdm(total=cfg.steps, initial=step, desc=desc, disable=not progress)
-    epoch = step * cfg.batch // len(train_set)
-    try:
-        while step < cfg.steps and not out_of_time():
+    bf16 = bool(getattr(cfg, "bf16", False))
+
+    def epochs() -> Iterable[Iterable[dict[str, torch.Tensor]]]:
+        if batches is not None:
+            yield batches(step)
+            return
+        epoch = step * cfg.batch // len(train_set)
+        while True:
             train_set.epoch = epoch
             sampler = RandomSampler(train_set, generator=torch.Generator().manual_seed(cfg.seed + epoch))
-            loader = DataLoader(train_set, batch_size=cfg.batch, sampler=sampler, num_workers=cfg.workers, drop_last=True)
+            yield DataLoader(train_set, batch_size=cfg.batch, sampler=sampler, num_workers=cfg.workers, drop_last=True)
+            epoch += 1
+
+    try:
+        for loader in epochs():
+            if step >= cfg.steps or out_of_time():
+                break
             for batch in loader:
                 model.train()
-                loss = loss_fn(model, {k: v.to(device) for k, v in batch.items()})
+                with torch.autocast(torch.device(device).type, dtype=torch.bfloat16, enabled=bf16):
+                    loss = loss_fn(model, {k: v.to(device) for k, v in batch.items()})
                 optimizer_step(loss, model, ema, opt, sched, cfg.grad_clip, cfg.ema_decay)
                 step += 1
                 bar.update(1)
@@ -121,7 +136,6 @@ def fit(
                     checkpoint()
                 if step >= cfg.steps or out_of_time():
                     break
-            epoch += 1
         checkpoint()
     finally:
         bar.close()

@@ -48,12 +48,15 @@ class Light:
 @dataclass
 class RenderResult:
     """rgb float (H,W,3) in [0,1] (NaN-free; background pixels 0), depth (H,W) in m (inf on background),
-    instance (H,W) int index of the visible instance (-1 background), full (N,H,W) bool coverage per instance."""
+    instance (H,W) int index of the visible instance (-1 background), full (N,H,W) bool coverage per instance,
+    points (H,W,3) float32: the visible surface point in its own model's frame (m; 0 on background), the dense
+    correspondences a pose network can be taught with."""
 
     rgb: np.ndarray
     depth: np.ndarray
     instance: np.ndarray
     full: np.ndarray
+    points: np.ndarray
 
 
 def decimate(mesh: RenderMesh, cell: float) -> RenderMesh:
@@ -226,6 +229,7 @@ def render(meshes: list[tuple[RenderMesh, np.ndarray, np.ndarray]], K: np.ndarra
             owner_idx[smp.pix[nearest]] = nearest
     owner_mesh[n_pix] = -1
     rgb = np.zeros((n_pix + 1, 3), dtype=np.float32)
+    points = np.zeros((n_pix + 1, 3), dtype=np.float32)
     lit: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []  # (pixels, normals, Lambert) for the highlights
     for i, (mesh, R, _) in enumerate(meshes):
         px = np.nonzero(owner_mesh == i)[0]
@@ -234,6 +238,7 @@ def render(meshes: list[tuple[RenderMesh, np.ndarray, np.ndarray]], K: np.ndarra
         face, w = samples[i].faces_and_weights(owner_idx[px])
         fv = mesh.faces[face]
         col = np.einsum("nk,nkc->nc", w, mesh.colors[fv])
+        points[px] = np.einsum("nk,nkc->nc", w, mesh.vertices[fv])
         nor = np.einsum("nk,nkc->nc", w, mesh.normals[fv]) @ R.T
         nor /= np.maximum(np.linalg.norm(nor, axis=1, keepdims=True), 1e-12)
         lam = np.clip(-(nor @ light.direction), 0.0, 1.0)
@@ -249,4 +254,5 @@ def render(meshes: list[tuple[RenderMesh, np.ndarray, np.ndarray]], K: np.ndarra
         depth[:n_pix].reshape(height, width),
         owner_mesh[:n_pix].reshape(height, width),
         full[:, :n_pix].reshape(-1, height, width),
+        points[:n_pix].reshape(height, width, 3),
     )

@@ -79,6 +79,9 @@ class CropSample:
     mask_visib: np.ndarray
     mask: np.ndarray
     """The target's whole silhouette in the crop."""
+    points: np.ndarray
+    """(size, size, 3) float32: the target's surface point seen at each pixel of `mask_visib`, in its model
+    frame (m; 0 elsewhere): dense correspondences to teach the AGM's encoder the object's shape and pose."""
 
 
 @dataclass(frozen=True)
@@ -243,6 +246,7 @@ class CropStream:
             visib=visib,
             mask_visib=mask_visib,
             mask=full,
+            points=np.where(mask_visib[..., None], res.points, np.float32(0)),
         )
 
     def _inside_frame(self, center: tuple[float, float], side: float) -> np.ndarray:
@@ -336,7 +340,9 @@ class CropStream:
 
 class CropStreamDataset(Dataset):
     """The stream as training tensors (crop and axes in [-1, 1], channels first; object index; K', R, t; visible
-    fraction; keypoints). Index i is sample i; `stream_loader` batches it in worker processes."""
+    fraction; keypoints; surface points in units of the object's radius and the visible mask, both at half the
+    crop's resolution, where the AGM's encoder predicts them). Index i is sample i; `stream_loader` batches it in
+    worker processes."""
 
     def __init__(self, stream: CropStream) -> None:
         self.stream = stream
@@ -351,6 +357,11 @@ class CropStreamDataset(Dataset):
 
     def __getitem__(self, i: int) -> dict[str, torch.Tensor]:
         s = self.stream[i]
+        S = s.crop.shape[0]
+        # Half resolution: each 2 x 2 block's mean point over its visible pixels; a block is visible where most are.
+        m = s.mask_visib.reshape(S // 2, 2, S // 2, 2).astype(np.float32).sum(axis=(1, 3))
+        pts = s.points.reshape(S // 2, 2, S // 2, 2, 3).sum(axis=(1, 3)) / np.maximum(m, 1)[..., None]
+        pts /= 0.5 * self.stream.models[s.obj_id].spec.diameter
         return {
             "crop": torch.from_numpy(s.crop.astype(np.float32) / 127.5 - 1.0).permute(2, 0, 1),
             "axes": torch.from_numpy(s.axes * 2 - 1).permute(2, 0, 1),
@@ -360,6 +371,8 @@ class CropStreamDataset(Dataset):
             "t": torch.from_numpy(s.t),
             "visib": torch.tensor(s.visib),
             "keypoints": torch.from_numpy(s.keypoints),
+            "points": torch.from_numpy(pts.astype(np.float32)).permute(2, 0, 1),
+            "mask_visib": torch.from_numpy((m >= 2).astype(np.float32))[None],
         }
 
 
