@@ -4,7 +4,7 @@ from sensor_msgs.msg import CameraInfo, Image
 from std_msgs.msg import Header
 
 from axispose_core.pose_sampling import LMO_K
-from axispose_ros.conversions import InputError, camera_for_image, camera_from_info, image_to_rgb, rgb_to_image
+from axispose_ros.conversions import InputError, Undistorter, camera_for_image, camera_from_info, image_to_rgb, rgb_to_image
 from axispose_ros.sync import StampSynchronizer
 
 
@@ -89,6 +89,39 @@ def test_image_size_against_camera_info():
     with pytest.raises(InputError) as err:
         camera_for_image(cam, 640, 400)
     assert err.value.reason == "camera_info_mismatch"
+
+
+@pytest.mark.parametrize("model, D", [("plumb_bob", [-0.28, 0.09, 0.001, -0.002, 0.0]),
+                                      ("rational_polynomial", [0.5, -0.1, 0.001, 0.0, 0.02, 0.8, -0.05, 0.03]),
+                                      ("equidistant", [0.1, -0.05, 0.01, -0.002])])  # fmt: skip
+def test_distorted_images_are_undistorted_to_the_pinhole_image_of_k(model, D):
+    """A dot drawn where the lens puts a 3D point lands, after undistortion, where the pinhole K projects it."""
+    import cv2
+
+    K = np.asarray(LMO_K, dtype=np.float64)
+    info = CameraInfo(width=640, height=480, distortion_model=model, d=D)
+    info.k = [float(v) for v in K.ravel()]
+    assert Undistorter.needed(info) and not Undistorter.needed(CameraInfo(width=640, height=480, d=[0.0] * 5))
+    point = np.array([[[0.22, -0.15, 0.6]]])
+    project = cv2.fisheye.projectPoints if model == "equidistant" else cv2.projectPoints
+    distorted = project(point, np.zeros(3), np.zeros(3), K, np.asarray(D))[0].ravel()
+    pinhole = (K @ point.ravel())[:2] / point.ravel()[2]
+    assert np.linalg.norm(distorted - pinhole) > 5  # the lens moves it visibly
+    image = np.zeros((480, 640, 3), np.uint8)
+    cv2.circle(image, tuple(int(round(v)) for v in distorted), 4, (255, 255, 255), -1)
+    out = Undistorter()(info, K, image)
+    ys, xs = np.nonzero(out[..., 0] > 128)
+    assert np.linalg.norm([xs.mean() - pinhole[0], ys.mean() - pinhole[1]]) < 1.0
+
+
+def test_unsupported_distortion_is_refused_with_a_reason():
+    K = np.asarray(LMO_K, dtype=np.float64)
+    image = np.zeros((48, 64, 3), np.uint8)
+    for model, D, reason in (("fov", [0.9], "distortion_model"), ("plumb_bob", [0.1, 0.2, 0.0], "distortion_coefficients"),
+                             ("plumb_bob", [float("nan")] * 5, "distortion_coefficients")):  # fmt: skip
+        with pytest.raises(InputError) as err:
+            Undistorter()(CameraInfo(width=64, height=48, distortion_model=model, d=D), K, image)
+        assert err.value.reason == reason
 
 
 def test_synchroniser_pairs_within_slop_and_drops_the_rest():
