@@ -13,7 +13,8 @@ Images with lens distortion (a non-zero CameraInfo D) are undistorted to the pin
 `use_rectified` the images are taken as rectified and P is used instead.
 
 Inference runs on a worker thread fed by a latest-frame-wins slot, so the executor never blocks and stale
-frames are dropped and counted instead of queueing.
+frames are dropped and counted instead of queueing. `image` and `camera_info` use the sensor-data QoS (best
+effort): frames the transport discards never arrive and are estimated from stamp gaps (`frames_lost_in_transport`).
 """
 
 from __future__ import annotations
@@ -47,7 +48,7 @@ from axispose_core.data.synth.preview import draw_axes
 from axispose_core.estimator import Estimator
 from axispose_ros.conversions import InputError, Undistorter, camera_for_image, camera_from_info, image_to_rgb, rgb_to_image
 from axispose_ros.health import Health, HealthConfig
-from axispose_ros.sync import StampSynchronizer
+from axispose_ros.sync import GapCounter, StampSynchronizer
 
 DEFAULT_CHECKPOINT = Path(__file__).resolve().parents[1] / "axispose_core" / "models" / "axispose_lmo.safetensors"
 
@@ -99,6 +100,7 @@ class AxisPoseNode(Node):
         self._state_lock = threading.Lock()  # counts and _rois: the executor and the inference thread share them
         self.health = Health(HealthConfig(latency_budget_s=float(self.get_parameter("latency_budget").value)), time.monotonic())
         self.sync = StampSynchronizer(float(self.get_parameter("sync_slop").value), self._on_pair, self._on_drop)
+        self.gaps = GapCounter()
         qos_opts = QoSOverridingOptions.with_default_policies()
         self.create_subscription(Image, "image", self._on_image, qos_profile_sensor_data, qos_overriding_options=qos_opts)
         self.create_subscription(CameraInfo, "camera_info", self._on_info, qos_profile_sensor_data, qos_overriding_options=qos_opts)
@@ -165,7 +167,11 @@ class AxisPoseNode(Node):
     def _on_image(self, msg: Image) -> None:
         self._count("frames_in")
         self.health.image(time.monotonic())
-        self.sync.add_image(_stamp_seconds(msg.header), msg)
+        stamp = _stamp_seconds(msg.header)
+        lost = self.gaps.add(stamp)  # the sensor-data QoS is best effort: what DDS dropped never arrives
+        if lost:
+            self._count("frames_lost_in_transport", lost)
+        self.sync.add_image(stamp, msg)
 
     def _on_info(self, msg: CameraInfo) -> None:
         self.sync.add_info(_stamp_seconds(msg.header), msg)
@@ -223,9 +229,9 @@ class AxisPoseNode(Node):
         counts = self.counters()
         return counts.get("frames_processed", 0) + sum(v for k, v in counts.items() if k.startswith("dropped_"))
 
-    def _count(self, key: str) -> None:
+    def _count(self, key: str, n: int = 1) -> None:
         with self._state_lock:
-            self.counts[key] += 1
+            self.counts[key] += n
 
     def counters(self) -> dict[str, int]:
         """A consistent copy of the counters (iterating `counts` while the other thread adds a key would fail)."""

@@ -382,6 +382,13 @@ def test_objects_not_asked_for_are_neither_estimated_nor_published(localised_che
         h.close()
 
 
+def test_frames_lost_in_transport_are_estimated_from_stamp_gaps(harness):
+    for sec in (*range(70, 77), 79):  # a steady 1 s camera, then two frames that never arrived
+        harness.frame(sec=sec)
+        assert harness.spin_until(lambda s=sec: harness.node.gaps.last == s, 5.0)
+    assert harness.node.counters().get("frames_lost_in_transport") == 2
+
+
 def test_an_unsupported_lens_model_drops_the_frame_with_a_reason(harness):
     info = CameraInfo(width=640, height=480, distortion_model="fov", d=[0.9])
     info.header.stamp.sec = 61

@@ -5,7 +5,7 @@ from std_msgs.msg import Header
 
 from axispose_core.pose_sampling import LMO_K
 from axispose_ros.conversions import InputError, Undistorter, camera_for_image, camera_from_info, image_to_rgb, rgb_to_image
-from axispose_ros.sync import StampSynchronizer
+from axispose_ros.sync import GapCounter, StampSynchronizer
 
 
 def _image(pixels: np.ndarray, encoding: str, pad: int = 0) -> Image:
@@ -140,3 +140,37 @@ def test_synchroniser_pairs_within_slop_and_drops_the_rest():
     assert [d[0] for d in drops[1:]] == ["late0", "late1"]
     with pytest.raises(ValueError, match="slop"):
         StampSynchronizer(-1.0, print, print)
+
+
+def test_synchroniser_pairs_whatever_the_arrival_order():
+    pairs, drops = [], []
+    sync = StampSynchronizer(0.01, lambda i, c: pairs.append((i, c)), lambda i, r: drops.append((i, r)))
+    sync.add_image(1.0, "img1")
+    sync.add_info(1.1, "info1.1")  # an info of the next frame overtakes img1's own (within `reorder`)
+    sync.add_info(1.0, "info1")
+    sync.add_info(1.2, "info1.2")
+    sync.add_image(1.2, "img1.2")
+    assert pairs == [("img1", "info1"), ("img1.2", "info1.2")] and drops == []
+    sync.add_image(1.1, "img1.1")  # older than a frame already paired: the node wants only the latest
+    assert drops == [("img1.1", "out_of_order")]
+
+
+def test_synchroniser_starts_over_when_time_jumps_back():
+    """A bag that loops: stamps fall from 50 s to 1 s. Pairing resumes at once instead of waiting images out."""
+    pairs, drops = [], []
+    sync = StampSynchronizer(0.01, lambda i, c: pairs.append((i, c)), lambda i, r: drops.append((i, r)))
+    sync.add_info(50.0, "info50")
+    sync.add_image(50.0, "img50")
+    sync.add_image(50.1, "img50.1")  # waits for its info
+    sync.add_image(1.0, "img1")  # the jump: the waiting image is given up on, the old infos are forgotten
+    sync.add_info(1.0, "info1")
+    assert pairs == [("img50", "info50"), ("img1", "info1")]
+    assert drops == [("img50.1", "time_jump")] and sync.jumps == 1
+
+
+def test_gap_counter_estimates_frames_lost_from_stamp_gaps():
+    gaps = GapCounter()
+    stamps = [k / 30 for k in range(10)] + [k / 30 for k in range(13, 20)] + [k / 30 for k in range(24, 30)]
+    lost = [gaps.add(s) for s in stamps]
+    assert gaps.lost == 3 + 4 and lost[10] == 3
+    assert gaps.add(0.0) == 0 and gaps.add(0.0) == 0  # back in time or repeated: no gap counted
