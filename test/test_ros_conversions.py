@@ -108,7 +108,7 @@ def test_distorted_images_are_undistorted_to_the_pinhole_image_of_k(model, D):
     pinhole = (K @ point.ravel())[:2] / point.ravel()[2]
     assert np.linalg.norm(distorted - pinhole) > 5  # the lens moves it visibly
     image = np.zeros((480, 640, 3), np.uint8)
-    cv2.circle(image, tuple(int(round(v)) for v in distorted), 4, (255, 255, 255), -1)
+    cv2.circle(image, tuple(round(float(v)) for v in distorted), 4, (255, 255, 255), -1)
     out = Undistorter()(info, K, image)
     ys, xs = np.nonzero(out[..., 0] > 128)
     assert np.linalg.norm([xs.mean() - pinhole[0], ys.mean() - pinhole[1]]) < 1.0
