@@ -25,7 +25,7 @@ from axispose_core.data.crops import InstanceCrop, instance_crop
 from axispose_core.data.objects import ObjectSpec
 from axispose_core.detect.decode import Detection
 from axispose_core.detect.model import Localiser, LocaliserConfig
-from axispose_core.tbm.backproject import backproject
+from axispose_core.tbm.backproject import backproject_many
 from axispose_core.tbm.reader import KeypointReader, ReaderConfig
 
 KIND = "estimator"
@@ -206,16 +206,19 @@ class Estimator:
         log_depth = enc.log_depth.float().cpu().numpy()
         images = ((axes + 1) * 0.5).clamp(0, 1)
         readings = self.reader.read(images)
+        # Every reading of every box back-projected in one vectorised refinement.
+        read = [k for k, kp in enumerate(readings) if kp.ok]
+        solved = backproject_many(Kp_all[read], np.stack([readings[k].array for k in read]), lengths_all[read], refine=True) if read else []
+        results = dict(zip(read, solved, strict=True))
         out = []
         for i, ((obj_id, _), cut, L) in enumerate(zip(boxes, cuts, lengths, strict=True)):
             poses, reasons = [], []
             for k in range(i * hypotheses, (i + 1) * hypotheses):
-                kp = readings[k]
-                res = backproject(cut.K_patch, kp.origin, kp.endpoints, L, refine=True) if kp.ok else None
+                res = results.get(k)
                 if res is not None and res.ok:
                     poses.append((k, res.R, self._fused(res.t, float(log_depth[i]), cut.K_patch, float(L[0]))))
                 else:
-                    reasons.append(kp.reason if res is None else res.reason)
+                    reasons.append(readings[k].reason if res is None else res.reason)
             pick = dict(obj_id=obj_id, K_patch=cut.K_patch, center=cut.center, side=cut.side, samples=hypotheses, samples_ok=len(poses))
             if not poses:
                 axis_image = images[i * hypotheses].permute(1, 2, 0).cpu().numpy()

@@ -2,11 +2,12 @@
 
 Every check a robot's camera driver can fail raises `InputError` with a message fit for a throttled log line:
 unsupported encodings, rows shorter than the declared step, a K that is zero or NaN, a CameraInfo whose size
-disagrees with the image other than by a uniform scale.
+disagrees with the image other than by a uniform scale, a distortion model OpenCV cannot invert.
 """
 
 from __future__ import annotations
 
+import cv2
 import numpy as np
 from sensor_msgs.msg import CameraInfo, Image
 from std_msgs.msg import Header
@@ -87,3 +88,44 @@ def camera_for_image(camera: Camera, width: int, height: int, tolerance: float =
             "camera_info_mismatch", f"image is {width}x{height} but CameraInfo says {camera.width}x{camera.height} (not a uniform scale)"
         )
     return camera.scaled(width, height)
+
+
+DISTORTION_MODELS = ("plumb_bob", "rational_polynomial", "equidistant")
+"""CameraInfo distortion models the node undoes (OpenCV's pinhole model with 4-14 coefficients; its fisheye one)."""
+
+
+class Undistorter:
+    """Undoes a CameraInfo's lens distortion so that the image is a pinhole image of the same K, as the AGM and the
+    TBM assume. The remap tables are built once per (model, coefficients, K, size) and reused."""
+
+    def __init__(self) -> None:
+        self._key: tuple | None = None
+        self._maps: tuple[np.ndarray, np.ndarray] | None = None
+
+    @staticmethod
+    def needed(info: CameraInfo) -> bool:
+        """True where the CameraInfo describes any distortion (an empty or all-zero D is none)."""
+        return len(info.d) > 0 and bool(np.any(np.asarray(info.d, dtype=np.float64) != 0))
+
+    def __call__(self, info: CameraInfo, K: np.ndarray, rgb: np.ndarray) -> np.ndarray:
+        """`rgb` (taken through `info`, K already scaled to its size) as the undistorted pinhole image of K."""
+        model = info.distortion_model
+        D = np.asarray(info.d, dtype=np.float64)
+        if model not in DISTORTION_MODELS:
+            raise InputError("distortion_model", f"CameraInfo distortion model {printable(model)} is not supported "
+                             f"(supported: {', '.join(DISTORTION_MODELS)}; or publish rectified images with use_rectified)")  # fmt: skip
+        if (
+            not np.isfinite(D).all()
+            or (model == "equidistant" and len(D) < 4)
+            or (model != "equidistant" and len(D) not in (4, 5, 8, 12, 14))
+        ):
+            raise InputError("distortion_coefficients", f"CameraInfo has {len(D)} distortion coefficients, unusable for {model}")
+        h, w = rgb.shape[:2]
+        key = (model, D.tobytes(), K.tobytes(), w, h)
+        if key != self._key:
+            if model == "equidistant":
+                maps = cv2.fisheye.initUndistortRectifyMap(K, D[:4], np.eye(3), K, (w, h), cv2.CV_16SC2)
+            else:
+                maps = cv2.initUndistortRectifyMap(K, D, None, K, (w, h), cv2.CV_16SC2)
+            self._key, self._maps = key, maps
+        return cv2.remap(rgb, self._maps[0], self._maps[1], cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT)

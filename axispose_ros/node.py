@@ -5,11 +5,16 @@ estimate come from `~/roi/<object_name>` (sensor_msgs/RegionOfInterest, the late
 `roi_timeout` seconds), for users with their own detector. Outputs keep the image header: `~/pose` (each
 object's pose in turn, for simple consumers), `~/pose_cov` (the same poses with the covariance of the AGM's
 `hypotheses` samples, when two or more of them gave a pose), `~/poses/<object_name>`, `~/pose_array` (every
-frame, empty when nothing was estimated), `~/markers`, `~/debug/axis_image` (only built while subscribed),
-`/diagnostics`.
+frame, empty when nothing was estimated), `~/markers` (every frame: a DELETEALL, then three arrows per estimated
+instance with ids of their own and `marker_lifetime`), `~/debug/axis_image` (only built while subscribed),
+`/diagnostics`. Only the objects of `objects` are looked for, estimated and published.
+
+Images with lens distortion (a non-zero CameraInfo D) are undistorted to the pinhole image of K first; with
+`use_rectified` the images are taken as rectified and P is used instead.
 
 Inference runs on a worker thread fed by a latest-frame-wins slot, so the executor never blocks and stale
-frames are dropped and counted instead of queueing.
+frames are dropped and counted instead of queueing. `image` and `camera_info` use the sensor-data QoS (best
+effort): frames the transport discards never arrive and are estimated from stamp gaps (`frames_lost_in_transport`).
 """
 
 from __future__ import annotations
@@ -41,9 +46,9 @@ from axispose_core.camera import crop_transform
 from axispose_core.checkpoint import CheckpointError
 from axispose_core.data.synth.preview import draw_axes
 from axispose_core.estimator import Estimator
-from axispose_ros.conversions import InputError, camera_for_image, camera_from_info, image_to_rgb, rgb_to_image
+from axispose_ros.conversions import InputError, Undistorter, camera_for_image, camera_from_info, image_to_rgb, rgb_to_image
 from axispose_ros.health import Health, HealthConfig
-from axispose_ros.sync import StampSynchronizer
+from axispose_ros.sync import GapCounter, StampSynchronizer
 
 DEFAULT_CHECKPOINT = Path(__file__).resolve().parents[1] / "axispose_core" / "models" / "axispose_lmo.safetensors"
 
@@ -95,10 +100,12 @@ class AxisPoseNode(Node):
         self._state_lock = threading.Lock()  # counts and _rois: the executor and the inference thread share them
         self.health = Health(HealthConfig(latency_budget_s=float(self.get_parameter("latency_budget").value)), time.monotonic())
         self.sync = StampSynchronizer(float(self.get_parameter("sync_slop").value), self._on_pair, self._on_drop)
+        self.gaps = GapCounter()
         qos_opts = QoSOverridingOptions.with_default_policies()
         self.create_subscription(Image, "image", self._on_image, qos_profile_sensor_data, qos_overriding_options=qos_opts)
         self.create_subscription(CameraInfo, "camera_info", self._on_info, qos_profile_sensor_data, qos_overriding_options=qos_opts)
-        for obj_id, name in self.names.items():
+        self.undistort = Undistorter()
+        for obj_id, name in self.published.items():
             self.create_subscription(RegionOfInterest, f"~/roi/{name}", lambda m, i=obj_id: self._on_roi(i, m), 10)
         self.pub_pose = self.create_publisher(PoseStamped, "~/pose", 10)
         self.pub_pose_cov = self.create_publisher(PoseWithCovarianceStamped, "~/pose_cov", 10)
@@ -127,12 +134,13 @@ class AxisPoseNode(Node):
         self.declare_parameter("guidance_scale", 0.0, desc("run-time geometric guidance (0: off)", floats=(0.0, 100.0)))
         self.declare_parameter("object_scale", 0.0, desc("λ_O in m for every object (0: checkpoint's)", floats=(0.0, 10.0)))
         self.declare_parameter("device", "cpu", desc("cpu, cuda or auto"))
-        self.declare_parameter("objects", Parameter.Type.STRING_ARRAY, desc("object names to publish (empty: all)"))
+        self.declare_parameter("objects", Parameter.Type.STRING_ARRAY, desc("object names to look for, estimate and publish (empty: all)"))
         self.declare_parameter("use_rectified", False, desc("use P instead of K (images already rectified)"))
         self.declare_parameter("sync_slop", 0.02, desc("largest Image/CameraInfo stamp difference in s", floats=(0.0, 1.0)))
         self.declare_parameter("num_threads", 2, desc("torch CPU threads for inference", ints=(1, 64)))
         self.declare_parameter("roi_timeout", 1.0, desc("age in s after which an ROI is ignored", floats=(0.0, 3600.0)))
         self.declare_parameter("score_threshold", 0.3, desc("least localiser score of an instance", floats=(0.0, 1.0)))
+        self.declare_parameter("marker_lifetime", 1.0, desc("lifetime of ~/markers in s (0: until replaced)", floats=(0.0, 3600.0)))
         self.declare_parameter(
             "latency_budget", 2.0, desc("median latency (s) over which /diagnostics warns; at start", floats=(0.01, 60.0))
         )
@@ -159,7 +167,11 @@ class AxisPoseNode(Node):
     def _on_image(self, msg: Image) -> None:
         self._count("frames_in")
         self.health.image(time.monotonic())
-        self.sync.add_image(_stamp_seconds(msg.header), msg)
+        stamp = _stamp_seconds(msg.header)
+        lost = self.gaps.add(stamp)  # the sensor-data QoS is best effort: what DDS dropped never arrives
+        if lost:
+            self._count("frames_lost_in_transport", lost)
+        self.sync.add_image(stamp, msg)
 
     def _on_info(self, msg: CameraInfo) -> None:
         self.sync.add_info(_stamp_seconds(msg.header), msg)
@@ -217,9 +229,9 @@ class AxisPoseNode(Node):
         counts = self.counters()
         return counts.get("frames_processed", 0) + sum(v for k, v in counts.items() if k.startswith("dropped_"))
 
-    def _count(self, key: str) -> None:
+    def _count(self, key: str, n: int = 1) -> None:
         with self._state_lock:
-            self.counts[key] += 1
+            self.counts[key] += n
 
     def counters(self) -> dict[str, int]:
         """A consistent copy of the counters (iterating `counts` while the other thread adds a key would fail)."""
@@ -232,6 +244,7 @@ class AxisPoseNode(Node):
             return self._slot is None and not self._busy
 
     def _boxes(self, width: int, height: int) -> list[tuple[int, tuple[float, float, float, float]]]:
+        """The fresh ROIs (only objects of `objects` have ROI topics), each inside the image."""
         now, timeout = time.monotonic(), float(self.get_parameter("roi_timeout").value)
         boxes = []
         with self._state_lock:
@@ -256,11 +269,15 @@ class AxisPoseNode(Node):
 
     def _process(self, frame: Frame) -> None:
         rgb = image_to_rgb(frame.image)
-        camera = camera_for_image(camera_from_info(frame.info, bool(self.get_parameter("use_rectified").value)), rgb.shape[1], rgb.shape[0])
+        rectified = bool(self.get_parameter("use_rectified").value)
+        camera = camera_for_image(camera_from_info(frame.info, rectified), rgb.shape[1], rgb.shape[0])
+        if not rectified and Undistorter.needed(frame.info):
+            rgb = self.undistort(frame.info, camera.K, rgb)
         boxes = self._boxes(rgb.shape[1], rgb.shape[0])
         scores = [1.0] * len(boxes)
         if not boxes and self.estimator.localiser is not None:
-            dets = [d for d in self.estimator.detect(rgb, float(self.get_parameter("score_threshold").value)) if d.obj_id in self.names]
+            threshold = float(self.get_parameter("score_threshold").value)
+            dets = [d for d in self.estimator.detect(rgb, threshold) if d.obj_id in self.published]
             boxes, scores = [(d.obj_id, d.box) for d in dets], [d.score for d in dets]
         estimates = self.estimator.estimate(
             rgb,
@@ -273,20 +290,21 @@ class AxisPoseNode(Node):
         )
         header = frame.image.header
         array = PoseArray(header=header)
-        markers = MarkerArray()
+        markers = MarkerArray(markers=[Marker(header=header, action=Marker.DELETEALL)])  # the last frame's go
+        lifetime = float(self.get_parameter("marker_lifetime").value)
         best: dict[int, tuple[float, PoseStamped, np.ndarray | None]] = {}
-        for est, score in zip(estimates, scores, strict=True):
+        for k, (est, score) in enumerate(zip(estimates, scores, strict=True)):
             if not est.ok:
                 self._count("pose_refused")
                 continue
             pose = _pose(est.R, est.t)
             array.poses.append(pose)
-            if est.obj_id in self.published:
-                stamped = PoseStamped(header=header, pose=pose)
-                self.pub_object[est.obj_id].publish(stamped)
-                if est.obj_id not in best or score > best[est.obj_id][0]:
-                    best[est.obj_id] = (score, stamped, est.covariance)
-                markers.markers.extend(_axis_markers(header, est, self.names[est.obj_id], self.estimator.objects[est.obj_id].axes.lengths))
+            stamped = PoseStamped(header=header, pose=pose)
+            self.pub_object[est.obj_id].publish(stamped)
+            if est.obj_id not in best or score > best[est.obj_id][0]:
+                best[est.obj_id] = (score, stamped, est.covariance)
+            lengths = self.estimator.objects[est.obj_id].axes.lengths
+            markers.markers.extend(_axis_markers(header, est, self.names[est.obj_id], lengths, k, lifetime))
         for _, stamped, cov in best.values():
             self.pub_pose.publish(stamped)
             if cov is not None:
@@ -294,8 +312,7 @@ class AxisPoseNode(Node):
                 msg.pose.pose, msg.pose.covariance = stamped.pose, [float(v) for v in cov.ravel()]
                 self.pub_pose_cov.publish(msg)
         self.pub_array.publish(array)
-        if markers.markers:
-            self.pub_markers.publish(markers)
+        self.pub_markers.publish(markers)
         if self.pub_debug.get_subscription_count() > 0:
             self.pub_debug.publish(rgb_to_image(_debug_overlay(rgb, camera.K, estimates, self.estimator), header))
         self._count("frames_processed")
@@ -330,11 +347,13 @@ def _pose(R: np.ndarray, t: np.ndarray) -> Pose:
     return pose
 
 
-def _axis_markers(header, est, name: str, lengths: np.ndarray) -> list[Marker]:
-    """Three arrows (X red, Y green, Z blue) from the object's origin, in the camera frame."""
+def _axis_markers(header, est, name: str, lengths: np.ndarray, instance: int, lifetime: float) -> list[Marker]:
+    """Three arrows (X red, Y green, Z blue) from the object's origin, in the camera frame; ids 3 x instance + axis,
+    so that two instances of one object keep their own, and gone after `lifetime` seconds (0: until replaced)."""
     out = []
     for k, color in enumerate(((1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, 0.0, 1.0))):
-        m = Marker(header=header, ns=f"axispose/{name}", id=k, type=Marker.ARROW, action=Marker.ADD)
+        m = Marker(header=header, ns=f"axispose/{name}", id=3 * instance + k, type=Marker.ARROW, action=Marker.ADD)
+        m.lifetime.sec, m.lifetime.nanosec = int(lifetime), round((lifetime % 1.0) * 1e9) % 1_000_000_000
         start, end = est.t, est.t + est.R[:, k] * lengths[k]
         m.points = [
             Point(x=float(start[0]), y=float(start[1]), z=float(start[2])),

@@ -15,6 +15,7 @@ from geometry_msgs.msg import PoseArray, PoseStamped, PoseWithCovarianceStamped
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.parameter import Parameter
 from sensor_msgs.msg import CameraInfo, Image, RegionOfInterest
+from visualization_msgs.msg import Marker, MarkerArray
 
 from axispose_core.agm.model import AxisGenerator
 from axispose_core.checkpoint import CheckpointError
@@ -330,6 +331,74 @@ def test_without_rois_the_checkpoints_localiser_finds_the_objects(tmp_path):
         assert h.got["array"][1].poses == []
     finally:
         h.close()
+
+
+@pytest.fixture(scope="module")
+def localised_checkpoint(tmp_path_factory):
+    """The tiny estimator with an untrained localiser of ape and can: at threshold 0 it finds both, twice each."""
+    reader = load_reader(SHIPPED_READER)
+    localiser = Localiser(LocaliserConfig(obj_ids=(1, 5), input_size=(160, 128), channels=(8, 16, 24, 32), max_per_object=2))
+    cfg = EstimatorConfig(
+        agm=AGMConfig(denoiser=DenoiserConfig(channels=8, multipliers=(1, 2), groups=4)), reader=reader.config,
+        objects=tuple(lmo_objects()[:2]), ddim_steps=1,
+    )  # fmt: skip
+    path = tmp_path_factory.mktemp("loc") / "loc.safetensors"
+    Estimator(cfg, AxisGenerator(cfg.agm), reader).with_localiser(localiser).save(path)
+    return path
+
+
+def _fixed_poses(node):
+    """Make the node's estimator succeed with a fixed pose per box (the random AGM draws noise) and record its calls."""
+    real, calls = node.estimator.estimate, []
+
+    def succeed(image, K, boxes, **kwargs):
+        calls.append([obj_id for obj_id, _ in boxes])
+        out = real(image, K, boxes, **kwargs)
+        return [PoseEstimate(e.obj_id, np.eye(3), np.array([0.0, 0.0, 0.8]), True, "", e.axis_image, e.K_patch, e.center, e.side)
+                for e in out]  # fmt: skip
+
+    node.estimator.estimate = succeed
+    return calls
+
+
+def test_objects_not_asked_for_are_neither_estimated_nor_published(localised_checkpoint):
+    """With objects:=[ape] the localiser's can detections never reach the AGM, the PoseArray or the markers; every
+    frame's MarkerArray first deletes the last frame's, then gives each instance its own ids and a lifetime."""
+    h = Harness(localised_checkpoint, score_threshold=0.0, objects=["ape"], marker_lifetime=0.5)
+    markers = []
+    h.peer.create_subscription(MarkerArray, "/axispose/markers", markers.append, 10)
+    try:
+        calls = _fixed_poses(h.node)
+        h.spin_until(lambda: h.pub_image.get_subscription_count() > 0, 5.0)
+        h.frame(sec=21)
+        assert h.spin_until(lambda: h.got["array"] and markers)
+        assert calls == [[1, 1]] and len(h.got["array"][0].poses) == 2
+        first, *arrows = markers[0].markers
+        assert first.action == Marker.DELETEALL
+        assert sorted(m.id for m in arrows) == [0, 1, 2, 3, 4, 5] and {m.ns for m in arrows} == {"axispose/ape"}
+        assert all(m.lifetime.sec == 0 and m.lifetime.nanosec == 500_000_000 for m in arrows)
+        assert h.peer.count_subscribers("/axispose/roi/ape") == 1 and h.peer.count_subscribers("/axispose/roi/can") == 0
+    finally:
+        h.close()
+
+
+def test_frames_lost_in_transport_are_estimated_from_stamp_gaps(harness):
+    for sec in (*range(70, 77), 79):  # a steady 1 s camera, then two frames that never arrived
+        harness.frame(sec=sec)
+        assert harness.spin_until(lambda s=sec: harness.node.gaps.last == s, 5.0)
+    assert harness.node.counters().get("frames_lost_in_transport") == 2
+
+
+def test_an_unsupported_lens_model_drops_the_frame_with_a_reason(harness):
+    info = CameraInfo(width=640, height=480, distortion_model="fov", d=[0.9])
+    info.header.stamp.sec = 61
+    info.k = [float(v) for v in np.asarray(LMO_K).ravel()]
+    img = Image(height=480, width=640, encoding="rgb8", step=640 * 3, data=bytes(640 * 480 * 3))
+    img.header.stamp.sec = 61
+    harness.pub_info.publish(info)
+    harness.pub_image.publish(img)
+    assert harness.spin_until(lambda: harness.node.counters().get("dropped_distortion_model") == 1)
+    assert not harness.got["array"]
 
 
 @pytest.mark.parametrize("param", ["ddim_steps:=0", "ddim_steps:=abc", "sync_slop:=-1.0", "num_threads:=0", "device:=cuda"])

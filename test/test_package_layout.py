@@ -1,5 +1,6 @@
 """The ament_python layout: installed the way colcon installs it, the package is found through the ament index."""
 
+import ast
 import os
 import subprocess
 import sys
@@ -11,13 +12,41 @@ import pytest
 REPO = Path(__file__).resolve().parents[1]
 
 
-def test_package_xml_is_format_3_with_the_runtime_dependencies():
+ROSDEP_KEYS = {
+    "rclpy": "rclpy", "rcl_interfaces": "rcl_interfaces", "std_msgs": "std_msgs", "sensor_msgs": "sensor_msgs",
+    "geometry_msgs": "geometry_msgs", "visualization_msgs": "visualization_msgs", "diagnostic_msgs": "diagnostic_msgs",
+    "ament_index_python": "ament_index_python", "numpy": "python3-numpy", "scipy": "python3-scipy", "cv2": "python3-opencv",
+    "torch": "python3-torch", "safetensors": "python3-safetensors", "plyfile": "python3-plyfile", "yaml": "python3-yaml",
+    "tqdm": "python3-tqdm", "matplotlib": "python3-matplotlib", "rosbags": "python3-rosbags-pip",
+}  # fmt: skip
+"""The rosdep key of each third-party module the package may import."""
+
+
+def _imported_modules() -> set[str]:
+    """Top-level modules the installed packages import (absolute imports, standard library and own packages left out)."""
+    mods = set()
+    for path in [*(REPO / "axispose_core").rglob("*.py"), *(REPO / "axispose_ros").rglob("*.py")]:
+        for node in ast.walk(ast.parse(path.read_text(), str(path))):
+            if isinstance(node, ast.Import):
+                mods |= {a.name.split(".")[0] for a in node.names}
+            elif isinstance(node, ast.ImportFrom) and node.level == 0 and node.module:
+                mods.add(node.module.split(".")[0])
+    return {m for m in mods if m not in sys.stdlib_module_names and m not in ("axispose_core", "axispose_ros")}
+
+
+def test_package_xml_is_format_3_and_declares_exactly_what_the_code_imports():
     root = ET.parse(REPO / "package.xml").getroot()
     assert root.get("format") == "3"
     assert root.findtext("name") == "axispose_ros"
-    deps = {e.text for e in root.findall("exec_depend")}
-    assert {"rclpy", "sensor_msgs", "geometry_msgs", "visualization_msgs", "diagnostic_msgs"} <= deps
     assert root.find("export/build_type").text == "ament_python"
+    imported = _imported_modules()
+    unmapped = sorted(imported - set(ROSDEP_KEYS))
+    assert not unmapped, f"imported without a known rosdep key: {unmapped} (add the key to package.xml and ROSDEP_KEYS)"
+    declared = {e.text for e in root.findall("exec_depend")} | {e.text for e in root.findall("depend")}
+    needed = {ROSDEP_KEYS[m] for m in imported}
+    assert not needed - declared, f"imported but not declared in package.xml: {sorted(needed - declared)}"
+    # ament_index_python is how the installed package finds its share/ files (setup.py data_files), even if not imported
+    assert not declared - needed - {"ament_index_python"}, f"declared but never imported: {sorted(declared - needed)}"
 
 
 @pytest.fixture(scope="module")

@@ -29,7 +29,7 @@ import numpy as np
 import torch
 
 from axispose_core.axis_image import axis_keypoints_torch, render_axis_keypoints_torch
-from axispose_core.tbm.backproject import backproject
+from axispose_core.tbm.backproject import backproject_many
 from axispose_core.tbm.reader import KeypointReader
 
 
@@ -104,10 +104,9 @@ def self_consistency_target(
         images = ((x0.detach() + 1) * 0.5).clamp(0, 1)
         readings = reader.read(images)
     origins, dirs = own.origin.clone(), own.directions.clone()
-    for i, kp in enumerate(readings):
-        if not kp.ok:
-            continue
-        res = backproject(K_patch[i], kp.origin, kp.endpoints, lengths[i], refine=True)
+    read = [i for i, kp in enumerate(readings) if kp.ok]
+    solved = backproject_many(K_patch[read], np.stack([readings[i].array for i in read]), lengths[read], refine=True) if read else []
+    for i, res in zip(read, solved, strict=True):
         if not res.ok:
             continue
         kps = axis_keypoints_torch(

@@ -22,7 +22,7 @@ from __future__ import annotations
 from typing import NamedTuple
 
 import numpy as np
-from scipy.optimize import brentq, least_squares
+from scipy.optimize import brentq
 from scipy.spatial.transform import Rotation
 
 from axispose_core.axis_image import axis_points
@@ -105,19 +105,8 @@ def _polish(a: np.ndarray, lam: np.ndarray, iterations: int = 3) -> np.ndarray:
     return lam
 
 
-def backproject(K: np.ndarray, uv_origin: np.ndarray, uv_axes: np.ndarray, lengths: np.ndarray, refine: bool = False) -> Backprojection:
-    """Pose (R, t) of a cube corner from its projected origin (2,), leg endpoints (3,2) and leg lengths (3,) in metres.
-
-    R's columns are the model X, Y, Z axes in the camera frame; t is the model origin in metres. With `refine`,
-    the analytic pose seeds a Levenberg-Marquardt fit of all four keypoints (what to use on noisy keypoints).
-    """
-    K, kp, reason = _check_input(K, uv_origin, uv_axes)
-    if reason:
-        return _fail(reason)
-    lengths = np.asarray(lengths, dtype=np.float64)
-    if lengths.shape != (3,) or not np.all(np.isfinite(lengths)) or np.any(lengths <= 0):
-        return _fail(f"leg lengths must be three positive numbers, got {lengths}")
-
+def _corner(K: np.ndarray, kp: np.ndarray, lengths: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
+    """The analytic pose of the corner system's valid root (None if no root is valid)."""
     q = _rays(K, kp)  # (4,3): O, A, B, C
     a = q @ q.T
     O, A, B, C = 0, 1, 2, 3
@@ -133,7 +122,7 @@ def backproject(K: np.ndarray, uv_origin: np.ndarray, uv_axes: np.ndarray, lengt
     candidates = []
     for root in np.atleast_1d(roots):
         # A complex pair means noisy keypoints no exact corner explains; its real part is the nearest
-        # near-solution and still a good seed (the re-projection check below decides whether to keep it).
+        # near-solution and still a good seed (the re-projection check decides whether to keep it).
         lam_a = root.real
         den_b, den_c = P.polyval(lam_a, db), P.polyval(lam_a, dc)
         if abs(den_b) < 1e-15 or abs(den_c) < 1e-15:
@@ -148,39 +137,94 @@ def backproject(K: np.ndarray, uv_origin: np.ndarray, uv_axes: np.ndarray, lengt
         leg_len = np.linalg.norm(legs, axis=1)
         ratio_err = np.linalg.norm(leg_len / leg_len[0] - lengths / lengths[0])
         candidates.append((ratio_err, legs, leg_len))
-    if candidates:
-        _, legs, leg_len = min(candidates, key=lambda c: c[0])
-        scale = float(lengths @ leg_len / (leg_len @ leg_len))
-        R = nearest_rotation((legs / leg_len[:, None]).T)
-        t = scale * q[0]
-    elif refine:
-        # Noise pushed the corner system's roots out of the valid region: fit from the axis directions'
-        # rotation and from the 24 cube rotations, each at the depth where the legs have their observed
-        # mean pixel length; the FALLBACK_FITS seeds that re-project best are fitted (fitting all 25 took
-        # ~5 s per object), and the fit that re-projects best is kept.
-        focal = 0.5 * (K[0, 0] + K[1, 1])
-        t0 = q[0] * focal * lengths.mean() / np.linalg.norm(kp[1:] - kp[0], axis=1).mean()
-        seeds = list(Rotation.create_group("O").as_matrix())
-        slopes = rotation_from_slopes(K, kp[0], kp[1:] - kp[0])
-        if slopes.ok:
-            seeds.insert(0, slopes.R)
-        seeds.sort(key=lambda R0: _reprojection_residual(K, kp, lengths, R0, t0))
-        fits = [refine_pose(K, kp, lengths, R0, t0) for R0 in seeds[:FALLBACK_FITS]]
-        R, t = min(fits, key=lambda f: _reprojection_residual(K, kp, lengths, *f))
-        refine = False
-    else:
-        return _fail("no right-handed solution with every vertex in front of the camera")
-    if not (np.all(np.isfinite(R)) and np.all(np.isfinite(t)) and t[2] > 0):
-        return _fail("numerically unstable configuration")
-    if refine:
-        R, t = refine_pose(K, kp, lengths, R, t)
-    residual = _reprojection_residual(K, kp, lengths, R, t)
-    longest = np.linalg.norm(kp[1:] - kp[0], axis=1).max()
-    if residual > MAX_RELATIVE_RESIDUAL * longest:
-        return _fail(
-            f"keypoints inconsistent with the known leg lengths (re-projection misses by {residual:.1f} px of a {longest:.1f} px leg)"
-        )
-    return Backprojection(R, t, True)
+    if not candidates:
+        return None
+    _, legs, leg_len = min(candidates, key=lambda c: c[0])
+    scale = float(lengths @ leg_len / (leg_len @ leg_len))
+    return nearest_rotation((legs / leg_len[:, None]).T), scale * q[0]
+
+
+def _fallback_seeds(K: np.ndarray, kp: np.ndarray, lengths: np.ndarray) -> list[tuple[np.ndarray, np.ndarray]]:
+    """Noise pushed the corner system's roots out of the valid region: the axis directions' rotation and the 24
+    cube rotations, each at the depth where the legs have their observed mean pixel length; the FALLBACK_FITS
+    that re-project best (fitting all 25 took ~5 s per object)."""
+    q = _rays(K, kp)
+    focal = 0.5 * (K[0, 0] + K[1, 1])
+    t0 = q[0] * focal * lengths.mean() / np.linalg.norm(kp[1:] - kp[0], axis=1).mean()
+    seeds = list(Rotation.create_group("O").as_matrix())
+    slopes = rotation_from_slopes(K, kp[0], kp[1:] - kp[0])
+    if slopes.ok:
+        seeds.insert(0, slopes.R)
+    seeds.sort(key=lambda R0: _reprojection_residual(K, kp, lengths, R0, t0))
+    return [(R0, t0) for R0 in seeds[:FALLBACK_FITS]]
+
+
+def backproject(K: np.ndarray, uv_origin: np.ndarray, uv_axes: np.ndarray, lengths: np.ndarray, refine: bool = False) -> Backprojection:
+    """Pose (R, t) of a cube corner from its projected origin (2,), leg endpoints (3,2) and leg lengths (3,) in metres.
+
+    R's columns are the model X, Y, Z axes in the camera frame; t is the model origin in metres. With `refine`,
+    the analytic pose seeds a Levenberg-Marquardt fit of all four keypoints (what to use on noisy keypoints).
+    """
+    keypoints = np.vstack([np.reshape(uv_origin, (1, 2)), np.reshape(uv_axes, (-1, 2))]) if np.size(uv_axes) == 6 else None
+    if keypoints is None:
+        return _fail(f"three axis endpoints needed, got {np.size(uv_axes) / 2:g}")
+    return backproject_many([K], keypoints[None], np.reshape(lengths, (1, -1)) if np.size(lengths) == 3 else [lengths], refine)[0]
+
+
+def backproject_many(K: np.ndarray, keypoints: np.ndarray, lengths: np.ndarray, refine: bool = False) -> list[Backprojection]:
+    """`backproject` of N corners at once: intrinsics (N,3,3), keypoints (N,4,2) (origin, then the endpoints) and
+    leg lengths (N,3); the refinements of all of them are one vectorised Levenberg-Marquardt fit."""
+    out: list[Backprojection | None] = []
+    checked: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
+    jobs: list[tuple[int, np.ndarray, np.ndarray]] = []  # (item, R0, t0) to refine
+    for i, (Ki, kpi, Li) in enumerate(zip(K, keypoints, lengths, strict=True)):
+        Ki, kp, reason = _check_input(Ki, kpi[0], kpi[1:])
+        Li = np.asarray(Li, dtype=np.float64)
+        if not reason and (Li.shape != (3,) or not np.all(np.isfinite(Li)) or np.any(Li <= 0)):
+            reason = f"leg lengths must be three positive numbers, got {Li}"
+        checked.append((Ki, kp, Li))
+        if reason:
+            out.append(_fail(reason))
+            continue
+        pose = _corner(Ki, kp, Li)
+        if pose is not None:
+            out.append(Backprojection(*pose, True))
+            if refine:
+                jobs.append((i, *pose))
+        elif refine:
+            out.append(None)
+            jobs.extend((i, R0, t0) for R0, t0 in _fallback_seeds(Ki, kp, Li))
+        else:
+            out.append(_fail("no right-handed solution with every vertex in front of the camera"))
+    if jobs:
+        idx = [j[0] for j in jobs]
+        Rs, ts = refine_poses(
+            np.stack([checked[i][0] for i in idx]), np.stack([checked[i][1] for i in idx]), np.stack([checked[i][2] for i in idx]),
+            np.stack([j[1] for j in jobs]), np.stack([j[2] for j in jobs]),
+        )  # fmt: skip
+        best: dict[int, tuple[float, np.ndarray, np.ndarray]] = {}
+        for i, R, t in zip(idx, Rs, ts, strict=True):
+            res = _reprojection_residual(*checked[i], R, t)
+            if i not in best or res < best[i][0]:
+                best[i] = (res, R, t)
+        for i, (_, R, t) in best.items():
+            out[i] = Backprojection(R, t, True)
+    results = []
+    for (Ki, kp, Li), res in zip(checked, out, strict=True):
+        if not res.ok:
+            results.append(res)
+            continue
+        if not (np.all(np.isfinite(res.R)) and np.all(np.isfinite(res.t)) and res.t[2] > 0):
+            results.append(_fail("numerically unstable configuration"))
+            continue
+        residual = _reprojection_residual(Ki, kp, Li, res.R, res.t)
+        longest = np.linalg.norm(kp[1:] - kp[0], axis=1).max()
+        if residual > MAX_RELATIVE_RESIDUAL * longest:
+            results.append(_fail(f"keypoints inconsistent with the known leg lengths "
+                                 f"(re-projection misses by {residual:.1f} px of a {longest:.1f} px leg)"))  # fmt: skip
+            continue
+        results.append(res)
+    return results
 
 
 def _reprojection_residual(K: np.ndarray, kp: np.ndarray, lengths: np.ndarray, R: np.ndarray, t: np.ndarray) -> float:
@@ -191,22 +235,71 @@ def _reprojection_residual(K: np.ndarray, kp: np.ndarray, lengths: np.ndarray, R
     return float(np.linalg.norm(project(K, cam) - kp, axis=1).max())
 
 
-def refine_pose(K: np.ndarray, keypoints: np.ndarray, lengths: np.ndarray, R0: np.ndarray, t0: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Minimise the reprojection error of origin and endpoints (4,2) over the pose, from (R0, t0)."""
-    pts = axis_points(lengths)
+def _project_many(K: np.ndarray, cam: np.ndarray) -> np.ndarray:
+    """Camera-frame points (N,P,3) through intrinsics (N,3,3) to pixels (N,P,2); depths clamped to 1e-6."""
+    z = np.maximum(cam[..., 2], 1e-6)
+    u = (K[:, 0, 0, None] * cam[..., 0] + K[:, 0, 1, None] * cam[..., 1]) / z + K[:, 0, 2, None]
+    v = K[:, 1, 1, None] * cam[..., 1] / z + K[:, 1, 2, None]
+    return np.stack([u, v], axis=-1)
 
-    def residual(x: np.ndarray) -> np.ndarray:
-        R = Rotation.from_rotvec(x[:3]).as_matrix()
-        cam = transform(R, x[3:], pts)
-        cam[:, 2] = np.maximum(cam[:, 2], 1e-6)
-        return (project(K, cam) - keypoints).ravel()
 
-    x0 = np.concatenate([Rotation.from_matrix(R0).as_rotvec(), t0])
-    sol = least_squares(residual, x0, method="lm", xtol=1e-12, ftol=1e-12)
-    R = Rotation.from_rotvec(sol.x[:3]).as_matrix()
-    if not np.all(np.isfinite(sol.x)) or sol.x[5] <= 0:
-        return R0, t0
-    return R, sol.x[3:]
+def refine_poses(
+    K: np.ndarray, keypoints: np.ndarray, lengths: np.ndarray, R0: np.ndarray, t0: np.ndarray, iterations: int = 30
+) -> tuple[np.ndarray, np.ndarray]:
+    """Minimise the reprojection error of origin and endpoints over N poses at once: K (N,3,3), keypoints (N,4,2),
+    lengths (N,3), starting poses R0 (N,3,3), t0 (N,3) -> (R, t). Levenberg-Marquardt with the analytic Jacobian
+    (rotation updates on the left, R <- exp([w]x) R), each pose with its own damping; a step is taken only where
+    it lowers that pose's error, so no pose ends worse than it started."""
+    K, kp = np.asarray(K, dtype=np.float64), np.asarray(keypoints, dtype=np.float64)
+    R, t = np.array(R0, dtype=np.float64), np.array(t0, dtype=np.float64)
+    n = len(kp)
+    pts = np.zeros((n, 4, 3))
+    pts[:, 1:] = np.asarray(lengths, dtype=np.float64)[:, :, None] * np.eye(3)
+
+    def cost_of(R: np.ndarray, t: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        cam = np.einsum("nij,npj->npi", R, pts) + t[:, None, :]
+        r = (_project_many(K, cam) - kp).reshape(n, 8)
+        cost = np.where(np.all(cam[..., 2] > 0, axis=1), (r * r).sum(axis=1), np.inf)
+        return r, cam, cost
+
+    r, cam, cost = cost_of(R, t)
+    damping = np.full(n, 1e-3)
+    fx, skew, fy = K[:, 0, 0, None], K[:, 0, 1, None], K[:, 1, 1, None]
+    for _ in range(iterations):
+        z = np.maximum(cam[..., 2], 1e-6)
+        d_proj = np.zeros((n, 4, 2, 3))
+        d_proj[..., 0, 0], d_proj[..., 0, 1] = fx / z, skew / z
+        d_proj[..., 0, 2] = -(fx * cam[..., 0] + skew * cam[..., 1]) / z**2
+        d_proj[..., 1, 1], d_proj[..., 1, 2] = fy / z, -fy * cam[..., 1] / z**2
+        a = cam - t[:, None, :]  # R p: d(exp([w]x) R p)/dw = -[R p]x
+        d_cam = np.zeros((n, 4, 3, 6))
+        d_cam[..., 0, 1], d_cam[..., 0, 2] = a[..., 2], -a[..., 1]
+        d_cam[..., 1, 0], d_cam[..., 1, 2] = -a[..., 2], a[..., 0]
+        d_cam[..., 2, 0], d_cam[..., 2, 1] = a[..., 1], -a[..., 0]
+        d_cam[..., :, 3:] = np.eye(3)
+        J = np.einsum("npij,npjk->npik", d_proj, d_cam).reshape(n, 8, 6)
+        A = np.einsum("nri,nrj->nij", J, J)
+        g = np.einsum("nri,nr->ni", J, r)
+        diag = np.einsum("nii->ni", A)
+        A_damped = A + (damping[:, None] * diag + 1e-12)[:, :, None] * np.eye(6)
+        step = -np.linalg.solve(A_damped, g[..., None])[..., 0]
+        if not np.isfinite(step).all():
+            step = np.nan_to_num(step, nan=0.0, posinf=0.0, neginf=0.0)
+        R_new = Rotation.from_rotvec(step[:, :3]).as_matrix() @ R
+        t_new = t + step[:, 3:]
+        r_new, cam_new, cost_new = cost_of(R_new, t_new)
+        better = cost_new < cost
+        R[better], t[better], r[better], cam[better], cost[better] = (
+            R_new[better],
+            t_new[better],
+            r_new[better],
+            cam_new[better],
+            cost_new[better],
+        )
+        damping = np.where(better, np.maximum(damping * 0.3, 1e-12), np.minimum(damping * 10.0, 1e12))
+        if np.all(np.abs(step) < 1e-10) or np.all(cost < 1e-20):
+            break
+    return R, t
 
 
 def _projected_direction(K: np.ndarray, uv_origin: np.ndarray, v: np.ndarray) -> np.ndarray:
