@@ -339,7 +339,7 @@ def localised_checkpoint(tmp_path_factory):
     reader = load_reader(SHIPPED_READER)
     localiser = Localiser(LocaliserConfig(obj_ids=(1, 5), input_size=(160, 128), channels=(8, 16, 24, 32), max_per_object=2))
     cfg = EstimatorConfig(
-        agm=AGMConfig(denoiser=DenoiserConfig(channels=8, multipliers=(1, 2), groups=4)), reader=reader.config,
+        agm=TINY_AGM, reader=reader.config,
         objects=tuple(lmo_objects()[:2]), ddim_steps=1,
     )  # fmt: skip
     path = tmp_path_factory.mktemp("loc") / "loc.safetensors"
