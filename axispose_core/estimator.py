@@ -8,6 +8,7 @@ The node, `axispose eval` and the demos all go through `Estimator`, so what is m
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
@@ -146,6 +147,7 @@ class Estimator:
         seed: int = 0,
         scales: dict[int, float] | None = None,
         hypotheses: int = 1,
+        cancelled: Callable[[], bool] | None = None,
     ) -> list[PoseEstimate]:
         """Poses for (obj_id, (x, y, w, h)) boxes in an RGB uint8 image; all crops go through the AGM as one batch.
 
@@ -173,7 +175,9 @@ class Estimator:
 
         gen = torch.Generator().manual_seed(seed)
         with torch.inference_mode(scale <= 0):
-            axes = self.agm.sample(x, steps, generator=gen, guidance=guidance if scale > 0 else None, guidance_scale=scale)
+            axes = self.agm.sample(
+                x, steps, generator=gen, guidance=guidance if scale > 0 else None, guidance_scale=scale, cancelled=cancelled
+            )
         images = ((axes + 1) * 0.5).clamp(0, 1)
         readings = self.reader.read(images)
         # Every reading of every box back-projected in one vectorised refinement.

@@ -13,6 +13,10 @@ from axispose_core.agm.guidance import AxisGeometry, axis_geometry, guided_eps
 from axispose_core.agm.scheduler import DDIMScheduler, SchedulerConfig
 
 
+class Cancelled(Exception):
+    """Sampling was stopped between DDIM steps by its `cancelled` callback."""
+
+
 @dataclass(frozen=True)
 class AGMConfig:
     denoiser: DenoiserConfig = field(default_factory=DenoiserConfig)
@@ -66,13 +70,17 @@ class AxisGenerator(nn.Module):
         generator: torch.Generator | None = None,
         guidance: Callable[[torch.Tensor], AxisGeometry] | None = None,
         guidance_scale: float = 0.0,
+        cancelled: Callable[[], bool] | None = None,
     ) -> torch.Tensor:
-        """Generate axis images; `guidance(x̂0) -> g` supplies the measurement for run-time guidance."""
+        """Generate axis images; `guidance(x̂0) -> g` supplies the measurement for run-time guidance.
+        `cancelled()` is asked before every step; True raises `Cancelled` (a node shutting down mid-frame)."""
         sched = self.scheduler
         sched.set_timesteps(steps)
         x = torch.randn(crops.shape, generator=generator, dtype=crops.dtype).to(crops.device)
         cond = self.denoiser.encode(crops)
         for t in sched.timesteps.tolist():
+            if cancelled is not None and cancelled():
+                raise Cancelled("sampling cancelled")
             out = self.denoiser(x, torch.full((x.shape[0],), t, device=x.device), cond)
             eps_override = None
             if guidance is not None and guidance_scale > 0:
