@@ -9,6 +9,7 @@ The node, `axispose eval` and the demos all go through `Estimator`, so what is m
 from __future__ import annotations
 
 import json
+from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
@@ -172,6 +173,7 @@ class Estimator:
         seed: int = 0,
         scales: dict[int, float] | None = None,
         hypotheses: int = 1,
+        cancelled: Callable[[], bool] | None = None,
     ) -> list[PoseEstimate]:
         """Poses for (obj_id, (x, y, w, h)) boxes in an RGB uint8 image; all crops go through the AGM as one batch.
 
@@ -201,8 +203,9 @@ class Estimator:
         with torch.inference_mode(scale <= 0):
             enc = self.agm.encode(x.to(self.device), objects)
             axes = self.agm.sample(
-                enc.repeat(hypotheses), steps, generator=gen, guidance=guidance if scale > 0 else None, guidance_scale=scale
-            )
+                enc.repeat(hypotheses), steps, generator=gen, guidance=guidance if scale > 0 else None, guidance_scale=scale,
+                cancelled=cancelled,
+            )  # fmt: skip
         log_depth = enc.log_depth.float().cpu().numpy()
         images = ((axes + 1) * 0.5).clamp(0, 1)
         readings = self.reader.read(images)

@@ -42,6 +42,7 @@ from scipy.spatial.transform import Rotation
 from sensor_msgs.msg import CameraInfo, Image, RegionOfInterest
 from visualization_msgs.msg import Marker, MarkerArray
 
+from axispose_core.agm.model import Cancelled
 from axispose_core.camera import crop_transform
 from axispose_core.checkpoint import CheckpointError
 from axispose_core.data.synth.preview import draw_axes
@@ -214,6 +215,8 @@ class AxisPoseNode(Node):
                 continue
             try:
                 self._process(frame)
+            except Cancelled:  # shutting down mid-frame: the frame is abandoned, not dropped
+                return
             except InputError as err:
                 self._dropped(err.reason)
                 self.get_logger().error(f"dropped a frame: {err}", throttle_duration_sec=5.0)
@@ -287,6 +290,7 @@ class AxisPoseNode(Node):
             guidance_scale=float(self.get_parameter("guidance_scale").value),
             scales=self._scales(),
             hypotheses=int(self.get_parameter("hypotheses").value),
+            cancelled=self._stop.is_set,
         )
         header = frame.image.header
         array = PoseArray(header=header)

@@ -309,6 +309,32 @@ def test_clean_shutdown_with_frames_in_flight(checkpoint):
     assert not h.node._worker.is_alive()
 
 
+def test_shutdown_mid_frame_is_prompt_even_with_1000_ddim_steps(checkpoint):
+    """A frame in the AGM with ddim_steps 1000 (each step slowed to 10 ms: 10 s a frame) is abandoned between two
+    steps when the node shuts down: the worker is gone within a second, nothing counted as dropped."""
+    h = Harness(checkpoint, ddim_steps=1000)
+    denoiser = h.node.estimator.agm.denoiser
+    real_forward = denoiser.forward
+
+    def slow(*args, **kwargs):
+        time.sleep(0.01)
+        return real_forward(*args, **kwargs)
+
+    denoiser.forward = slow
+    try:
+        h.spin_until(lambda: h.pub_roi.get_subscription_count() > 0, 5.0)
+        h.roi()
+        assert h.spin_until(lambda: 1 in h.node._rois, 5.0)
+        h.frame(sec=300)
+        assert h.spin_until(lambda: h.node._busy, 10.0)
+        time.sleep(0.5)  # well inside the 1000 steps
+    finally:
+        start = time.monotonic()
+        h.close()
+    assert time.monotonic() - start < 1.0 and not h.node._worker.is_alive()
+    assert not any(k.startswith("dropped_") for k in h.node.counters()) and not h.node.counters().get("frames_processed")
+
+
 def test_without_rois_the_checkpoints_localiser_finds_the_objects(tmp_path):
     """An untrained localiser at threshold 0 yields max_per_object detections per object: every one is estimated
     (published or refused); at threshold 1, set at run time, none is and the PoseArray is empty."""

@@ -55,6 +55,10 @@ def weighted_total(parts: dict[str, torch.Tensor], main: str, weights: dict[str,
     return total
 
 
+class Cancelled(Exception):
+    """Sampling was stopped between DDIM steps by its `cancelled` callback."""
+
+
 @dataclass(frozen=True)
 class AGMConfig:
     version: int = VERSION
@@ -128,15 +132,19 @@ class AxisGenerator(nn.Module):
         generator: torch.Generator | None = None,
         guidance: Callable[[torch.Tensor], AxisGeometry] | None = None,
         guidance_scale: float = 0.0,
+        cancelled: Callable[[], bool] | None = None,
     ) -> torch.Tensor:
         """Generate one axis image per row of `enc` (`Encoding.repeat` for several per crop); `guidance(x̂0) -> g`
-        supplies the measurement for run-time guidance."""
+        supplies the measurement for run-time guidance. `cancelled()` is asked before every step; True raises
+        `Cancelled` (a node shutting down mid-frame)."""
         sched = self.scheduler
         sched.set_timesteps(steps)
         S = self.config.denoiser.size
         ref = enc.context
         x = torch.randn((ref.shape[0], 3, S, S), generator=generator, dtype=ref.dtype).to(ref.device)
         for t in sched.timesteps.tolist():
+            if cancelled is not None and cancelled():
+                raise Cancelled("sampling cancelled")
             out = self.denoiser(x, torch.full((x.shape[0],), t, device=x.device), enc)
             eps_override = None
             if guidance is not None and guidance_scale > 0:
