@@ -187,6 +187,8 @@ def backproject_many(K: np.ndarray, keypoints: np.ndarray, lengths: np.ndarray, 
             out.append(_fail(reason))
             continue
         pose = _corner(Ki, kp, Li)
+        if pose is not None and refine and not np.isfinite(_reprojection_residual(Ki, kp, Li, *pose)):
+            pose = None  # the scaled, orthonormalised corner puts a vertex behind the camera: a poor seed
         if pose is not None:
             out.append(Backprojection(*pose, True))
             if refine:
@@ -259,7 +261,7 @@ def refine_poses(
     def cost_of(R: np.ndarray, t: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         cam = np.einsum("nij,npj->npi", R, pts) + t[:, None, :]
         r = (_project_many(K, cam) - kp).reshape(n, 8)
-        cost = np.where(np.all(cam[..., 2] > 0, axis=1), (r * r).sum(axis=1), np.inf)
+        cost = (r * r).sum(axis=1)  # depths clamped as in _project_many: a path may cross them, the result is checked
         return r, cam, cost
 
     r, cam, cost = cost_of(R, t)
@@ -296,8 +298,11 @@ def refine_poses(
             cam_new[better],
             cost_new[better],
         )
+        # Converged: an accepted step too small to matter, or a damping so high that no step helps any more (a
+        # rejected step is small only because of its damping, which says nothing about convergence).
+        done = (better & (np.abs(step).max(axis=1) < 1e-9)) | (~better & (damping >= 1e6)) | (cost < 1e-24)
         damping = np.where(better, np.maximum(damping * 0.3, 1e-12), np.minimum(damping * 10.0, 1e12))
-        if np.all(np.abs(step) < 1e-10) or np.all(cost < 1e-20):
+        if done.all():
             break
     return R, t
 
