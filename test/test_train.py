@@ -152,3 +152,49 @@ def test_loss_falls_on_the_stream(lmo_dir):
         model(fresh).backward()
         opt.step()
     assert held_out_loss() < 0.8 * before
+
+
+def test_a_curriculum_trains_on_each_stage_in_turn_and_resumes_inside_it(lmo_dir):
+    """Stage (until=2, unoccluded) gives steps 0 and 1, the run's stream the rest, each stage's samples at the
+    indices of their steps; starting at step 1 (a resumed run) gives the same batches from there."""
+    from axispose_core.data.synth.config import StreamConfig
+    from axispose_core.data.synth.stream import CropStream, CropStreamDataset
+    from axispose_core.train.agm import CurriculumStage, curriculum_batches
+
+    hard = StreamConfig(objects=(1, 5), seed=3, visib=(0.2, 0.6))
+    easy = CurriculumStage(until=2, visib=(0.7, 1.0)).stream(hard)
+    stages = [(2, CropStream(easy, lmo_dir / "models")), (None, CropStream(hard, lmo_dir / "models"))]
+    batches = []
+    for b in curriculum_batches(stages, 2, 0):
+        batches.append(b)
+        if len(batches) == 4:
+            break
+    assert all(float(v) >= 0.7 for b in batches[:2] for v in b["visib"])  # unoccluded (the frame's edge may cut some)
+    assert all(0.2 <= float(v) <= 0.6 for b in batches[2:] for v in b["visib"])  # the run's stream
+    expected = CropStreamDataset(stages[1][1])[5]  # step 2, second sample: index 2 * 2 + 1
+    assert torch.equal(batches[2]["crop"][1], expected["crop"])
+    resumed = next(iter(curriculum_batches(stages, 2, 1)))
+    assert torch.equal(resumed["crop"], batches[1]["crop"])
+
+
+def test_a_state_saved_before_a_field_existed_resumes_if_the_field_is_left_at_its_default(tmp_path):
+    from dataclasses import replace
+
+    from conftest import TINY_AGM
+
+    from axispose_core.agm.model import AxisGenerator
+    from axispose_core.train.agm import CurriculumStage, TrainConfig
+    from axispose_core.train.resume import load_run_state, save_run_state
+
+    cfg = TrainConfig(agm=TINY_AGM)
+    model = AxisGenerator(TINY_AGM)
+    opt = torch.optim.AdamW(model.parameters())
+    sched = torch.optim.lr_scheduler.LambdaLR(opt, lambda s: 1.0)
+    path = tmp_path / "state.pt"
+    save_run_state(path, cfg, model, model, opt, sched, 7)
+    state = torch.load(path, weights_only=False)
+    del state["config"]["curriculum"]  # as written before the field was added
+    torch.save(state, path)
+    assert load_run_state(path, cfg, model, model, opt, sched)[0] == 7
+    with pytest.raises(ValueError, match="curriculum"):
+        load_run_state(path, replace(cfg, curriculum=(CurriculumStage(until=5),)), model, model, opt, sched)

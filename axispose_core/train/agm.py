@@ -20,6 +20,7 @@ import csv
 import dataclasses
 import os
 import time
+from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -45,6 +46,22 @@ from axispose_core.train.schedule import warmup_cosine
 
 
 @dataclass(frozen=True)
+class CurriculumStage:
+    """The stream's occlusion and clutter until step `until` (exclusive); the rest of StreamConfig is the run's."""
+
+    until: int
+    visib: tuple[float, float] = (0.1, 1.0)
+    occluded_prob: float = 0.0
+    clutter_prob: float = 0.0
+    neighbours: tuple[int, int] = (0, 0)
+
+    def stream(self, base: StreamConfig) -> StreamConfig:
+        return dataclasses.replace(
+            base, visib=self.visib, occluded_prob=self.occluded_prob, clutter_prob=self.clutter_prob, neighbours=self.neighbours
+        )
+
+
+@dataclass(frozen=True)
 class TrainConfig:
     agm: AGMConfig = field(default_factory=AGMConfig)
     steps: int = 20000
@@ -67,6 +84,9 @@ class TrainConfig:
     """Seed of the held-out stream samples: fixed, so that the curves of different runs read the same crops."""
     bf16: bool = True
     """Mixed precision (bfloat16 autocast) on the CPU as on CUDA: 1.6x faster steps on a CPU with AVX-512 BF16."""
+    curriculum: tuple[CurriculumStage, ...] = ()
+    """Easier streams first, in order of `until`; `stream` from the last stage's `until` on, and for validation.
+    Measured: unoccluded crops teach the encoder pose about twice as fast per step, also on occluded ones."""
 
 
 def dataset_objects(root: str | Path) -> list[ObjectSpec]:
@@ -128,6 +148,23 @@ VAL_COLUMNS = (
     "val_depth_head",
     "val_points_err",
 )
+
+
+def curriculum_batches(
+    stages: list[tuple[int | None, CropStream]], batch: int, step: int, world: int = 1, rank: int = 0, workers: int = 0
+) -> Iterator[dict[str, torch.Tensor]]:
+    """Training batches of a staged stream from `step` on: stage (until, stream) gives steps up to `until` (None:
+    endless), sample indices step * batch * world + rank, strided by world, of its own stream (so a resumed run,
+    whatever its stage, continues where it stopped)."""
+    for until, stream in stages:
+        if until is not None and step >= until:
+            continue
+        stop = None if until is None else until * batch * world
+        for item in stream_loader(stream, batch, start=step * batch * world + rank, stop=stop, stride=world, workers=workers):
+            step += 1
+            yield item
+        if until is None:
+            return
 
 
 def stream_objects(stream: CropStream) -> list[ObjectSpec]:
@@ -193,6 +230,10 @@ def train_agm(
             raise ValueError(f"the crop stream renders {cfg.stream.size}px crops; the AGM is configured for {size}px")
         stream = CropStream(cfg.stream, models)
         objects = stream_objects(stream)
+        untils = [stage.until for stage in cfg.curriculum]
+        if untils != sorted(untils) or any(u < 1 for u in untils):
+            raise ValueError(f"curriculum stages must end at increasing steps >= 1, got {untils}")
+        stages = [(stage.until, CropStream(stage.stream(cfg.stream), models)) for stage in cfg.curriculum] + [(None, stream)]
     if len(objects) > cfg.agm.denoiser.encoder.objects:
         n = cfg.agm.denoiser.encoder.objects
         raise ValueError(f"{len(objects)} objects to train on, but the AGM's encoder embeds {n} (agm.denoiser.encoder.objects)")
@@ -234,7 +275,7 @@ def train_agm(
     def batches():
         """Training batches from `step` on, endlessly: the stream's next samples, or epochs of the BOP crops."""
         if stream is not None:
-            yield from stream_loader(stream, cfg.batch, start=step * cfg.batch * world + rank, stride=world, workers=cfg.workers)
+            yield from curriculum_batches(stages, cfg.batch, step, world, rank, cfg.workers)
             return
         epoch = step * cfg.batch // len(train_set)
         while True:

@@ -46,6 +46,12 @@ def load_run_state(path: str | Path, cfg: Any, model: torch.nn.Module, ema: torc
     (None: from scratch); a run with another recipe is refused."""
     state = torch.load(path, map_location="cpu", weights_only=False)
     saved, now = dict(state["config"]), dataclasses.asdict(cfg)
+    for f in dataclasses.fields(cfg):  # a field added since, left at its default, is the same recipe
+        if f.name in saved or (f.default is dataclasses.MISSING and f.default_factory is dataclasses.MISSING):
+            continue
+        default = f.default if f.default is not dataclasses.MISSING else f.default_factory()
+        if now[f.name] == (dataclasses.asdict(default) if dataclasses.is_dataclass(default) else default):
+            saved[f.name] = now[f.name]
     for key in EXTENDABLE:
         saved.pop(key, None), now.pop(key, None)
     if saved != now:
