@@ -10,7 +10,7 @@ from conftest import TINY_AGM
 from safetensors import safe_open
 from safetensors.torch import load_file, save_file
 
-from axispose_core.agm.guidance import AxisGeometry, axis_geometry, exact_gradient, geo_loss, guided_eps, inject
+from axispose_core.agm.guidance import AxisGeometry, axis_geometry, geo_loss, guided_eps, inject
 from axispose_core.agm.model import AGMConfig, AxisGenerator, depth_from_log, log_depth_target
 from axispose_core.agm.scheduler import DDIMScheduler, SchedulerConfig
 from axispose_core.axis_image import axis_keypoints, render_axis_keypoints
@@ -40,6 +40,10 @@ def test_schedule_and_timesteps_are_validated():
         s.set_timesteps(n)
         assert len(s.timesteps) == n and int(s.timesteps[0]) == 999 and int(s.timesteps[-1]) >= 0
         assert s.previous_timestep(int(s.timesteps[-1])) < 0
+    s.set_timesteps(4)  # trailing spacing, as the docstring says
+    assert s.timesteps.tolist() == [999, 749, 499, 249]
+    s.set_timesteps(1)
+    assert s.timesteps.tolist() == [999]
 
 
 @pytest.mark.parametrize("eta", [0.0, 0.7])
@@ -112,6 +116,13 @@ def test_operator_h_reads_origin_and_directions(rng):
             leg = kp[i + 1] - kp[0]
             if np.linalg.norm(leg) > 8:
                 assert geo.directions[0, i].numpy() @ (leg / np.linalg.norm(leg)) > 0.95
+
+
+def exact_gradient(x_t: torch.Tensor, x0_of_xt, target: AxisGeometry) -> torch.Tensor:
+    """∇_{x_t} L_geo(x̂0(x_t)) through an arbitrary differentiable map x̂0(x_t), by autograd."""
+    xt = x_t.detach().requires_grad_(True)
+    (grad,) = torch.autograd.grad(geo_loss(axis_geometry(x0_of_xt(xt)), target).sum(), xt)
+    return grad
 
 
 def test_guidance_gradient_matches_finite_differences(rng):

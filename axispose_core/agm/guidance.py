@@ -12,8 +12,7 @@ Coordinates are normalised to [-1, 1] over the image.
 Exactly what is implemented (`inject`): ∇_{x_t} is taken through x̂0 = (x_t − √(1−ᾱ_t) ε)/√ᾱ_t with ε held
 fixed (so ∇_{x_t} = ∇_{x̂0} / √ᾱ_t): the network's own Jacobian ∂ε/∂x_t is dropped, as in the paper's
 p(g|x_t) ≈ p(g|x̂0) approximation. During training the gradient is built with create_graph, so the ε-loss on
-ε' reaches the network through x̂0. `exact_gradient` differentiates through any x̂0(x_t) map instead (used to
-check the injection against finite differences).
+ε' reaches the network through x̂0 (test_agm.py checks the injection against finite differences).
 
 At run time the ground truth is unknown; `self_consistency_target` supplies the measurement g instead: the
 axis image re-drawn from the pose the TBM reads off x̂0 (an axis image that one rigid pose explains), plus
@@ -22,7 +21,6 @@ optionally the crop centre as a prior on C.
 
 from __future__ import annotations
 
-from collections.abc import Callable
 from typing import NamedTuple
 
 import numpy as np
@@ -79,25 +77,14 @@ def guided_eps(
     return inject(eps, grad, abar_t, sigma)
 
 
-def exact_gradient(x_t: torch.Tensor, x0_of_xt: Callable[[torch.Tensor], torch.Tensor], target: AxisGeometry) -> torch.Tensor:
-    """∇_{x_t} L_geo(x̂0(x_t)) through an arbitrary differentiable map x̂0(x_t)."""
-    with torch.enable_grad():
-        xt = x_t.detach().requires_grad_(True)
-        loss = geo_loss(axis_geometry(x0_of_xt(xt)), target).sum()
-        (grad,) = torch.autograd.grad(loss, xt)
-    return grad
-
-
 def self_consistency_target(
     x0: torch.Tensor,
     reader: KeypointReader,
     K_patch: np.ndarray,
     lengths: np.ndarray,
-    center_prior: float = 0.0,
 ) -> AxisGeometry:
     """Measurement g for run-time guidance: H of the axis image one rigid pose draws, that pose being the TBM's
-    reading of x̂0. Where the TBM cannot read x̂0, the sample's own H is used (no pull). With `center_prior` > 0
-    the origin is drawn towards the crop centre by that weight (the box a detector gives is about centred)."""
+    reading of x̂0. Where the TBM cannot read x̂0, the sample's own H is used (no pull)."""
     size = x0.shape[-1]
     own = axis_geometry(x0.detach())
     with torch.no_grad():
@@ -115,6 +102,4 @@ def self_consistency_target(
         redrawn = render_axis_keypoints_torch(kps, size).to(x0.device) * 2 - 1
         g = axis_geometry(redrawn)
         origins[i], dirs[i] = g.origin[0], g.directions[0]
-    if center_prior > 0:
-        origins = origins * (1 - center_prior)
     return AxisGeometry(origins, dirs)

@@ -54,7 +54,8 @@ class DDIMScheduler:
         self.timesteps = torch.arange(T - 1, -1, -1)
 
     def set_timesteps(self, num_inference_steps: int) -> None:
-        """Evenly spaced timesteps T-1 ... 0 (diffusers' 'leading' spacing, ending at t = 0)."""
+        """Evenly spaced timesteps from T-1 down in steps of T // n (diffusers' 'trailing' spacing: it starts at pure
+        noise and stops short of 0, e.g. 999, 749, 499, 249 for 4 of 1000)."""
         T = self.config.num_train_timesteps
         if not 1 <= num_inference_steps <= T:
             raise ValueError(f"num_inference_steps must lie in [1, {T}], got {num_inference_steps}")

@@ -20,11 +20,6 @@ class AxisKeypoints(NamedTuple):
         """(4,2): origin then the X, Y, Z endpoints, the layout `axis_keypoints` returns."""
         return np.vstack([self.origin[None], self.endpoints])
 
-    @property
-    def directions(self) -> np.ndarray:
-        """Unnormalised image directions of the three axes (3,2), what `rotation_from_slopes` takes."""
-        return self.endpoints - self.origin[None]
-
 
 def unreadable(reason: str) -> AxisKeypoints:
     return AxisKeypoints(np.full(2, np.nan), np.full((3, 2), np.nan), False, reason)
