@@ -90,7 +90,7 @@ class _OracleAGM(AxisGenerator):
         self.K_patch, self.R, self.t, self.lengths, self.sigma = K_patch, R, t, lengths, np.radians(sigma_deg)
         self.batches: list[int] = []
 
-    def sample(self, enc, steps, eta=0.0, generator=None, guidance=None, guidance_scale=0.0):
+    def sample(self, enc, steps, eta=0.0, generator=None, guidance=None, guidance_scale=0.0, cancelled=None):
         n = len(enc.context)
         self.batches.append(n)
         seed = int(torch.randint(0, 2**31 - 1, (1,), generator=generator))

@@ -335,30 +335,6 @@ def test_shutdown_mid_frame_is_prompt_even_with_1000_ddim_steps(checkpoint):
     assert not any(k.startswith("dropped_") for k in h.node.counters()) and not h.node.counters().get("frames_processed")
 
 
-def test_without_rois_the_checkpoints_localiser_finds_the_objects(tmp_path):
-    """An untrained localiser at threshold 0 yields max_per_object detections per object: every one is estimated
-    (published or refused); at threshold 1, set at run time, none is and the PoseArray is empty."""
-    reader = load_reader(SHIPPED_READER)
-    localiser = Localiser(LocaliserConfig(obj_ids=(1, 5), input_size=(160, 128), channels=(8, 16, 24, 32), max_per_object=2))
-    cfg = EstimatorConfig(
-        agm=TINY_AGM, reader=reader.config,
-        objects=tuple(lmo_objects()[:2]), ddim_steps=1,
-    )  # fmt: skip
-    Estimator(cfg, AxisGenerator(cfg.agm), reader).with_localiser(localiser).save(tmp_path / "loc.safetensors")
-    h = Harness(tmp_path / "loc.safetensors", score_threshold=0.0)
-    try:
-        h.spin_until(lambda: h.pub_image.get_subscription_count() > 0, 5.0)
-        h.frame(sec=11)
-        assert h.spin_until(lambda: h.got["array"])
-        assert len(h.got["array"][0].poses) + h.node.counts["pose_refused"] == 4
-        assert h.node.set_parameters([Parameter("score_threshold", value=1.0)])[0].successful
-        h.frame(sec=12)
-        assert h.spin_until(lambda: len(h.got["array"]) == 2)
-        assert h.got["array"][1].poses == []
-    finally:
-        h.close()
-
-
 @pytest.fixture(scope="module")
 def localised_checkpoint(tmp_path_factory):
     """The tiny estimator with an untrained localiser of ape and can: at threshold 0 it finds both, twice each."""
@@ -371,6 +347,23 @@ def localised_checkpoint(tmp_path_factory):
     path = tmp_path_factory.mktemp("loc") / "loc.safetensors"
     Estimator(cfg, AxisGenerator(cfg.agm), reader).with_localiser(localiser).save(path)
     return path
+
+
+def test_without_rois_the_checkpoints_localiser_finds_the_objects(localised_checkpoint):
+    """An untrained localiser at threshold 0 yields max_per_object detections per object: every one is estimated
+    (published or refused); at threshold 1, set at run time, none is and the PoseArray is empty."""
+    h = Harness(localised_checkpoint, score_threshold=0.0)
+    try:
+        h.spin_until(lambda: h.pub_image.get_subscription_count() > 0, 5.0)
+        h.frame(sec=11)
+        assert h.spin_until(lambda: h.got["array"])
+        assert len(h.got["array"][0].poses) + h.node.counts["pose_refused"] == 4
+        assert h.node.set_parameters([Parameter("score_threshold", value=1.0)])[0].successful
+        h.frame(sec=12)
+        assert h.spin_until(lambda: len(h.got["array"]) == 2)
+        assert h.got["array"][1].poses == []
+    finally:
+        h.close()
 
 
 def _fixed_poses(node):

@@ -17,7 +17,7 @@ ROSDEP_KEYS = {
     "geometry_msgs": "geometry_msgs", "visualization_msgs": "visualization_msgs", "diagnostic_msgs": "diagnostic_msgs",
     "ament_index_python": "ament_index_python", "numpy": "python3-numpy", "scipy": "python3-scipy", "cv2": "python3-opencv",
     "torch": "python3-torch", "safetensors": "python3-safetensors", "plyfile": "python3-plyfile", "yaml": "python3-yaml",
-    "tqdm": "python3-tqdm", "matplotlib": "python3-matplotlib", "rosbags": "python3-rosbags-pip",
+    "tqdm": "python3-tqdm", "matplotlib": "python3-matplotlib", "rosbags": "python3-rosbags-pip", "skimage": "python3-skimage",
 }  # fmt: skip
 """The rosdep key of each third-party module the package may import."""
 
@@ -31,6 +31,10 @@ def _imported_modules() -> set[str]:
                 mods |= {a.name.split(".")[0] for a in node.names}
             elif isinstance(node, ast.ImportFrom) and node.level == 0 and node.module:
                 mods.add(node.module.split(".")[0])
+    # Packages read for their data files (the synthetic backgrounds' photographs), imported by name at run time.
+    from axispose_core.data.synth.config import ALL_PHOTOS
+
+    mods |= {"skimage"} | {p.split(":")[0] for p in ALL_PHOTOS if ":" in p}
     return {m for m in mods if m not in sys.stdlib_module_names and m not in ("axispose_core", "axispose_ros")}
 
 
