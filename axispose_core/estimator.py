@@ -26,7 +26,7 @@ from axispose_core.data.crops import InstanceCrop, instance_crop
 from axispose_core.data.objects import ObjectSpec
 from axispose_core.detect.decode import Detection
 from axispose_core.detect.model import Localiser, LocaliserConfig
-from axispose_core.tbm.backproject import backproject_many
+from axispose_core.tbm.backproject import backproject_readings
 from axispose_core.tbm.reader import KeypointReader, ReaderConfig
 
 KIND = "estimator"
@@ -209,15 +209,12 @@ class Estimator:
         log_depth = enc.log_depth.float().cpu().numpy()
         images = ((axes + 1) * 0.5).clamp(0, 1)
         readings = self.reader.read(images)
-        # Every reading of every box back-projected in one vectorised refinement.
-        read = [k for k, kp in enumerate(readings) if kp.ok]
-        solved = backproject_many(Kp_all[read], np.stack([readings[k].array for k in read]), lengths_all[read], refine=True) if read else []
-        results = dict(zip(read, solved, strict=True))
+        results = backproject_readings(Kp_all, readings, lengths_all)  # every box's hypotheses in one refinement
         out = []
         for i, ((obj_id, _), cut, L) in enumerate(zip(boxes, cuts, lengths, strict=True)):
             poses, reasons = [], []
             for k in range(i * hypotheses, (i + 1) * hypotheses):
-                res = results.get(k)
+                res = results[k]
                 if res is not None and res.ok:
                     poses.append((k, res.R, self._fused(res.t, float(log_depth[i]), cut.K_patch, float(L[0]))))
                 else:

@@ -88,6 +88,17 @@ def test_many_at_once_equals_one_at_a_time(rng):
     assert not many[7].ok and "points at the camera" in many[7].reason
 
 
+def test_readings_are_back_projected_where_readable(rng):
+    from axispose_core.tbm.backproject import backproject_readings
+    from axispose_core.tbm.keypoints import AxisKeypoints, unreadable
+
+    _, _, lengths, kp = _random_corner(rng)
+    readings = [AxisKeypoints(kp[0], kp[1:]), unreadable("blank image"), AxisKeypoints(kp[0], kp[1:])]
+    out = backproject_readings(np.repeat(LMO_K[None], 3, axis=0), readings, np.repeat(lengths[None], 3, axis=0))
+    assert out[1] is None and out[0].ok and out[2].ok
+    assert backproject_readings(LMO_K[None], [unreadable("blank image")], lengths[None]) == [None]
+
+
 def _assert_refused(res, reason):
     assert not res.ok
     assert reason in res.reason

@@ -27,7 +27,7 @@ import numpy as np
 import torch
 
 from axispose_core.axis_image import axis_keypoints_torch, render_axis_keypoints_torch
-from axispose_core.tbm.backproject import backproject_many
+from axispose_core.tbm.backproject import backproject_readings
 from axispose_core.tbm.reader import KeypointReader
 
 
@@ -91,10 +91,8 @@ def self_consistency_target(
         images = ((x0.detach() + 1) * 0.5).clamp(0, 1)
         readings = reader.read(images)
     origins, dirs = own.origin.clone(), own.directions.clone()
-    read = [i for i, kp in enumerate(readings) if kp.ok]
-    solved = backproject_many(K_patch[read], np.stack([readings[i].array for i in read]), lengths[read], refine=True) if read else []
-    for i, res in zip(read, solved, strict=True):
-        if not res.ok:
+    for i, res in enumerate(backproject_readings(K_patch, readings, lengths)):
+        if res is None or not res.ok:
             continue
         kps = axis_keypoints_torch(
             torch.as_tensor(K_patch[i])[None], torch.as_tensor(res.R)[None], torch.as_tensor(res.t)[None], torch.as_tensor(lengths[i])[None]

@@ -165,10 +165,22 @@ def backproject(K: np.ndarray, uv_origin: np.ndarray, uv_axes: np.ndarray, lengt
     R's columns are the model X, Y, Z axes in the camera frame; t is the model origin in metres. With `refine`,
     the analytic pose seeds a Levenberg-Marquardt fit of all four keypoints (what to use on noisy keypoints).
     """
-    keypoints = np.vstack([np.reshape(uv_origin, (1, 2)), np.reshape(uv_axes, (-1, 2))]) if np.size(uv_axes) == 6 else None
-    if keypoints is None:
+    if np.size(uv_axes) != 6:
         return _fail(f"three axis endpoints needed, got {np.size(uv_axes) / 2:g}")
-    return backproject_many([K], keypoints[None], np.reshape(lengths, (1, -1)) if np.size(lengths) == 3 else [lengths], refine)[0]
+    keypoints = np.vstack([np.reshape(uv_origin, (1, 2)), np.reshape(uv_axes, (3, 2))])
+    return backproject_many([K], [keypoints], [lengths], refine)[0]
+
+
+def backproject_readings(K: np.ndarray, readings: list, lengths: np.ndarray, refine: bool = True) -> list[Backprojection | None]:
+    """`backproject_many` of the readable ones of a reader's `AxisKeypoints` (K (N,3,3), lengths (N,3), one per
+    reading), in one vectorised refinement; None where the reader could not read the image (its `reason` says why)."""
+    read = [i for i, kp in enumerate(readings) if kp.ok]
+    out: list[Backprojection | None] = [None] * len(readings)
+    if read:
+        solved = backproject_many(np.asarray(K)[read], np.stack([readings[i].array for i in read]), np.asarray(lengths)[read], refine)
+        for i, res in zip(read, solved, strict=True):
+            out[i] = res
+    return out
 
 
 def backproject_many(K: np.ndarray, keypoints: np.ndarray, lengths: np.ndarray, refine: bool = False) -> list[Backprojection]:
