@@ -37,7 +37,7 @@ from axispose_core.data.synth.config import StreamConfig, SynthConfig
 from axispose_core.data.synth.stream import CropStream, CropStreamDataset, stream_loader
 from axispose_core.estimator import Estimator, EstimatorConfig
 from axispose_core.metrics import re
-from axispose_core.tbm.backproject import backproject_many
+from axispose_core.tbm.backproject import backproject_readings
 from axispose_core.tbm.reader import SHIPPED_READER, KeypointReader, load_reader
 from axispose_core.train.dataset import AxisCropDataset
 from axispose_core.train.loop import optimizer_step, training_device, training_record
@@ -111,14 +111,12 @@ def validate(
     size = batch["crop"].shape[-1]
     errs, kp_errs, tbm_depth, head_depth = [], [], [], []
     K_all, R_all, t_all = (batch[k].cpu().numpy() for k in ("K", "R", "t"))
-    read = [i for i, kp in enumerate(readings) if kp.ok]
-    solved = dict(zip(read, backproject_many(K_all[read], np.stack([readings[i].array for i in read]), lengths[read], refine=True)
-                      if read else [], strict=True))  # fmt: skip
+    solved = backproject_readings(K_all, readings, lengths)
     for i, kp in enumerate(readings):
         K, R, t = K_all[i], R_all[i], t_all[i]
         z = depth_from_log(float(enc.log_depth[i]), K, float(lengths[i][0]), size)
         head_depth.append(abs(z / t[2] - 1))
-        res = solved.get(i)
+        res = solved[i]
         errs.append(re(res.R, R) if res is not None and res.ok else 180.0)
         if res is not None and res.ok:
             tbm_depth.append(abs(res.t[2] / t[2] - 1))
