@@ -109,15 +109,23 @@ def read_metadata(path: str | Path, kind: str | None) -> dict[str, str]:
     return meta
 
 
-def read_checkpoint(path: str | Path, kind: str, config_cls: type[C]) -> tuple[C, dict[str, dict[str, torch.Tensor]], dict[str, Any]]:
-    """Read a checkpoint of `kind`: (config, state dicts by module name, extra metadata)."""
+def read_checkpoint(
+    path: str | Path, kind: str, config_cls: type[C], section: str | None = None
+) -> tuple[C | None, dict[str, dict[str, torch.Tensor]], dict[str, Any]]:
+    """Read a checkpoint of `kind`: (config, state dicts by module name, extra metadata).
+
+    `section` reads only that field of the config as `config_cls` (None when the checkpoint has none), so one
+    part of a composite checkpoint, e.g. an estimator's localiser, loads whatever version its other parts are."""
     meta = read_metadata(path, kind)
     try:
         tensors = load_file(str(path))
     except (SafetensorError, OSError, ValueError) as err:
         raise CheckpointError(f"{path}: tensors unreadable ({err})") from err
     try:
-        config = config_from_dict(config_cls, json.loads(meta["config"]), f"{path}: config")
+        raw = json.loads(meta["config"])
+        if section is not None:
+            raw = raw.get(section)
+        config = None if raw is None else config_from_dict(config_cls, raw, f"{path}: config" + (f".{section}" if section else ""))
         extra = json.loads(meta.get("extra", "{}"))
     except (KeyError, json.JSONDecodeError, TypeError) as err:
         raise CheckpointError(f"{path}: config metadata unreadable ({err})") from err

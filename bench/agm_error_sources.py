@@ -6,6 +6,11 @@ instances whose rotation is within `--rot-ok` degrees it asks what ADD(-S)@0.1d 
 once with the true depth (an oracle), and once with the depth that makes the object model's projected box
 as large as the crop's box (which needs the mesh at run time, so the model-free estimator does not do it).
 
+Depth sources: the poses are estimated with head_depth_weight 0 (the TBM's depth from the drawn axis lengths),
+and each instance's encoder depth (`PoseEstimate.head_depth`) is kept, so one run scores the TBM's depth, the
+encoder's, and their fusion at every weight in `--weights` on the same rotations: the table that sets the
+checkpoint's head_depth_weight (choose it on validation frames, not on the test set).
+
     python bench/agm_error_sources.py --checkpoint axispose_core/models/axispose_lmo.safetensors \\
         --data data/lmo_val --models ../shared/data/lmo/models_eval --json bench/results/agm_error_sources.json
 """
@@ -13,6 +18,7 @@ as large as the crop's box (which needs the mesh at run time, so the model-free 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import platform
 import time
@@ -50,20 +56,28 @@ def main() -> None:
     ap.add_argument("--models", required=True, help="BOP models_eval folder")
     ap.add_argument("--steps", type=int, default=None)
     ap.add_argument("--rot-ok", type=float, default=15.0, help="rotation error (deg) under which the rotation counts as right")
+    ap.add_argument("--weights", default="0,0.25,0.5,0.75,0.9,1", help="head_depth_weight values to score (comma-separated)")
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--json", default="bench/results/agm_error_sources.json")
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
     est = Estimator.load(args.checkpoint)
+    est.config = dataclasses.replace(est.config, head_depth_weight=0.0)  # t is the TBM's; the encoder's depth rides along
     objects = list(est.config.objects)
-    records = evaluate(
-        lambda image, K, boxes: [Prediction(p.R, p.t, p.ok) for p in est.estimate(image, K, boxes, steps=args.steps)],
-        args.data, args.models, objects,
-    )  # fmt: skip
+    head_depths: list[float] = []
+
+    def predict(image: np.ndarray, K: np.ndarray, boxes: list) -> list[Prediction]:
+        poses = est.estimate(image, K, boxes, steps=args.steps)
+        head_depths.extend(p.head_depth for p in poses)
+        return [Prediction(p.R, p.t, p.ok) for p in poses]
+
+    records = evaluate(predict, args.data, args.models, objects)
+    assert len(head_depths) == len(records)  # GT crops: one prediction per record, in order
+    weights = [float(w) for w in args.weights.split(",")]
     specs = {o.obj_id: o for o in objects}
     points = {i: load_ply(model_path(args.models, i)).vertices for i in specs}
     rows = []
-    for r in (r for r in records if r.ok):
+    for r, z_head in ((r, z) for r, z in zip(records, head_depths, strict=True) if r.ok):
         spec, pts = specs[r.obj_id], points[r.obj_id]
         d = r.t - r.t_gt
         thr = 0.1 * spec.diameter
@@ -76,7 +90,12 @@ def main() -> None:
             "add_ok": r.scores["add_0.1d"] == 1.0,
             "add_ok_true_depth": add_or_adi(r.R, oracle, r.R_gt, r.t_gt, pts, spec.symmetric) < thr,
             "add_ok_box_depth": add_or_adi(r.R, depth_from_box(r.R, r.t, r.K, pts, r.box), r.R_gt, r.t_gt, pts, spec.symmetric) < thr,
+            "log_depth_err_tbm": float(np.log(r.t[2] / r.t_gt[2])),
+            "log_depth_err_head": float(np.log(z_head / r.t_gt[2])),
         })  # fmt: skip
+        for w in weights:
+            t_w = r.t * float(np.exp(w * (np.log(z_head) - np.log(r.t[2]))))
+            rows[-1][f"add_ok_w{w:g}"] = add_or_adi(r.R, t_w, r.R_gt, r.t_gt, pts, spec.symmetric) < thr
     n = len(records)
 
     def summary(sel: list[dict]) -> dict:
@@ -110,6 +129,21 @@ def main() -> None:
     a = out["add_0.1d_of_all"]
     print(f"ADD(-S)@0.1d of all {n}: {a['add_ok']:.3f}; with the true depth {a['add_ok_true_depth']:.3f}; "
           f"with depth from the box {a['add_ok_box_depth']:.3f}")  # fmt: skip
+    e_tbm = np.array([s["log_depth_err_tbm"] for s in rows])
+    e_head = np.array([s["log_depth_err_head"] for s in rows])
+    out["depth_sources"] = []
+    print(f"\ndepth sources on the {len(rows)} posed instances (|relative depth error| quartiles, ADD(-S)@0.1d of all {n}):")
+    print(f"{'head_depth_weight':<20}{'q25':>8}{'median':>8}{'q75':>8}{'ADD0.1d':>9}")
+    for w in weights:
+        e = np.abs(np.expm1((1 - w) * e_tbm + w * e_head))  # fused log depth = (1-w) log z_tbm + w log z_head
+        q = [float(v) for v in np.percentile(e, [25, 50, 75])]
+        add = sum(s[f"add_ok_w{w:g}"] for s in rows) / n
+        out["depth_sources"].append({"head_depth_weight": w, "rel_depth_err_quartiles": q, "add_0.1d_of_all": add})
+        label = {0.0: "0 (TBM alone)", 1.0: "1 (encoder alone)"}.get(w, f"{w:g}")
+        print(f"{label:<20}{q[0]:>8.3f}{q[1]:>8.3f}{q[2]:>8.3f}{add:>9.3f}")
+    out["log_depth_err_std"] = {"tbm": float(np.std(e_tbm)), "head": float(np.std(e_head)),
+                                "correlation": float(np.corrcoef(e_tbm, e_head)[0, 1])}  # fmt: skip
+    print("log depth error std: TBM {tbm:.3f}, encoder {head:.3f}, correlation {correlation:.2f}".format(**out["log_depth_err_std"]))
     Path(args.json).parent.mkdir(parents=True, exist_ok=True)
     Path(args.json).write_text(json.dumps(out, indent=1))
     print(f"wrote {args.json}")

@@ -238,9 +238,9 @@ def test_depth_target_round_trip_and_fusion_scale_with_the_object_size():
     est = Estimator(cfg, AxisGenerator(cfg.agm), reader)
     tbm = np.array([0.1, 0.0, 1.0])
     head = math.log(0.81 * 64 / (305.0 * 0.05))  # the encoder says 0.81 m, the TBM 1.0 m
-    fused = est._fused(tbm, head, K[0].numpy(), 0.05)
+    fused = est._fused(tbm, depth_from_log(head, K[0].numpy(), 0.05, 64))
     assert fused[2] == pytest.approx(0.9) and np.allclose(fused / fused[2], tbm / tbm[2])  # geometric mean, same ray
-    np.testing.assert_allclose(est._fused(2 * tbm, head, K[0].numpy(), 0.10), 2 * fused)  # λ_O x2: translation x2
+    np.testing.assert_allclose(est._fused(2 * tbm, depth_from_log(head, K[0].numpy(), 0.10, 64)), 2 * fused)  # λ_O x2: t x2
 
 
 def test_geo_loss_is_zero_on_target(rng):

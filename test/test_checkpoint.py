@@ -3,6 +3,7 @@ from dataclasses import dataclass, field
 
 import pytest
 import torch
+from safetensors import safe_open
 from safetensors.torch import save_file
 
 from axispose_core.checkpoint import CheckpointError, config_from_dict, read_checkpoint, save_checkpoint
@@ -27,6 +28,20 @@ def test_nested_config_round_trip(tmp_path):
     assert again == cfg
     assert set(states["net"]) == {"weight", "bias"}
     assert extra == {"steps": 3}
+
+
+def test_a_section_reads_alone_whatever_the_rest_of_the_config_holds(tmp_path):
+    path = tmp_path / "c.safetensors"
+    save_checkpoint(path, "test", Outer("x", Inner(32)), {"net": torch.nn.Linear(2, 2)})
+    with safe_open(str(path), framework="pt") as f:
+        meta, tensors = f.metadata(), {k: f.get_tensor(k) for k in f.keys()}
+    config = json.loads(meta["config"]) | {"from_a_later_version": 1}  # the whole config no longer reads
+    save_file(tensors, str(path), metadata=meta | {"config": json.dumps(config)})
+    with pytest.raises(CheckpointError, match="from_a_later_version"):
+        read_checkpoint(path, "test", Outer)
+    inner, states, _ = read_checkpoint(path, "test", Inner, section="inner")
+    assert inner == Inner(32) and set(states["net"]) == {"weight", "bias"}
+    assert read_checkpoint(path, "test", Inner, section="absent")[0] is None
 
 
 def test_half_storage_halves_the_file_and_loads_back_into_float32(tmp_path):

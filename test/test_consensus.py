@@ -153,3 +153,14 @@ def test_hypotheses_must_be_positive(oracle_setup):
     make, image, K, box, spec, *_ = oracle_setup
     with pytest.raises(ValueError, match="hypotheses"):
         make(1.0).estimate(image, K, [(spec.obj_id, box)], hypotheses=0)
+
+
+def test_the_encoders_depth_is_reported_and_fused_along_the_tbms_ray(oracle_setup):
+    make, image, K, box, spec, *_ = oracle_setup
+    tbm = make(0.0)
+    (alone,) = tbm.estimate(image, K, [(spec.obj_id, box)])
+    assert alone.ok and np.isfinite(alone.head_depth) and alone.head_depth > 0
+    encoder = Estimator(replace(tbm.config, head_depth_weight=1.0), tbm.agm, tbm.reader)
+    (fused,) = encoder.estimate(image, K, [(spec.obj_id, box)])
+    assert fused.head_depth == pytest.approx(alone.head_depth)
+    np.testing.assert_allclose(fused.t, alone.t * alone.head_depth / alone.t[2])  # the encoder's depth, the TBM's ray

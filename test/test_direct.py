@@ -82,7 +82,8 @@ def test_train_direct_cli_then_eval_and_resume(data, lmo_dir, tmp_path):
     est = DirectEstimator.load(out)
     assert {o.obj_id for o in est.model.config.objects} == {1, 5, 6}
     rows = (tmp_path / "direct.csv").read_text().splitlines()
-    assert rows[0] == "step,loss,lr,seconds,val_rot_median_deg,val_rot_within_15deg" and any(r.split(",")[4] for r in rows[1:])
+    assert rows[0] == "step,loss,lr,seconds,val_rot_median_deg,val_rot_within_15deg,val_kp_err_px,val_depth_head"
+    assert any(r.split(",")[4] for r in rows[1:])
     assert torch.load(str(out) + ".state.pt", weights_only=False)["step"] == 4
     longer = tmp_path / "longer.yaml"
     longer.write_text(yaml.safe_dump(fields | {"steps": 6}))

@@ -26,7 +26,6 @@ from axispose_core.data.bop import BopScene
 from axispose_core.detect.decode import Detection, draw_targets, focal_loss, match
 from axispose_core.detect.model import STRIDE, Localiser, LocaliserConfig
 from axispose_core.estimator import KIND as ESTIMATOR
-from axispose_core.estimator import EstimatorConfig
 from axispose_core.train.dataset import bop_frames
 from axispose_core.train.loop import fit, training_device, training_record
 
@@ -180,9 +179,8 @@ def load_localiser(path: str | Path, device: str = "cpu") -> Localiser:
     config: LocaliserConfig | None = None
     if kind == KIND:
         config, states, _ = read_checkpoint(path, KIND, LocaliserConfig)
-    elif kind == ESTIMATOR:
-        estimator, states, _ = read_checkpoint(path, ESTIMATOR, EstimatorConfig)
-        config = estimator.localiser
+    elif kind == ESTIMATOR:  # its localiser alone: an estimator of an older AGM version still lends its localiser
+        config, states, _ = read_checkpoint(path, ESTIMATOR, LocaliserConfig, section="localiser")
     if config is None:
         raise CheckpointError(f"{path}: a {kind!r} checkpoint without a localiser")
     model = Localiser(config)
