@@ -5,9 +5,10 @@ STAMP := $(VENV)/.installed-stamp
 
 .PHONY: demo test lint
 
-$(STAMP): setup.py
+$(STAMP): setup.py axispose_msgs/CMakeLists.txt axispose_msgs/package.xml axispose_msgs/build-requirements.txt $(wildcard axispose_msgs/msg/*.msg)
 	test -x $(PY) || python3 -m venv $(VENV)
 	$(PY) -m pip install -q -e ".[ros,dev]"
+	tools/build_msgs.sh $(VENV)
 	touch $(STAMP)
 
 # The shipped checkpoint on the shipped sample bag, through the real node (axispose replay).

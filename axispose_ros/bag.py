@@ -20,7 +20,7 @@ from pathlib import Path
 
 import numpy as np
 from rosbags.rosbag2 import Reader, ReaderError, StoragePlugin, Writer
-from rosbags.typesys import Stores, get_typestore
+from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 from scipy.spatial.transform import Rotation
 from tqdm import tqdm
 
@@ -205,8 +205,23 @@ def read_bag(path: str | Path, topics: list[str] | None = None) -> Iterator[BagM
     """Messages of a rosbag2 (sqlite3 or mcap) in time order, as raw CDR; errors of a damaged bag become BagError."""
     with _reading(Path(path)) as reader:
         conns = [c for c in reader.connections if topics is None or c.topic in topics]
+        _learn_types(conns)
         for conn, stamp, raw in reader.messages(connections=conns):
             yield BagMessage(conn.topic, conn.msgtype, stamp, bytes(raw))
+
+
+def _learn_types(conns) -> None:
+    """Register in TYPESTORE the message types it does not know (e.g. axispose_msgs) from the definitions the
+    bag stores with its connections, so that `deserialize` reads them; a definition that does not parse leaves
+    the type unknown, and `deserialize` then says so for its messages."""
+    for conn in conns:
+        if conn.msgtype in TYPESTORE.types or not conn.msgdef.data:
+            continue
+        try:
+            found = get_types_from_msg(conn.msgdef.data, conn.msgtype)
+            TYPESTORE.register({name: t for name, t in found.items() if name not in TYPESTORE.types})  # keep known ones
+        except Exception:  # rosbags raises several kinds for a definition it cannot read
+            continue
 
 
 def bag_topics(path: str | Path) -> dict[str, str]:

@@ -2,12 +2,15 @@
 
 Inputs: `image` (sensor_msgs/Image) and `camera_info`, paired by stamp within `sync_slop`; the boxes to
 estimate come from `~/roi/<object_name>` (sensor_msgs/RegionOfInterest, the latest one per object within
-`roi_timeout` seconds), for users with their own detector. Outputs keep the image header: `~/pose` (each
-object's pose in turn, for simple consumers), `~/pose_cov` (the same poses with the covariance of the AGM's
-`hypotheses` samples, when two or more of them gave a pose), `~/poses/<object_name>`, `~/pose_array` (every
-frame, empty when nothing was estimated), `~/markers` (every frame: a DELETEALL, then three arrows per estimated
-instance with ids of their own and `marker_lifetime`), `~/debug/axis_image` (only built while subscribed),
-`/diagnostics`. Only the objects of `objects` are looked for, estimated and published.
+`roi_timeout` seconds), for users with their own detector. Outputs keep the image header:
+- `~/detections` (axispose_msgs/DetectionArray, every processed frame): each posed instance with its object id
+  and name, score, pose with covariance and image box; the message for a robot stack;
+- `~/pose` (each object's pose in turn, for simple consumers), `~/pose_cov` (the same poses with the covariance
+  of the AGM's `hypotheses` samples, when two or more of them gave a pose), `~/poses/<object_name>`,
+  `~/pose_array` (every frame, empty when nothing was estimated);
+- `~/markers` (every frame: a DELETEALL, then three arrows per estimated instance with ids of their own and
+  `marker_lifetime`), `~/debug/axis_image` (only built while subscribed), `/diagnostics`.
+Only the objects of `objects` are looked for, estimated and published.
 
 Images with lens distortion (a non-zero CameraInfo D) are undistorted to the pinhole image of K first; with
 `use_rectified` the images are taken as rectified and P is used instead.
@@ -47,6 +50,7 @@ from axispose_core.camera import crop_transform
 from axispose_core.checkpoint import CheckpointError
 from axispose_core.data.synth.preview import draw_axes
 from axispose_core.estimator import Estimator
+from axispose_msgs.msg import Detection, DetectionArray
 from axispose_ros.conversions import InputError, Undistorter, camera_for_image, camera_from_info, image_to_rgb, rgb_to_image
 from axispose_ros.health import Health, HealthConfig
 from axispose_ros.sync import GapCounter, StampSynchronizer
@@ -112,6 +116,7 @@ class AxisPoseNode(Node):
         self.pub_pose_cov = self.create_publisher(PoseWithCovarianceStamped, "~/pose_cov", 10)
         self.pub_object = {i: self.create_publisher(PoseStamped, f"~/poses/{n}", 10) for i, n in self.published.items()}
         self.pub_array = self.create_publisher(PoseArray, "~/pose_array", 10)
+        self.pub_detections = self.create_publisher(DetectionArray, "~/detections", 10)
         self.pub_markers = self.create_publisher(MarkerArray, "~/markers", 10)
         self.pub_debug = self.create_publisher(Image, "~/debug/axis_image", 1)
         self.pub_diag = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
@@ -294,15 +299,17 @@ class AxisPoseNode(Node):
         )
         header = frame.image.header
         array = PoseArray(header=header)
+        detections = DetectionArray(header=header)
         markers = MarkerArray(markers=[Marker(header=header, action=Marker.DELETEALL)])  # the last frame's go
         lifetime = float(self.get_parameter("marker_lifetime").value)
         best: dict[int, tuple[float, PoseStamped, np.ndarray | None]] = {}
-        for k, (est, score) in enumerate(zip(estimates, scores, strict=True)):
+        for k, (est, score, (_, box)) in enumerate(zip(estimates, scores, boxes, strict=True)):
             if not est.ok:
                 self._count("pose_refused")
                 continue
             pose = _pose(est.R, est.t)
             array.poses.append(pose)
+            detections.detections.append(_detection(est, self.names[est.obj_id], score, pose, box))
             stamped = PoseStamped(header=header, pose=pose)
             self.pub_object[est.obj_id].publish(stamped)
             if est.obj_id not in best or score > best[est.obj_id][0]:
@@ -316,6 +323,7 @@ class AxisPoseNode(Node):
                 msg.pose.pose, msg.pose.covariance = stamped.pose, [float(v) for v in cov.ravel()]
                 self.pub_pose_cov.publish(msg)
         self.pub_array.publish(array)
+        self.pub_detections.publish(detections)
         self.pub_markers.publish(markers)
         if self.pub_debug.get_subscription_count() > 0:
             self.pub_debug.publish(rgb_to_image(_debug_overlay(rgb, camera.K, estimates, self.estimator), header))
@@ -349,6 +357,15 @@ def _pose(R: np.ndarray, t: np.ndarray) -> Pose:
     q = Rotation.from_matrix(R).as_quat()  # x, y, z, w
     pose.orientation.x, pose.orientation.y, pose.orientation.z, pose.orientation.w = (float(v) for v in q)
     return pose
+
+
+def _detection(est, name: str, score: float, pose: Pose, box: tuple[float, float, float, float]) -> Detection:
+    """One posed instance as axispose_msgs/Detection; covariance all zeros (unknown) for a single sample."""
+    msg = Detection(obj_id=int(est.obj_id), name=name, score=float(score), box=[float(v) for v in box])
+    msg.pose.pose = pose
+    if est.covariance is not None:
+        msg.pose.covariance = [float(v) for v in est.covariance.ravel()]
+    return msg
 
 
 def _axis_markers(header, est, name: str, lengths: np.ndarray, instance: int, lifetime: float) -> list[Marker]:

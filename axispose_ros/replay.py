@@ -31,13 +31,16 @@ from rclpy.parameter import Parameter
 from rclpy.qos import QoSProfile, ReliabilityPolicy
 from rclpy.serialization import deserialize_message, serialize_message
 from rosbags.rosbag2 import Writer
+from rosbags.typesys import get_types_from_msg
 from scipy.spatial.transform import Rotation
 from sensor_msgs.msg import CameraInfo, Image, RegionOfInterest
 from tqdm import tqdm
 from visualization_msgs.msg import MarkerArray
 
+import axispose_msgs
 from axispose_core.evaluate import SUMMARY_KEYS, Record, summarize
 from axispose_core.metrics import pose_scores
+from axispose_msgs.msg import DetectionArray
 from axispose_ros.bag import (
     FORMATS,
     GT_PREFIX,
@@ -59,6 +62,32 @@ ROS_TYPES = {
     "sensor_msgs/msg/CameraInfo": CameraInfo,
     "sensor_msgs/msg/RegionOfInterest": RegionOfInterest,
 }
+
+
+def _msg_folder() -> Path:
+    """share/axispose_msgs/msg of the installed axispose_msgs: from the ament index when a ROS environment is
+    sourced, else beside the Python package (the prefix it was installed into, e.g. `make test`'s venv)."""
+    try:
+        from ament_index_python.packages import get_package_share_directory
+
+        return Path(get_package_share_directory("axispose_msgs")) / "msg"
+    except (LookupError, OSError):  # not in the index, or no AMENT_PREFIX_PATH
+        pass
+    for parent in Path(axispose_msgs.__file__).resolve().parents:
+        if (parent / "share" / "axispose_msgs" / "msg").is_dir():
+            return parent / "share" / "axispose_msgs" / "msg"
+    raise BagError("axispose_msgs is importable but its share/axispose_msgs/msg folder was not found: reinstall it")
+
+
+def register_axispose_msgs() -> None:
+    """Teach the bag typestore axispose_msgs (rosbags knows only the standard messages), so that the node's
+    ~/detections can be written into a bag; idempotent."""
+    if "axispose_msgs/msg/DetectionArray" in TYPESTORE.types:
+        return
+    types = {}
+    for path in sorted(_msg_folder().glob("*.msg")):
+        types.update(get_types_from_msg(path.read_text(), f"axispose_msgs/msg/{path.stem}"))
+    TYPESTORE.register(types)
 
 
 @dataclass
@@ -211,6 +240,9 @@ def _run(
             PoseArray, f"{ns}/pose_array", recorder(f"{ns}/pose_array", "geometry_msgs/msg/PoseArray", on_array), 100
         )
         player.create_subscription(PoseStamped, f"{ns}/pose", recorder(f"{ns}/pose", "geometry_msgs/msg/PoseStamped"), 100)
+        register_axispose_msgs()
+        topic = f"{ns}/detections"
+        player.create_subscription(DetectionArray, topic, recorder(topic, "axispose_msgs/msg/DetectionArray"), 100)
         player.create_subscription(
             PoseWithCovarianceStamped, f"{ns}/pose_cov", recorder(f"{ns}/pose_cov", "geometry_msgs/msg/PoseWithCovarianceStamped"), 100
         )

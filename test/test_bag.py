@@ -2,6 +2,8 @@
 
 import json
 import shutil
+import subprocess
+import sys
 from pathlib import Path
 
 import cv2
@@ -119,6 +121,20 @@ def test_replay_of_ground_truth_scores_perfectly(bag, scene, checkpoint, monkeyp
     arrays = list(read_bag(tmp_path / "out", ["/axispose/pose_array"]))
     assert [m.stamp_ns for m in arrays] == in_stamps
     assert deserialize(arrays[0]).header.frame_id == "camera_color_optical_frame"
+    assert recorded["/axispose/detections"] == "axispose_msgs/msg/DetectionArray"
+    detections = [deserialize(m) for m in read_bag(tmp_path / "out", ["/axispose/detections"])]
+    assert [len(d.detections) for d in detections] == [len(deserialize(m).poses) for m in arrays]
+    names = {d.name for msg in detections for d in msg.detections}
+    assert names == {"ape", "can", "driller"} and all(d.score == 1.0 for msg in detections for d in msg.detections)
+    # Another process, where nothing registered axispose_msgs, reads them from the definitions stored in the bag.
+    code = (
+        "import sys; from axispose_ros.bag import TYPESTORE, deserialize, read_bag; "
+        "assert 'axispose_msgs/msg/DetectionArray' not in TYPESTORE.types; "
+        "print(sum(len(deserialize(m).detections) for m in read_bag(sys.argv[1], ['/axispose/detections'])))"
+    )
+    done = subprocess.run([sys.executable, "-c", code, str(tmp_path / "out")], capture_output=True, text=True, timeout=120)
+    assert done.returncode == 0, done.stderr
+    assert int(done.stdout) == sum(len(d.detections) for d in detections)
 
 
 def test_replay_cli_with_a_real_checkpoint(bag, checkpoint, tmp_path, capsys):

@@ -24,6 +24,7 @@ from axispose_core.detect.model import Localiser, LocaliserConfig
 from axispose_core.estimator import Estimator, EstimatorConfig, PoseEstimate
 from axispose_core.pose_sampling import LMO_K
 from axispose_core.tbm.reader import SHIPPED_READER, load_reader
+from axispose_msgs.msg import DetectionArray
 from axispose_ros.node import AxisPoseNode
 
 
@@ -54,7 +55,7 @@ class Harness:
         self.exe = SingleThreadedExecutor(context=self.ctx)
         self.exe.add_node(self.node)
         self.exe.add_node(self.peer)
-        self.got: dict[str, list] = {"pose": [], "array": [], "debug": [], "diag": [], "ape": [], "cov": []}
+        self.got: dict[str, list] = {"pose": [], "array": [], "debug": [], "diag": [], "ape": [], "cov": [], "det": []}
         self.pub_image = self.peer.create_publisher(Image, "image", 10)
         self.pub_info = self.peer.create_publisher(CameraInfo, "camera_info", 10)
         self.pub_roi = self.peer.create_publisher(RegionOfInterest, "/axispose/roi/ape", 10)
@@ -62,6 +63,7 @@ class Harness:
         self.peer.create_subscription(PoseStamped, "/axispose/poses/ape", self.got["ape"].append, 10)
         self.peer.create_subscription(PoseWithCovarianceStamped, "/axispose/pose_cov", self.got["cov"].append, 10)
         self.peer.create_subscription(PoseArray, "/axispose/pose_array", self.got["array"].append, 10)
+        self.peer.create_subscription(DetectionArray, "/axispose/detections", self.got["det"].append, 10)
         self.peer.create_subscription(DiagnosticArray, "/diagnostics", self.got["diag"].append, 10)
 
     def subscribe_debug(self):
@@ -113,6 +115,8 @@ def test_pose_array_keeps_the_image_header_and_is_empty_without_boxes(harness):
     msg = harness.got["array"][0]
     assert msg.header.stamp.sec == sent.header.stamp.sec and msg.header.frame_id == "cam"
     assert msg.poses == []
+    assert harness.spin_until(lambda: harness.got["det"])
+    assert harness.got["det"][0].header == msg.header and list(harness.got["det"][0].detections) == []
 
 
 def test_pose_stamped_for_a_box_with_the_same_header(harness):
@@ -136,6 +140,12 @@ def test_pose_stamped_for_a_box_with_the_same_header(harness):
     assert len(harness.got["array"][-1].poses) == 1 and harness.got["pose"][0].header == got.header
     assert harness.got["debug"] == []  # nobody subscribed: no debug image built
     assert harness.got["cov"] == []  # a single-sample pose has no covariance to publish
+    assert harness.spin_until(lambda: harness.got["det"])
+    (det,) = harness.got["det"][0].detections
+    assert harness.got["det"][0].header == got.header
+    assert (det.obj_id, det.name, det.score) == (1, "ape", 1.0)  # an ROI's box scores 1
+    assert det.pose.pose == got.pose and not np.any(det.pose.covariance)  # covariance unknown: all zeros
+    np.testing.assert_allclose(det.box, [280, 200, 80, 90])
 
 
 def test_pose_cov_carries_the_covariance_of_the_samples(harness):
@@ -161,6 +171,8 @@ def test_pose_cov_carries_the_covariance_of_the_samples(harness):
     assert calls == [4]  # the node's default hypotheses
     assert got.header.stamp.sec == sent.header.stamp.sec and got.pose.pose.position.z == pytest.approx(0.8)
     np.testing.assert_allclose(np.reshape(got.pose.covariance, (6, 6)), cov)
+    assert harness.spin_until(lambda: harness.got["det"])
+    np.testing.assert_allclose(np.reshape(harness.got["det"][0].detections[0].pose.covariance, (6, 6)), cov)
 
 
 def test_debug_image_only_when_subscribed(harness):
@@ -392,6 +404,10 @@ def test_objects_not_asked_for_are_neither_estimated_nor_published(localised_che
         h.frame(sec=21)
         assert h.spin_until(lambda: h.got["array"] and markers)
         assert calls == [[1, 1]] and len(h.got["array"][0].poses) == 2
+        assert h.spin_until(lambda: h.got["det"])
+        dets = h.got["det"][0].detections
+        assert [(d.obj_id, d.name) for d in dets] == [(1, "ape"), (1, "ape")]
+        assert all(0.0 <= d.score < 1.0 and d.box[2] > 0 and d.box[3] > 0 for d in dets)  # the localiser's scores and boxes
         first, *arrows = markers[0].markers
         assert first.action == Marker.DELETEALL
         assert sorted(m.id for m in arrows) == [0, 1, 2, 3, 4, 5] and {m.ns for m in arrows} == {"axispose/ape"}

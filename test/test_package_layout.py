@@ -2,6 +2,7 @@
 
 import ast
 import os
+import re
 import subprocess
 import sys
 import xml.etree.ElementTree as ET
@@ -18,6 +19,7 @@ ROSDEP_KEYS = {
     "ament_index_python": "ament_index_python", "numpy": "python3-numpy", "scipy": "python3-scipy", "cv2": "python3-opencv",
     "torch": "python3-torch", "safetensors": "python3-safetensors", "plyfile": "python3-plyfile", "yaml": "python3-yaml",
     "tqdm": "python3-tqdm", "matplotlib": "python3-matplotlib", "rosbags": "python3-rosbags-pip", "skimage": "python3-skimage",
+    "axispose_msgs": "axispose_msgs",
 }  # fmt: skip
 """The rosdep key of each third-party module the package may import."""
 
@@ -51,6 +53,22 @@ def test_package_xml_is_format_3_and_declares_exactly_what_the_code_imports():
     assert not needed - declared, f"imported but not declared in package.xml: {sorted(needed - declared)}"
     # ament_index_python is how the installed package finds its share/ files (setup.py data_files), even if not imported
     assert not declared - needed - {"ament_index_python"}, f"declared but never imported: {sorted(declared - needed)}"
+
+
+def test_the_message_package_generates_every_message_it_holds():
+    """axispose_msgs: an ament_cmake interface package whose CMakeLists generates exactly the files in msg/."""
+    root = ET.parse(REPO / "axispose_msgs" / "package.xml").getroot()
+    assert root.get("format") == "3" and root.findtext("name") == "axispose_msgs"
+    assert root.find("export/build_type").text == "ament_cmake"
+    assert root.findtext("member_of_group") == "rosidl_interface_packages"
+    assert {e.text for e in root.findall("depend")} == {"geometry_msgs", "std_msgs"}
+    cmake = (REPO / "axispose_msgs" / "CMakeLists.txt").read_text()
+    listed = set(re.findall(r'"(msg/\w+\.msg)"', cmake))
+    assert listed == {f"msg/{p.name}" for p in (REPO / "axispose_msgs" / "msg").glob("*.msg")}
+    from axispose_msgs.msg import Detection, DetectionArray  # built and installed by `make test` (tools/build_msgs.sh)
+
+    assert DetectionArray.get_fields_and_field_types() == {"header": "std_msgs/Header", "detections": "sequence<axispose_msgs/Detection>"}
+    assert set(Detection.get_fields_and_field_types()) == {"obj_id", "name", "score", "pose", "box"}
 
 
 @pytest.fixture(scope="module")
