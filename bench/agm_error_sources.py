@@ -19,13 +19,12 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import json
 import platform
 import time
-from pathlib import Path
 
 import numpy as np
 import torch
+from write_results import write_results
 
 from axispose_core.camera import project_model
 from axispose_core.data.bop import load_ply, model_path
@@ -144,9 +143,7 @@ def main() -> None:
     out["log_depth_err_std"] = {"tbm": float(np.std(e_tbm)), "head": float(np.std(e_head)),
                                 "correlation": float(np.corrcoef(e_tbm, e_head)[0, 1])}  # fmt: skip
     print("log depth error std: TBM {tbm:.3f}, encoder {head:.3f}, correlation {correlation:.2f}".format(**out["log_depth_err_std"]))
-    Path(args.json).parent.mkdir(parents=True, exist_ok=True)
-    Path(args.json).write_text(json.dumps(out, indent=1))
-    print(f"wrote {args.json}")
+    write_results(args.json, out)
 
 
 if __name__ == "__main__":

@@ -13,12 +13,11 @@ choosing the default number of steps.
 from __future__ import annotations
 
 import argparse
-import json
 import platform
 import time
-from pathlib import Path
 
 import torch
+from write_results import write_results
 
 from axispose_core.estimator import Estimator
 from axispose_core.evaluate import Prediction, evaluate, summarize
@@ -63,9 +62,7 @@ def main() -> None:
                 )
     out = {"machine": platform.processor() or platform.machine(), "threads": args.threads, "date": time.strftime("%Y-%m-%d"),
            "data": args.data, "limit": args.limit, "rows": rows}  # fmt: skip
-    Path(args.json).parent.mkdir(parents=True, exist_ok=True)
-    Path(args.json).write_text(json.dumps(out, indent=1))
-    print(f"wrote {args.json}")
+    write_results(args.json, out)
 
 
 if __name__ == "__main__":

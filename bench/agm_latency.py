@@ -12,13 +12,12 @@ a real frame (TBM cost depends on what the reader sees). Part 3 times the checkp
 from __future__ import annotations
 
 import argparse
-import json
 import platform
 import time
-from pathlib import Path
 
 import numpy as np
 import torch
+from write_results import write_results
 
 from axispose_core.estimator import Estimator
 from axispose_core.train.dataset import bop_frames
@@ -80,9 +79,7 @@ def main() -> None:
             print(f"part 3: localiser, threads {threads}: {ms:.1f} ms per {rgb.shape[1]}x{rgb.shape[0]} frame")
     out = {"machine": platform.processor() or platform.machine(), "date": time.strftime("%Y-%m-%d"), "checkpoint": args.checkpoint,
            "sampler": sampler_rows, "full_path": path_rows, "localiser": localiser_rows}  # fmt: skip
-    Path(args.json).parent.mkdir(parents=True, exist_ok=True)
-    Path(args.json).write_text(json.dumps(out, indent=1))
-    print(f"wrote {args.json}")
+    write_results(args.json, out)
 
 
 if __name__ == "__main__":

@@ -14,14 +14,13 @@ from __future__ import annotations
 
 import argparse
 import copy
-import json
 import platform
 import time
 from collections.abc import Callable
-from pathlib import Path
 
 import numpy as np
 import torch
+from write_results import write_results
 
 from axispose_core.estimator import Estimator
 from axispose_core.train.dataset import bop_frames
@@ -99,9 +98,7 @@ def main() -> None:
     out = {"machine": torch.cuda.get_device_name(), "host": platform.processor() or platform.machine(), "torch": torch.__version__,
            "date": time.strftime("%Y-%m-%d"), "checkpoint": args.checkpoint,
            "sampler": sampler_rows, "full_path": path_rows, "localiser": localiser_rows}  # fmt: skip
-    Path(args.json).parent.mkdir(parents=True, exist_ok=True)
-    Path(args.json).write_text(json.dumps(out, indent=1))
-    print(f"wrote {args.json}")
+    write_results(args.json, out)
 
 
 if __name__ == "__main__":

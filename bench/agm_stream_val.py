@@ -9,14 +9,13 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import json
 import platform
 import time
-from pathlib import Path
 
 import numpy as np
 import torch
 from tqdm import tqdm
+from write_results import write_results
 
 from axispose_core.cli import SHARED_LMO
 from axispose_core.data.synth.config import StreamConfig
@@ -55,9 +54,7 @@ def main() -> None:
         print(" ".join(f"{k}={v:.4g}" if isinstance(v, float) else f"{k}={v}" for k, v in row.items()))
     out = {"machine": platform.processor() or platform.machine(), "date": time.strftime("%Y-%m-%d"), "samples": args.samples,
            "seed": args.seed, "ddim_steps": args.steps, "rows": rows}  # fmt: skip
-    Path(args.json).parent.mkdir(parents=True, exist_ok=True)
-    Path(args.json).write_text(json.dumps(out, indent=1))
-    print(f"wrote {args.json}")
+    write_results(args.json, out)
 
 
 if __name__ == "__main__":

@@ -10,13 +10,12 @@ from __future__ import annotations
 
 import argparse
 import datetime
-import json
 import os
 import platform
 import time
-from pathlib import Path
 
 import torch
+from write_results import write_results
 
 from axispose_core.cli import SHARED_LMO
 from axispose_core.data.synth.config import StreamConfig
@@ -58,8 +57,7 @@ def main() -> None:
         f"{result['crops_per_s']:.0f} crops/s ({n} in {seconds:.1f} s; {args.workers} workers, {args.size} px, mesh_cell {cfg.mesh_cell})"
     )
     if args.json:
-        Path(args.json).parent.mkdir(parents=True, exist_ok=True)
-        Path(args.json).write_text(json.dumps(result, indent=1))
+        write_results(args.json, result)
 
 
 if __name__ == "__main__":

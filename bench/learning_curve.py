@@ -10,13 +10,13 @@ from __future__ import annotations
 
 import argparse
 import csv
-import json
 from pathlib import Path
 
 import matplotlib
 
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt
+from write_results import write_results
 
 PANELS = (
     ("val_rot_median_deg", "median rotation error (°)"),
@@ -74,8 +74,7 @@ def main() -> None:
         cells = "".join(f"{last.get(k, float('nan')):>20.3f}" for k, _ in PANELS)
         print(f"{name:<16}{last['step']:>8}{last['hours']:>8.2f}{cells}")
     if args.json:
-        Path(args.json).parent.mkdir(parents=True, exist_ok=True)
-        Path(args.json).write_text(json.dumps(summary, indent=1))
+        write_results(args.json, summary)
     print(f"wrote {args.out}")
 
 

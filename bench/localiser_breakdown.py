@@ -23,15 +23,14 @@ from __future__ import annotations
 
 import argparse
 import datetime
-import json
 import platform
 from dataclasses import replace
-from pathlib import Path
 
 import numpy as np
 import torch
 from scipy.stats import binomtest
 from tqdm import tqdm
+from write_results import write_results
 
 from axispose_core.data.bop import BopScene
 from axispose_core.detect.decode import Detection, iou
@@ -162,9 +161,7 @@ def main() -> None:
     meta = {"machine": f"{platform.machine()} {platform.processor()}".strip(), "threads": args.threads,
             "date": datetime.date.today().isoformat(), "data": args.data, "frames": len(frames),
             "across_objects": args.across_objects, "verifier_weight": args.verifier_weight}  # fmt: skip
-    Path(args.json).parent.mkdir(parents=True, exist_ok=True)
-    Path(args.json).write_text(json.dumps(meta | {"results": results}, indent=1))
-    print(f"wrote {args.json}")
+    write_results(args.json, meta | {"results": results})
 
 
 if __name__ == "__main__":

@@ -13,12 +13,11 @@ from __future__ import annotations
 
 import argparse
 import datetime
-import json
 import platform
-from pathlib import Path
 
 import numpy as np
 from tqdm import tqdm
+from write_results import write_results
 
 from axispose_core.camera import square_around_box
 from axispose_core.detect.decode import match
@@ -84,9 +83,7 @@ def main() -> None:
     out = {"checkpoint": args.checkpoint, "data": args.data, "n": len(err), "crop_pad": est.config.crop_pad, **table,
            "by_visib": by_visib, "machine": platform.processor() or platform.machine(),
            "date": datetime.date.today().isoformat()}  # fmt: skip
-    Path(args.json).parent.mkdir(parents=True, exist_ok=True)
-    Path(args.json).write_text(json.dumps(out, indent=1))
-    print(f"wrote {args.json}")
+    write_results(args.json, out)
 
 
 if __name__ == "__main__":

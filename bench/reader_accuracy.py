@@ -10,13 +10,12 @@ re-projection refinement. Prints a table and writes JSON.
 from __future__ import annotations
 
 import argparse
-import json
 import time
-from pathlib import Path
 
 import numpy as np
 import torch
 from tqdm import tqdm
+from write_results import write_results
 
 from axispose_core.metrics import re
 from axispose_core.tbm.backproject import backproject
@@ -79,8 +78,7 @@ def main() -> None:
             f"{r['condition']:<9} {r['reader']:<8} {r['kp_err_median_px']:9.2f} {r['rot_err_median_deg']:8.2f} "
             f"{100 * r['rot_within_2deg']:6.1f}% {100 * r['rot_within_5deg']:6.1f}% {r['ms_median']:6.2f}"
         )
-    Path(args.json).parent.mkdir(parents=True, exist_ok=True)
-    Path(args.json).write_text(json.dumps(rows, indent=1))
+    write_results(args.json, rows)
 
 
 if __name__ == "__main__":

@@ -10,12 +10,11 @@ also per solve when all of them go through `backproject_many` at once (as the es
 from __future__ import annotations
 
 import argparse
-import json
 import time
-from pathlib import Path
 
 import numpy as np
 from tqdm import tqdm
+from write_results import write_results
 
 from axispose_core.axis_image import AxisSpec, axis_keypoints
 from axispose_core.data.objects import LMO_DIAMETERS
@@ -82,8 +81,7 @@ def main() -> None:
             f"{r['rot_err_p90_deg']:8.3f} {r['trans_err_median_mm']:9.2f} {r['trans_err_p90_mm']:9.2f} {r['ms_median']:6.2f} "
             f"{r['ms_batched']:8.2f}"
         )
-    Path(args.json).parent.mkdir(parents=True, exist_ok=True)
-    Path(args.json).write_text(json.dumps(rows, indent=1))
+    write_results(args.json, rows)
 
 
 if __name__ == "__main__":

@@ -9,11 +9,12 @@ first; worker start-up included) and prints a table; writes JSON.
 from __future__ import annotations
 
 import argparse
-import json
 import platform
 import tempfile
 import time
 from pathlib import Path
+
+from write_results import write_results
 
 from axispose_core.data.synth.config import SceneConfig, SynthConfig
 from axispose_core.data.synth.generate import generate
@@ -41,8 +42,7 @@ def main() -> None:
     print(f"{'workers':>7} {'images':>6} {'seconds':>8} {'img/s':>7}")
     for r in rows:
         print(f"{r['workers']:7d} {r['images']:6d} {r['seconds']:8.1f} {r['images_per_s']:7.2f}")
-    Path(args.json).parent.mkdir(parents=True, exist_ok=True)
-    Path(args.json).write_text(json.dumps({"machine": platform.processor() or platform.machine(), "rows": rows}, indent=1))
+    write_results(args.json, {"machine": platform.processor() or platform.machine(), "rows": rows})
 
 
 if __name__ == "__main__":
