@@ -202,6 +202,7 @@ def _eval(args: argparse.Namespace) -> int:
                   "visib": list(args.visib), "perturb": args.perturb, **notes}  # fmt: skip
         return _report(args, records, objects, config, None)
     est = Estimator.load(args.checkpoint)
+    precision = est.set_precision(args.precision)
     objects = [o for o in est.config.objects if not args.objects or o.obj_id in args.objects]
 
     def predict(image, K, boxes):
@@ -221,7 +222,8 @@ def _eval(args: argparse.Namespace) -> int:
                        visib=tuple(args.visib), perturb=perturb, notes=notes)  # fmt: skip
     config = {"checkpoint": str(args.checkpoint), "data": str(args.data), "steps": args.steps or est.config.ddim_steps,
               "guidance": est.config.guidance_scale if args.guidance is None else args.guidance, "crops": args.crops,
-              "hypotheses": args.hypotheses, "visib": list(args.visib), "perturb": args.perturb, **notes}  # fmt: skip
+              "hypotheses": args.hypotheses, "precision": precision, "visib": list(args.visib), "perturb": args.perturb,
+              **notes}  # fmt: skip
     return _report(args, records, objects, config, counts)
 
 
@@ -362,6 +364,8 @@ def build_parser() -> argparse.ArgumentParser:
     ev.add_argument("--report", required=True, help="JSON to write")
     ev.add_argument("--plots", default=None, help="folder for error CDFs")
     ev.add_argument("--threads", type=int, default=2)
+    ev.add_argument("--precision", choices=["auto", "float32", "bfloat16"], default="float32",
+                    help="the AGM's arithmetic (auto: bfloat16 where the device has it natively, as the node does)")  # fmt: skip
     ev.set_defaults(func=_eval)
 
     sp = sub.add_parser("synth-preview", help="contact sheet of synthetic frames with their GT axes")

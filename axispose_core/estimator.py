@@ -30,6 +30,18 @@ from axispose_core.tbm.backproject import backproject_readings
 from axispose_core.tbm.reader import KeypointReader, ReaderConfig
 
 KIND = "estimator"
+PRECISIONS = ("auto", "float32", "bfloat16")
+
+
+def bf16_native(device: torch.device) -> bool:
+    """Whether `device` computes in bfloat16 natively (CUDA with bf16, or a CPU with AVX-512 BF16/AMX), where
+    autocast speeds the AGM up; elsewhere bfloat16 is emulated and slower than float32."""
+    if device.type == "cuda":
+        return torch.cuda.is_available() and torch.cuda.is_bf16_supported()
+    try:
+        return bool(torch.ops.mkldnn._is_mkldnn_bf16_supported())
+    except (AttributeError, RuntimeError):  # a torch without the oneDNN query
+        return False
 
 
 @dataclass(frozen=True)
@@ -113,6 +125,16 @@ class Estimator:
         self._detector = self.localiser.fused() if self.localiser is not None else None
         self.objects = {o.obj_id: o for o in config.objects}
         self.index = {o.obj_id: k for k, o in enumerate(config.objects)}
+        self.bf16 = False
+        """Run the AGM (encoder and denoiser) under bfloat16 autocast; see `set_precision`."""
+
+    def set_precision(self, precision: str) -> str:
+        """Set the AGM's arithmetic: float32, bfloat16, or auto (bfloat16 where the device computes it natively:
+        1.5x faster on this project's CPU at 4 samples per crop); returns the one used."""
+        if precision not in PRECISIONS:
+            raise ValueError(f"precision must be one of {', '.join(PRECISIONS)}, got {precision!r}")
+        self.bf16 = precision == "bfloat16" or (precision == "auto" and bf16_native(self.device))
+        return "bfloat16" if self.bf16 else "float32"
 
     @property
     def size(self) -> int:
@@ -202,14 +224,14 @@ class Estimator:
             return self_consistency_target(x0, self.reader, Kp_all, lengths_all)
 
         gen = torch.Generator().manual_seed(seed)
-        with torch.inference_mode(scale <= 0):
+        with torch.inference_mode(scale <= 0), torch.autocast(self.device.type, dtype=torch.bfloat16, enabled=self.bf16):
             enc = self.agm.encode(x.to(self.device), objects)
             axes = self.agm.sample(
                 enc.repeat(hypotheses), steps, generator=gen, guidance=guidance if scale > 0 else None, guidance_scale=scale,
                 cancelled=cancelled,
             )  # fmt: skip
         log_depth = enc.log_depth.float().cpu().numpy()
-        images = ((axes + 1) * 0.5).clamp(0, 1)
+        images = ((axes.float() + 1) * 0.5).clamp(0, 1)
         readings = self.reader.read(images)
         results = backproject_readings(Kp_all, readings, lengths_all)  # every box's hypotheses in one refinement
         out = []

@@ -79,6 +79,7 @@ class AxisPoseNode(Node):
         if not checkpoint:
             raise CheckpointError("parameter 'checkpoint' is empty: pass -p checkpoint:=/path/to/estimator.safetensors")
         self.estimator = Estimator.load(checkpoint, self.get_parameter("device").value)
+        self.precision = self.estimator.set_precision(self.get_parameter("precision").value)
         self.names = {o.obj_id: o.name for o in self.estimator.config.objects}
         try:
             wanted = list(self.get_parameter("objects").value or [])
@@ -140,6 +141,9 @@ class AxisPoseNode(Node):
         self.declare_parameter("guidance_scale", 0.0, desc("run-time geometric guidance (0: off)", floats=(0.0, 100.0)))
         self.declare_parameter("object_scale", 0.0, desc("λ_O in m for every object (0: checkpoint's)", floats=(0.0, 10.0)))
         self.declare_parameter("device", "cpu", desc("cpu, cuda or auto"))
+        self.declare_parameter(
+            "precision", "auto", desc("the AGM's arithmetic: float32, bfloat16, or auto (bfloat16 where the device has it natively)")
+        )
         self.declare_parameter("objects", Parameter.Type.STRING_ARRAY, desc("object names to look for, estimate and publish (empty: all)"))
         self.declare_parameter("use_rectified", False, desc("use P instead of K (images already rectified)"))
         self.declare_parameter("sync_slop", 0.02, desc("largest Image/CameraInfo stamp difference in s", floats=(0.0, 1.0)))
@@ -161,7 +165,7 @@ class AxisPoseNode(Node):
             self.set_parameters([Parameter("device", value="cuda" if torch.cuda.is_available() else "cpu")])
 
     def _on_set_parameters(self, params: list[Parameter]) -> SetParametersResult:
-        fixed = {"checkpoint", "device", "objects", "use_rectified", "sync_slop", "num_threads", "latency_budget"}
+        fixed = {"checkpoint", "device", "precision", "objects", "use_rectified", "sync_slop", "num_threads", "latency_budget"}
         for p in params:
             if p.name in fixed:
                 return SetParametersResult(successful=False, reason=f"'{p.name}' is read at start only; restart the node to change it")

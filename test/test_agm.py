@@ -211,6 +211,23 @@ def test_estimator_checkpoint_round_trip(tmp_path):
         Estimator.load(tmp_path / "reader.safetensors")
 
 
+def test_bfloat16_runs_the_agm_in_bfloat16_but_keeps_depth_and_poses_in_float32():
+    reader = load_reader(SHIPPED_READER)
+    cfg = EstimatorConfig(agm=AGMConfig(denoiser=TINY), reader=reader.config, objects=tuple(lmo_objects()[:2]), ddim_steps=2)
+    est = Estimator(cfg, AxisGenerator(cfg.agm), reader)
+    assert est.set_precision("float32") == "float32" and not est.bf16
+    assert est.set_precision("bfloat16") == "bfloat16" and est.bf16
+    with pytest.raises(ValueError, match="precision must be one of"):
+        est.set_precision("half")
+    with torch.autocast("cpu", dtype=torch.bfloat16):
+        enc = est.agm.encode(torch.zeros(2, 3, 64, 64), torch.tensor([0, 1]))
+    assert enc.context.dtype == torch.bfloat16 and enc.log_depth.dtype == torch.float32  # bf16 would cost ~0.5 % of depth
+    image = (np.random.default_rng(0).uniform(0, 255, (480, 640, 3))).astype(np.uint8)
+    K = np.array([[572.4, 0, 325.3], [0, 573.6, 242.0], [0, 0, 1]])
+    (pose,) = est.estimate(image, K, [(1, (300, 200, 60, 70))], hypotheses=2)
+    assert pose.axis_image.dtype == np.float32 and np.isfinite(pose.head_depth)
+
+
 def test_a_checkpoint_of_the_earlier_agm_is_refused_in_one_line(tmp_path):
     """An estimator saved before the AGM's version 2 (no `version`, the old denoiser fields) says what it is."""
     path = tmp_path / "old.safetensors"

@@ -21,7 +21,7 @@ from axispose_core.agm.model import AxisGenerator
 from axispose_core.checkpoint import CheckpointError
 from axispose_core.data.objects import lmo_objects
 from axispose_core.detect.model import Localiser, LocaliserConfig
-from axispose_core.estimator import Estimator, EstimatorConfig, PoseEstimate
+from axispose_core.estimator import Estimator, EstimatorConfig, PoseEstimate, bf16_native
 from axispose_core.pose_sampling import LMO_K
 from axispose_core.tbm.reader import SHIPPED_READER, load_reader
 from axispose_msgs.msg import DetectionArray
@@ -117,6 +117,13 @@ def test_pose_array_keeps_the_image_header_and_is_empty_without_boxes(harness):
     assert msg.poses == []
     assert harness.spin_until(lambda: harness.got["det"])
     assert harness.got["det"][0].header == msg.header and list(harness.got["det"][0].detections) == []
+
+
+def test_precision_auto_takes_bfloat16_only_where_the_device_has_it(harness):
+    assert harness.node.get_parameter("precision").value == "auto"
+    assert harness.node.precision == ("bfloat16" if bf16_native(torch.device("cpu")) else "float32")
+    assert harness.node.estimator.bf16 == (harness.node.precision == "bfloat16")
+    assert not harness.node.set_parameters([Parameter("precision", value="float32")])[0].successful  # at start only
 
 
 def test_pose_stamped_for_a_box_with_the_same_header(harness):
@@ -436,7 +443,9 @@ def test_an_unsupported_lens_model_drops_the_frame_with_a_reason(harness):
     assert not harness.got["array"]
 
 
-@pytest.mark.parametrize("param", ["ddim_steps:=0", "ddim_steps:=abc", "sync_slop:=-1.0", "num_threads:=0", "device:=cuda"])
+@pytest.mark.parametrize(
+    "param", ["ddim_steps:=0", "ddim_steps:=abc", "sync_slop:=-1.0", "num_threads:=0", "device:=cuda", "precision:=half"]
+)
 def test_bad_parameters_at_start_are_one_line_and_exit_2(checkpoint, param):
     """Out of range, of the wrong type, or a device this torch has not: one clear line, exit code 2, no traceback."""
     if param == "device:=cuda" and torch.cuda.is_available():

@@ -153,7 +153,9 @@ class CropEncoder(nn.Module):
                   for lat, f in zip(self.lateral, feats[:3], strict=True))  # fmt: skip
         dense = self.dense(lat, context)
         out = self.dense_out(dense)
-        return Encoding([dense, *feats[1:]], context, out[:, :3], out[:, 3:], self.depth(context)[:, 0])
+        with torch.autocast(context.device.type, enabled=False):  # bfloat16's 3 digits would be ~0.5 % of depth
+            log_depth = self.depth(context.float())[:, 0]
+        return Encoding([dense, *feats[1:]], context, out[:, :3], out[:, 3:], log_depth)
 
 
 class Denoiser(nn.Module):
