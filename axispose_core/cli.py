@@ -133,7 +133,7 @@ def _train_direct(args: argparse.Namespace) -> int:
 
 
 def _score_and_attach(args: argparse.Namespace) -> int:
-    """After `train-detector` or `train-verifier`: the localiser in OUT scored on --val, then given to --attach."""
+    """After `train-detector`: the localiser in OUT scored on --val, then given to --attach."""
     from axispose_core.estimator import Estimator
     from axispose_core.train.detector import detection_scores, load_localiser
 
@@ -161,18 +161,6 @@ def _train_detector(args: argparse.Namespace) -> int:
         cfg = dataclasses.replace(cfg, localiser=dataclasses.replace(cfg.localiser, obj_ids=ids))
     step = train_detector(cfg, args.data, args.out, init=args.init, **_training_kwargs(args))
     print(f"stopped at step {step} of {cfg.steps}; localiser {args.out}")
-    return _score_and_attach(args)
-
-
-def _train_verifier(args: argparse.Namespace) -> int:
-    import torch
-
-    from axispose_core.train.verifier import VerifierTrainConfig, train_verifier
-
-    torch.set_num_threads(args.threads)
-    cfg = _config(VerifierTrainConfig, args.config)
-    step = train_verifier(cfg, args.localiser, args.data, args.out, **_training_kwargs(args))
-    print(f"stopped at step {step} of {cfg.steps}; localiser with verifier {args.out}")
     return _score_and_attach(args)
 
 
@@ -329,12 +317,6 @@ def build_parser() -> argparse.ArgumentParser:
     td.add_argument("--init", help="trained localiser or estimator checkpoint to start from: weights whose names and shapes "
                     "match are copied (a wider/deeper localiser or other objects keep the rest fresh)")  # fmt: skip
     td.set_defaults(func=_train_detector)
-
-    tv = sub.add_parser("train-verifier", help="train the localiser's second stage, which rescores each detection from its crop")
-    _training_args(tv, "localiser checkpoint (with the verifier)", "VerifierTrainConfig", "config/train_verifier.yaml")
-    tv.add_argument("--localiser", required=True, help="trained localiser, or an estimator checkpoint carrying one, to verify")
-    tv.add_argument("--attach", help="estimator checkpoint to give the localiser with its verifier (rewritten in place)")
-    tv.set_defaults(func=_train_verifier)
 
     tr = sub.add_parser("train-direct", help="train the direct-regression baseline (keypoints from the crop, no diffusion)")
     _training_args(tr, "regressor checkpoint", "DirectTrainConfig", "config/train_direct.yaml",

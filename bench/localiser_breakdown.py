@@ -10,8 +10,7 @@ IoU >= 0.5 scoring under it), a poor box (one of its object above it that did no
 for another object (a detection of a different object at IoU >= 0.5 above it), or nothing there. Prints tables
 and writes JSON. `--across-objects IOU` first drops every detection that overlaps a higher-scoring detection of
 another object at IoU >= IOU (class-agnostic NMS on top of the per-object peaks), to see whether confusions
-between objects can be removed that way. `--verifier-weight W` reads a localiser that carries a verifier with its
-score exponent set to W (0: the heatmap's scores, 1: the verifier's), to choose that weight on held-out frames.
+between objects can be removed that way.
 Recall at the checkpoint's threshold comes with its instance counts and a 95 % Wilson interval, so a held-out set's
 size shows in the figure; `--data` may be given several times to pool sets.
 
@@ -24,7 +23,6 @@ from __future__ import annotations
 import argparse
 import datetime
 import platform
-from dataclasses import replace
 
 import numpy as np
 import torch
@@ -35,7 +33,6 @@ from write_results import write_results
 from axispose_core.data.bop import BopScene
 from axispose_core.detect.decode import Detection, iou
 from axispose_core.detect.model import Localiser
-from axispose_core.detect.verifier import Verifier
 from axispose_core.train.dataset import bop_frames
 from axispose_core.train.detector import frame_instances, frame_outcome, load_localiser
 
@@ -64,15 +61,6 @@ def suppress_across_objects(dets: list[Detection], min_iou: float) -> list[Detec
         if not any(k.obj_id != d.obj_id and iou(k.box, d.box) >= min_iou for k in kept):
             kept.append(d)
     return kept
-
-
-def reweighted(model: Localiser, weight: float) -> Localiser:
-    """`model` with its verifier's score exponent set to `weight` (a model without a verifier is refused)."""
-    if model.config.verifier is None:
-        raise SystemExit("--verifier-weight: this localiser has no verifier")
-    verifier = Verifier(replace(model.config.verifier, weight=weight), len(model.config.obj_ids))
-    verifier.load_state_dict(model.verifier.state_dict())
-    return model.with_verifier(verifier)
 
 
 def breakdown(model: Localiser, frames: list[tuple[BopScene, int]], min_visib: float, across_objects: float | None = None) -> dict:
@@ -136,7 +124,6 @@ def main() -> None:
     ap.add_argument("--min-visib", type=float, default=0.3)
     ap.add_argument("--across-objects", type=float, default=None, metavar="IOU",
                     help="drop detections overlapping a better one of another object at IoU >= IOU")  # fmt: skip
-    ap.add_argument("--verifier-weight", type=float, default=None, help="the verifier's score exponent, in place of the checkpoint's")
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--json", default="bench/results/localiser_breakdown.json")
     args = ap.parse_args()
@@ -146,7 +133,6 @@ def main() -> None:
     for item in args.checkpoint:
         label, _, path = item.partition("=")
         model = load_localiser(path)
-        model = model if args.verifier_weight is None else reweighted(model, args.verifier_weight)
         r = results[label] = breakdown(model, frames, args.min_visib, args.across_objects) | {"checkpoint": path}
         lo, hi = r["recall_ci95"]
         print(f"\n{label} ({path}), {len(frames)} frames; recall {r['recall']:.3f} ({r['hits']}/{r['instances']}, "
@@ -160,7 +146,7 @@ def main() -> None:
         print("misses: " + ", ".join(f"{k} {v}" for k, v in r["misses"].items()))
     meta = {"machine": f"{platform.machine()} {platform.processor()}".strip(), "threads": args.threads,
             "date": datetime.date.today().isoformat(), "data": args.data, "frames": len(frames),
-            "across_objects": args.across_objects, "verifier_weight": args.verifier_weight}  # fmt: skip
+            "across_objects": args.across_objects}  # fmt: skip
     write_results(args.json, meta | {"results": results})
 
 

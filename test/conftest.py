@@ -29,7 +29,7 @@ def lmo_dir() -> Path:
 
 @pytest.fixture(scope="session")
 def frames(tmp_path_factory, lmo_dir) -> Path:
-    """Four rendered frames of objects 1 and 5 (one scene), for the localiser's and its verifier's tests."""
+    """Four rendered frames of objects 1 and 5 (one scene), for the localiser's tests."""
     from axispose_core.data.synth.config import SynthConfig
     from axispose_core.data.synth.generate import generate
 

@@ -9,7 +9,7 @@ heads at stride 8. The frame is resized to `input_size` (the shipped localiser: 
 from __future__ import annotations
 
 from copy import deepcopy
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 
 import cv2
 import numpy as np
@@ -19,7 +19,6 @@ from torch import nn
 from torch.nn.utils.fusion import fuse_conv_bn_eval
 
 from axispose_core.detect.decode import Detection, decode
-from axispose_core.detect.verifier import Verifier, VerifierConfig, rescore
 
 STRIDE = 8
 
@@ -35,8 +34,6 @@ class LocaliserConfig:
     threshold: float = 0.3
     """Default score threshold of `detect`."""
     max_per_object: int = 3
-    verifier: VerifierConfig | None = None
-    """A second stage that rescores (and may refine) each detection from its crop (`detect/verifier.py`), if trained."""
 
 
 def _block(c_in: int, c_out: int, stride: int) -> nn.Sequential:
@@ -77,8 +74,6 @@ class Localiser(nn.Module):
         self.size = nn.Sequential(_block(c8, c8, 1), nn.Conv2d(c8, 2, 1))
         self.offset = nn.Sequential(_block(c8, c8, 1), nn.Conv2d(c8, 2, 1))
         nn.init.constant_(self.heat[-1].bias, -2.19)  # CenterNet's prior: sigmoid(-2.19) = 0.1
-        if config.verifier is not None:
-            self.verifier = Verifier(config.verifier, len(config.obj_ids))
 
     def forward(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         f8 = self.s8(self.s4(self.stem(x)))
@@ -87,14 +82,6 @@ class Localiser(nn.Module):
             f16 = self.fuse32(torch.cat([f16, F.interpolate(self.s32(f16), size=f16.shape[-2:], mode="nearest")], dim=1))
         f = self.fuse(torch.cat([f8, F.interpolate(f16, size=f8.shape[-2:], mode="nearest")], dim=1))
         return torch.sigmoid(self.heat(f)), self.size(f), self.offset(f)
-
-    def with_verifier(self, verifier: Verifier | None) -> Localiser:
-        """A copy of this localiser whose detections `verifier` rescores (None: without one), in eval mode."""
-        config = replace(self.config, verifier=None if verifier is None else verifier.config)
-        copy = Localiser(config)
-        own = {k: v for k, v in self.state_dict().items() if not k.startswith("verifier.")}
-        copy.load_state_dict(own | ({} if verifier is None else {f"verifier.{k}": v for k, v in verifier.state_dict().items()}))
-        return copy.to(next(self.parameters()).device).eval()
 
     def fused(self) -> Localiser:
         """An inference copy with every BatchNorm folded into the convolution before it, in channels-last memory:
@@ -115,9 +102,7 @@ class Localiser(nn.Module):
 
     @torch.inference_mode()
     def detect(self, image_rgb: np.ndarray, threshold: float | None = None) -> list[Detection]:
-        """Detections in the frame's pixels, best first; none (not an error) when nothing scores above threshold.
-        With a verifier, the heatmap's peaks down to its `candidates` score are rescored (and with `refine`, their
-        boxes corrected) and then thresholded."""
+        """Detections in the frame's pixels, best first; none (not an error) when nothing scores above threshold."""
         if image_rgb.ndim != 3 or image_rgb.shape[2] != 3 or image_rgb.dtype != np.uint8:
             raise ValueError(f"detect takes an HxWx3 uint8 RGB image, got {image_rgb.shape} {image_rgb.dtype}")
         dev = next(self.parameters()).device
@@ -125,10 +110,5 @@ class Localiser(nn.Module):
         w, h = self.config.input_size
         sx, sy = image_rgb.shape[1] / w, image_rgb.shape[0] / h
         thr = self.config.threshold if threshold is None else threshold
-        verify = self.config.verifier
-        peak_thr = thr if verify is None or verify.weight == 0 else verify.candidates
-        dets = decode(heat.cpu(), size.cpu(), offset.cpu(), list(self.config.obj_ids), STRIDE, peak_thr, self.config.max_per_object)[0]
-        dets = [Detection(d.obj_id, d.score, (d.center[0] * sx, d.center[1] * sy), (d.size[0] * sx, d.size[1] * sy)) for d in dets]
-        if verify is None:
-            return dets
-        return [d for d in rescore(self.verifier, image_rgb, dets, self.config.obj_ids) if d.score >= thr]
+        dets = decode(heat.cpu(), size.cpu(), offset.cpu(), list(self.config.obj_ids), STRIDE, thr, self.config.max_per_object)[0]
+        return [Detection(d.obj_id, d.score, (d.center[0] * sx, d.center[1] * sy), (d.size[0] * sx, d.size[1] * sy)) for d in dets]
