@@ -28,7 +28,7 @@ from write_results import write_results
 
 from axispose_core.camera import project_model
 from axispose_core.data.bop import load_ply, model_path
-from axispose_core.estimator import Estimator
+from axispose_core.estimator import Estimator, fuse_depth
 from axispose_core.evaluate import Prediction, evaluate
 from axispose_core.metrics import add_or_adi
 
@@ -93,7 +93,7 @@ def main() -> None:
             "log_depth_err_head": float(np.log(z_head / r.t_gt[2])),
         })  # fmt: skip
         for w in weights:
-            t_w = r.t * float(np.exp(w * (np.log(z_head) - np.log(r.t[2]))))
+            t_w = fuse_depth(r.t, z_head, w)
             rows[-1][f"add_ok_w{w:g}"] = add_or_adi(r.R, t_w, r.R_gt, r.t_gt, pts, spec.symmetric) < thr
     n = len(records)
 

@@ -16,7 +16,7 @@ from axispose_core.agm.scheduler import DDIMScheduler, SchedulerConfig
 from axispose_core.axis_image import axis_keypoints, render_axis_keypoints
 from axispose_core.checkpoint import CheckpointError, save_checkpoint
 from axispose_core.data.objects import lmo_objects
-from axispose_core.estimator import Estimator, EstimatorConfig
+from axispose_core.estimator import Estimator, EstimatorConfig, fuse_depth
 from axispose_core.pose_sampling import sample_patch
 from axispose_core.tbm.reader import SHIPPED_READER, load_reader
 
@@ -250,14 +250,11 @@ def test_depth_target_round_trip_and_fusion_scale_with_the_object_size():
     log_depth = log_depth_target(K, t, torch.tensor([0.05], dtype=torch.float64), 64)
     assert depth_from_log(float(log_depth[0]), K[0].numpy(), 0.05, 64) == pytest.approx(0.8)
     assert depth_from_log(float(log_depth[0]), K[0].numpy(), 0.10, 64) == pytest.approx(1.6)  # linear in λ_O
-    reader = load_reader(SHIPPED_READER)
-    cfg = EstimatorConfig(agm=AGMConfig(denoiser=TINY), reader=reader.config, objects=tuple(lmo_objects()[:1]), head_depth_weight=0.5)
-    est = Estimator(cfg, AxisGenerator(cfg.agm), reader)
     tbm = np.array([0.1, 0.0, 1.0])
     head = math.log(0.81 * 64 / (305.0 * 0.05))  # the encoder says 0.81 m, the TBM 1.0 m
-    fused = est._fused(tbm, depth_from_log(head, K[0].numpy(), 0.05, 64))
+    fused = fuse_depth(tbm, depth_from_log(head, K[0].numpy(), 0.05, 64), 0.5)
     assert fused[2] == pytest.approx(0.9) and np.allclose(fused / fused[2], tbm / tbm[2])  # geometric mean, same ray
-    np.testing.assert_allclose(est._fused(2 * tbm, depth_from_log(head, K[0].numpy(), 0.10, 64)), 2 * fused)  # λ_O x2: t x2
+    np.testing.assert_allclose(fuse_depth(2 * tbm, depth_from_log(head, K[0].numpy(), 0.10, 64), 0.5), 2 * fused)  # λ_O x2: t x2
 
 
 def test_geo_loss_is_zero_on_target(rng):
