@@ -210,16 +210,23 @@ def read_bag(path: str | Path, topics: list[str] | None = None) -> Iterator[BagM
             yield BagMessage(conn.topic, conn.msgtype, stamp, bytes(raw))
 
 
+def register_types(definitions: dict[str, str]) -> None:
+    """Teach TYPESTORE the message types (e.g. axispose_msgs) that {msgtype: .msg text} defines, those it knows
+    already kept as they are."""
+    for msgtype, text in definitions.items():
+        found = get_types_from_msg(text, msgtype)
+        TYPESTORE.register({name: t for name, t in found.items() if name not in TYPESTORE.types})
+
+
 def _learn_types(conns) -> None:
-    """Register in TYPESTORE the message types it does not know (e.g. axispose_msgs) from the definitions the
-    bag stores with its connections, so that `deserialize` reads them; a definition that does not parse leaves
-    the type unknown, and `deserialize` then says so for its messages."""
+    """Register the message types TYPESTORE does not know from the definitions the bag stores with its
+    connections, so that `deserialize` reads them; a definition that does not parse leaves the type unknown, and
+    `deserialize` then says so for its messages."""
     for conn in conns:
         if conn.msgtype in TYPESTORE.types or not conn.msgdef.data:
             continue
         try:
-            found = get_types_from_msg(conn.msgdef.data, conn.msgtype)
-            TYPESTORE.register({name: t for name, t in found.items() if name not in TYPESTORE.types})  # keep known ones
+            register_types({conn.msgtype: conn.msgdef.data})
         except Exception:  # rosbags raises several kinds for a definition it cannot read
             continue
 

@@ -31,7 +31,6 @@ from rclpy.parameter import Parameter
 from rclpy.qos import QoSProfile, ReliabilityPolicy
 from rclpy.serialization import deserialize_message, serialize_message
 from rosbags.rosbag2 import Writer
-from rosbags.typesys import get_types_from_msg
 from scipy.spatial.transform import Rotation
 from sensor_msgs.msg import CameraInfo, Image, RegionOfInterest
 from tqdm import tqdm
@@ -53,6 +52,7 @@ from axispose_ros.bag import (
     cloud_points,
     deserialize,
     read_bag,
+    register_types,
 )
 from axispose_ros.conversions import image_to_rgb
 from axispose_ros.node import AxisPoseNode
@@ -82,12 +82,8 @@ def _msg_folder() -> Path:
 def register_axispose_msgs() -> None:
     """Teach the bag typestore axispose_msgs (rosbags knows only the standard messages), so that the node's
     ~/detections can be written into a bag; idempotent."""
-    if "axispose_msgs/msg/DetectionArray" in TYPESTORE.types:
-        return
-    types = {}
-    for path in sorted(_msg_folder().glob("*.msg")):
-        types.update(get_types_from_msg(path.read_text(), f"axispose_msgs/msg/{path.stem}"))
-    TYPESTORE.register(types)
+    if "axispose_msgs/msg/DetectionArray" not in TYPESTORE.types:
+        register_types({f"axispose_msgs/msg/{p.stem}": p.read_text() for p in sorted(_msg_folder().glob("*.msg"))})
 
 
 @dataclass
