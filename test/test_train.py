@@ -198,3 +198,34 @@ def test_a_state_saved_before_a_field_existed_resumes_if_the_field_is_left_at_it
     assert load_run_state(path, cfg, model, model, opt, sched)[0] == 7
     with pytest.raises(ValueError, match="curriculum"):
         load_run_state(path, replace(cfg, curriculum=(CurriculumStage(until=5),)), model, model, opt, sched)
+
+
+def test_a_resumed_run_may_change_its_stream_from_the_saved_step_on_but_not_before(tmp_path):
+    from dataclasses import replace
+
+    from conftest import TINY_AGM
+
+    from axispose_core.agm.model import AxisGenerator
+    from axispose_core.data.synth.config import StreamConfig
+    from axispose_core.train.agm import CurriculumStage, TrainConfig, same_stream_before
+    from axispose_core.train.resume import load_run_state, save_run_state
+
+    easy = TrainConfig(agm=TINY_AGM, stream=StreamConfig(occluded_prob=0.0, clutter_prob=0.0, neighbours=(0, 0)))
+    model = AxisGenerator(TINY_AGM)
+    opt = torch.optim.AdamW(model.parameters())
+    sched = torch.optim.lr_scheduler.LambdaLR(opt, lambda s: 1.0)
+    path = tmp_path / "state.pt"
+    save_run_state(path, easy, model, model, opt, sched, 7)
+
+    def resume(cfg: TrainConfig) -> int:
+        return load_run_state(path, cfg, model, model, opt, sched, ("stream", "curriculum"), lambda s, n: same_stream_before(s, cfg, n))[0]
+
+    occluded = replace(easy, stream=StreamConfig(occluded_prob=0.4))
+    assert resume(replace(occluded, curriculum=(CurriculumStage(until=7),))) == 7  # the easy stream up to step 7, then occluded
+    assert resume(replace(occluded, curriculum=(CurriculumStage(until=9),))) == 7  # a stage may also end later
+    with pytest.raises(ValueError, match="stream"):
+        resume(replace(occluded, curriculum=(CurriculumStage(until=5),)))  # steps 5 and 6 were trained on the easy stream
+    with pytest.raises(ValueError, match="curriculum"):
+        resume(replace(easy, curriculum=(CurriculumStage(until=3, occluded_prob=0.5),)))
+    with pytest.raises(ValueError, match="batch"):
+        resume(replace(occluded, batch=3, curriculum=(CurriculumStage(until=7),)))

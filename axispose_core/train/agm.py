@@ -86,7 +86,24 @@ class TrainConfig:
     """Mixed precision (bfloat16 autocast) on the CPU as on CUDA: 1.6x faster steps on a CPU with AVX-512 BF16."""
     curriculum: tuple[CurriculumStage, ...] = ()
     """Easier streams first, in order of `until`; `stream` from the last stage's `until` on, and for validation.
-    Measured: unoccluded crops teach the encoder pose about twice as fast per step, also on occluded ones."""
+    Measured: unoccluded crops teach the encoder pose about twice as fast per step, also on occluded ones. A
+    resumed run may change its stream from its current step on (`--resume` with a stage appended that ends there)."""
+
+
+def stream_at(cfg: dict, step: int) -> dict:
+    """The stream a TrainConfig, as `dataclasses.asdict` gives it, trains on at `step` (its curriculum applied)."""
+    for stage in cfg.get("curriculum", ()):
+        if step < stage["until"]:
+            return cfg["stream"] | {k: v for k, v in stage.items() if k != "until"}
+    return cfg["stream"]
+
+
+def same_stream_before(saved: dict, now: TrainConfig, step: int) -> bool:
+    """Whether `now` trains on the same stream as the saved config at every step before `step`: the streams are
+    piecewise constant, so comparing them where any stage of either begins suffices."""
+    new = dataclasses.asdict(now)
+    starts = {0} | {s["until"] for c in (saved, new) for s in c.get("curriculum", ()) if s["until"] < step}
+    return all(stream_at(saved, s) == stream_at(new, s) for s in starts)
 
 
 def dataset_objects(root: str | Path) -> list[ObjectSpec]:
@@ -247,7 +264,9 @@ def train_agm(
     sched = torch.optim.lr_scheduler.LambdaLR(opt, lambda s: warmup_cosine(s, cfg.warmup, cfg.steps))
     step, started_from = 0, str(init) if init else None
     if resume:  # its weights are the run's own; the record keeps naming what its first call started from
-        step, started_from = load_run_state(resume, cfg, model, ema, opt, sched)
+        step, started_from = load_run_state(
+            resume, cfg, model, ema, opt, sched, ("stream", "curriculum"), lambda saved, at: same_stream_before(saved, cfg, at)
+        )
     net = torch.nn.parallel.DistributedDataParallel(model) if distributed else model
     scales = torch.tensor([o.scale for o in objects], dtype=torch.float64)
     val_batch, val_lengths = None, None

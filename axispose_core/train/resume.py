@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -41,9 +42,21 @@ def save_run_state(
 EXTENDABLE = ("steps", "save_every", "val_every")
 
 
-def load_run_state(path: str | Path, cfg: Any, model: torch.nn.Module, ema: torch.nn.Module, opt, sched) -> tuple[int, str | None]:
+def load_run_state(
+    path: str | Path,
+    cfg: Any,
+    model: torch.nn.Module,
+    ema: torch.nn.Module,
+    opt,
+    sched,
+    data_fields: tuple[str, ...] = (),
+    same_data: Callable[[dict[str, Any], int], bool] | None = None,
+) -> tuple[int, str | None]:
     """Restore a saved run into the given objects and return its step and the checkpoint it was warm-started from
-    (None: from scratch); a run with another recipe is refused."""
+    (None: from scratch); a run with another recipe is refused. `data_fields` say what the run trains on at each
+    step: they may change where `same_data(saved config, saved step)` finds that the new ones give the same data
+    before the saved step (e.g. a curriculum stage appended after it), since the weights are then the new
+    recipe's too."""
     state = torch.load(path, map_location="cpu", weights_only=False)
     saved, now = dict(state["config"]), dataclasses.asdict(cfg)
     for f in dataclasses.fields(cfg):  # a field added since, left at its default, is the same recipe
@@ -52,12 +65,13 @@ def load_run_state(path: str | Path, cfg: Any, model: torch.nn.Module, ema: torc
         default = f.default if f.default is not dataclasses.MISSING else f.default_factory()
         if now[f.name] == (dataclasses.asdict(default) if dataclasses.is_dataclass(default) else default):
             saved[f.name] = now[f.name]
-    for key in EXTENDABLE:
+    same = data_fields and same_data is not None and same_data(saved, state["step"])
+    for key in EXTENDABLE + (data_fields if same else ()):
         saved.pop(key, None), now.pop(key, None)
     if saved != now:
         changed = sorted(k for k in saved.keys() | now.keys() if saved.get(k) != now.get(k))
         raise ValueError(f"{path}: saved by a run with another configuration ({', '.join(changed)}); "
-                         f"only {', '.join(EXTENDABLE)} may change on resume")  # fmt: skip
+                         f"only {', '.join(EXTENDABLE)} may change on resume, and the data from the saved step on")  # fmt: skip
     model.load_state_dict(state["model"])
     ema.load_state_dict(state["ema"])
     opt.load_state_dict(state["opt"])
