@@ -15,6 +15,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import cv2
 import numpy as np
 import torch
 
@@ -140,3 +141,17 @@ def render_axis_keypoints_torch(
     dy = ys - (ay + s * by)
     d = torch.sqrt(dx * dx + dy * dy + 1e-12)
     return torch.sigmoid((0.5 * line_width - d) / softness)
+
+
+AXIS_BGR = ((0, 0, 255), (0, 255, 0), (255, 0, 0))  # X red, Y green, Z blue
+
+
+def draw_axes(image_bgr: np.ndarray, K: np.ndarray, R: np.ndarray, t: np.ndarray, lengths: np.ndarray, thickness: int = 2) -> None:
+    """Draw the axis convention's three segments onto a BGR image in place."""
+    try:
+        kp = axis_keypoints(K, R, t, lengths)
+    except ValueError:
+        return
+    o = tuple(round(v) for v in kp[0])
+    for k in range(3):
+        cv2.line(image_bgr, o, tuple(round(v) for v in kp[k + 1]), AXIS_BGR[k], thickness, cv2.LINE_AA)

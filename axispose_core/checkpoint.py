@@ -30,8 +30,28 @@ def git_commit() -> str:
         return "unknown"
 
 
+def kind_of(cls: type) -> str | None:
+    """The `kind` a config class declares (a field of that name with a default), or None."""
+    f = next((f for f in dataclasses.fields(cls) if f.name == "kind"), None)
+    return None if f is None or f.default is dataclasses.MISSING else f.default
+
+
+def _pick_kind(options: list[type], data: dict[str, Any], source: str) -> type:
+    """The config class among `options` (the dataclasses a field's type allows) that `data` names by its `kind`;
+    without one, the only option. Never the first that happens to fit."""
+    kinds = {kind_of(c): c for c in options}
+    if "kind" in data:
+        if data["kind"] not in kinds:
+            raise CheckpointError(f"{source}: kind {data['kind']!r} is not one of {sorted(k for k in kinds if k)}")
+        return kinds[data["kind"]]
+    if len(options) > 1:
+        raise CheckpointError(f"{source}: 'kind' must say which of {sorted(k for k in kinds if k)} this is")
+    return options[0]
+
+
 def config_from_dict(cls: type[C], data: dict[str, Any], source: str = "config") -> C:
-    """Build a (possibly nested) config dataclass from a dict, naming any missing or unknown key."""
+    """Build a (possibly nested) config dataclass from a dict, naming any missing or unknown key. Where a field
+    may hold one of several config classes (a union), their `kind` fields tell them apart."""
     if not isinstance(data, dict):
         raise CheckpointError(f"{source}: expected a mapping for {cls.__name__}")
     fields = {f.name: f for f in dataclasses.fields(cls)}  # type: ignore[arg-type]
@@ -49,11 +69,12 @@ def config_from_dict(cls: type[C], data: dict[str, Any], source: str = "config")
         ftype = hints.get(name)
         item = get_args(ftype)[0] if get_origin(ftype) is tuple and get_args(ftype) else None
         union = get_args(ftype) if get_origin(ftype) in (Union, UnionType) else ()
-        optional = [a for a in union if isinstance(a, type) and dataclasses.is_dataclass(a)]
+        options = [a for a in union if isinstance(a, type) and dataclasses.is_dataclass(a)]
         if isinstance(ftype, type) and dataclasses.is_dataclass(ftype):
-            value = config_from_dict(ftype, value, f"{source}.{name}")
-        elif optional and isinstance(value, dict):  # `SomeConfig | None` holding a config
-            value = config_from_dict(optional[0], value, f"{source}.{name}")
+            value = config_from_dict(_pick_kind([ftype], value, f"{source}.{name}") if isinstance(value, dict) else ftype, value,
+                                     f"{source}.{name}")  # fmt: skip
+        elif options and isinstance(value, dict):  # `AConfig | BConfig | None` holding one of them
+            value = config_from_dict(_pick_kind(options, value, f"{source}.{name}"), value, f"{source}.{name}")
         elif isinstance(item, type) and dataclasses.is_dataclass(item) and isinstance(value, list):
             value = tuple(config_from_dict(item, v, f"{source}.{name}[{k}]") for k, v in enumerate(value))
         elif isinstance(value, list):

@@ -26,34 +26,28 @@ def _demo(args: argparse.Namespace) -> int:
 def _train_reader(args: argparse.Namespace) -> int:
     import torch
 
-    from axispose_core.tbm.reader import ReaderConfig, train_reader
+    from axispose_core.train.reader import ReaderTrainConfig, train_reader
 
     torch.set_num_threads(args.threads)
-    config = ReaderConfig(size=args.size, steps=args.steps, batch=args.batch, seed=args.seed)
-    train_reader(config, out=args.out, log_csv=args.log)
-    print(f"saved {args.out}")
+    cfg = _config(ReaderTrainConfig, args.config)
+    step = train_reader(cfg, args.out, args.resume, args.device, args.max_minutes)
+    print(f"stopped at step {step} of {cfg.optim.steps}; keypoint reader {args.out}")
     return 0
 
 
 def _synth(args: argparse.Namespace) -> int:
-    import json
-
-    import numpy as np
-
-    from axispose_core.camera import validate_intrinsics
+    from axispose_core.data.bop import BopFormatError, load_camera
     from axispose_core.data.synth.config import SynthConfig
     from axispose_core.data.synth.generate import generate
 
     K = SynthConfig().K
     width, height = args.width, args.height
     if args.camera:
-        cam = json.loads(Path(args.camera).read_text())
         try:
-            K = np.array([[cam["fx"], 0.0, cam["cx"]], [0.0, cam["fy"], cam["cy"]], [0.0, 0.0, 1.0]])
-        except KeyError as err:
-            raise SystemExit(f"{args.camera}: camera JSON needs fx, fy, cx, cy (BOP camera.json) - missing {err}") from err
-        K = tuple(validate_intrinsics(K).ravel().tolist())
-        width, height = cam.get("width", width), cam.get("height", height)
+            cam_K, cam_width, cam_height = load_camera(args.camera)
+        except BopFormatError as err:
+            raise SystemExit(str(err)) from err
+        K, width, height = tuple(cam_K.ravel().tolist()), cam_width or width, cam_height or height
     cfg = SynthConfig(
         width=width,
         height=height,
@@ -116,7 +110,7 @@ def _train(args: argparse.Namespace) -> int:
     torch.set_num_threads(args.threads)
     cfg = _config(TrainConfig, args.config)
     step = train_agm(cfg, args.data, args.out, init=args.init, models=args.models, **_training_kwargs(args))
-    print(f"stopped at step {step} of {cfg.steps}; checkpoint {args.out}")
+    print(f"stopped at step {step} of {cfg.optim.steps}; checkpoint {args.out}")
     return 0
 
 
@@ -128,14 +122,15 @@ def _train_direct(args: argparse.Namespace) -> int:
     torch.set_num_threads(args.threads)
     cfg = _config(DirectTrainConfig, args.config)
     step = train_direct(cfg, args.data, args.out, models=args.models, **_training_kwargs(args))
-    print(f"stopped at step {step} of {cfg.steps}; direct-regression baseline {args.out}")
+    print(f"stopped at step {step} of {cfg.optim.steps}; direct-regression baseline {args.out}")
     return 0
 
 
 def _score_and_attach(args: argparse.Namespace) -> int:
     """After `train-detector`: the localiser in OUT scored on --val, then given to --attach."""
+    from axispose_core.detect.scoring import detection_scores
+    from axispose_core.detect.weights import load_localiser
     from axispose_core.estimator import Estimator
-    from axispose_core.train.detector import detection_scores, load_localiser
 
     localiser = load_localiser(args.out)
     if args.val:
@@ -151,16 +146,16 @@ def _score_and_attach(args: argparse.Namespace) -> int:
 def _train_detector(args: argparse.Namespace) -> int:
     import torch
 
-    from axispose_core.train.agm import dataset_objects
+    from axispose_core.data.objects import dataset_objects
     from axispose_core.train.detector import DetectorTrainConfig, train_detector
 
     torch.set_num_threads(args.threads)
     cfg = _config(DetectorTrainConfig, args.config)
     if not cfg.localiser.obj_ids:  # default: the objects the data shows
-        ids = tuple(o.obj_id for o in dataset_objects(args.data[0]))
+        ids = tuple(o.obj_id for o in dataset_objects(args.data))
         cfg = dataclasses.replace(cfg, localiser=dataclasses.replace(cfg.localiser, obj_ids=ids))
     step = train_detector(cfg, args.data, args.out, init=args.init, **_training_kwargs(args))
-    print(f"stopped at step {step} of {cfg.steps}; localiser {args.out}")
+    print(f"stopped at step {step} of {cfg.optim.steps}; localiser {args.out}")
     return _score_and_attach(args)
 
 
@@ -239,17 +234,20 @@ def _report(args: argparse.Namespace, records, objects, config: dict, counts: di
     return 0
 
 
-def _training_args(parser: argparse.ArgumentParser, what: str, config_cls: str, example: str, data_help: str | None = None) -> None:
+def _training_args(
+    parser: argparse.ArgumentParser, what: str, config_cls: str, example: str, data_help: str | None = None, data: bool = True
+) -> None:
     """The options every trainer shares (data, output, config, resume, device, time cap, threads); `data_help`
-    makes --data optional."""
-    parser.add_argument(
-        "--data", nargs="+", required=data_help is None, help=data_help or "BOP dataset folders written by `axispose synth`"
-    )
-    parser.add_argument("--val", nargs="*", default=None, help="held-out BOP folders for periodic validation")
+    makes --data optional, `data` False leaves out --data and --val."""
+    if data:
+        parser.add_argument(
+            "--data", nargs="+", required=data_help is None, help=data_help or "BOP dataset folders written by `axispose synth`"
+        )
+        parser.add_argument("--val", nargs="*", default=None, help="held-out BOP folders for periodic validation")
     parser.add_argument("--out", required=True, help=f"{what} to write (.safetensors); OUT.state.pt holds the resume state")
     parser.add_argument("--config", help=f"YAML with {config_cls} fields (e.g. {example})")
     parser.add_argument("--resume", help="OUT.state.pt of an earlier run with the same config "
-                        "(steps, save_every, val_every may differ: a longer run extends it)")  # fmt: skip
+                        "(optim.steps, save_every, val_every may differ: a longer run extends it)")  # fmt: skip
     parser.add_argument("--device", default="auto", choices=["cpu", "cuda", "auto"])
     parser.add_argument("--max-minutes", type=float, default=None, help="stop (and save) after this much wall time")
     parser.add_argument("--threads", type=int, default=2)
@@ -274,13 +272,7 @@ def build_parser() -> argparse.ArgumentParser:
     demo.set_defaults(func=_demo)
 
     tr = sub.add_parser("train-reader", help="train the TBM keypoint reader on rendered, degraded axis images")
-    tr.add_argument("--out", required=True, help="checkpoint to write (.safetensors)")
-    tr.add_argument("--size", type=int, default=64, help="axis image size S (the AGM's output size)")
-    tr.add_argument("--steps", type=int, default=3000)
-    tr.add_argument("--batch", type=int, default=32)
-    tr.add_argument("--seed", type=int, default=0)
-    tr.add_argument("--threads", type=int, default=2)
-    tr.add_argument("--log", default=None, help="CSV of the training loss")
+    _training_args(tr, "keypoint reader", "ReaderTrainConfig", "reader: {size: 64}", data=False)
     tr.set_defaults(func=_train_reader)
 
     sy = sub.add_parser("synth", help="render randomised BOP-format training scenes of the objects in --models")

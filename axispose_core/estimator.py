@@ -25,7 +25,7 @@ from axispose_core.consensus import consensus
 from axispose_core.data.crops import InstanceCrop, instance_crop
 from axispose_core.data.objects import ObjectSpec
 from axispose_core.detect.decode import Detection
-from axispose_core.detect.model import Localiser, LocaliserConfig
+from axispose_core.detect.model import Localiser, LocaliserConfig, build_localiser
 from axispose_core.tbm.backproject import backproject_readings
 from axispose_core.tbm.reader import KeypointReader, ReaderConfig
 
@@ -182,7 +182,7 @@ class Estimator:
         load_state(reader, states.get("reader", {}), f"{path} (reader)")
         localiser = None
         if config.localiser is not None:
-            localiser = Localiser(config.localiser)
+            localiser = build_localiser(config.localiser)
             load_state(localiser, states.get("localiser", {}), f"{path} (localiser)")
         elif "localiser" in states:
             raise CheckpointError(f"{path}: holds localiser weights but no localiser config")

@@ -22,13 +22,13 @@ import cv2
 import numpy as np
 from tqdm import tqdm
 
+from axispose_core.axis_image import draw_axes
 from axispose_core.camera import crop_image, crop_intrinsics, square_around_box
-from axispose_core.data.bop import load_ply, model_path, read_bgr
+from axispose_core.data.bop import bop_frames, load_ply, model_path, read_bgr
 from axispose_core.data.objects import ObjectSpec
-from axispose_core.data.synth.preview import draw_axes
 from axispose_core.detect.decode import Detection, match
+from axispose_core.detect.scoring import frame_outcome
 from axispose_core.metrics import ADD_THRESHOLDS, REPROJ_THRESHOLDS, pose_scores
-from axispose_core.train.dataset import bop_frames
 
 MIN_VISIB = 0.1
 SUMMARY_KEYS = [f"add_{f:g}d" for f in ADD_THRESHOLDS] + [f"reproj_{p:g}px" for p in REPROJ_THRESHOLDS]
@@ -63,6 +63,15 @@ class Record:
     rgb_path: Path | None
     box: tuple[int, int, int, int]
     spread_deg: float = float("nan")
+
+
+def instance_scores(
+    spec: ObjectSpec, points: np.ndarray, K: np.ndarray, R_gt: np.ndarray, t_gt: np.ndarray, pose: tuple[np.ndarray, np.ndarray] | None
+) -> dict[str, float]:
+    """One GT instance's scores in every report: `pose_scores` of its estimate (R, t), or a failure's without one."""
+    if pose is None:
+        return {k: 0.0 for k in SUMMARY_KEYS} | {"rot_err_deg": 180.0, "trans_err_mm": float("inf")}
+    return pose_scores(*pose, R_gt, t_gt, K, points, spec.diameter, spec.symmetric)
 
 
 def evaluate(
@@ -124,20 +133,15 @@ def evaluate(
                     c = detection_counts.setdefault(g.obj_id, {"tp": 0, "fp": 0, "n": 0})
                     c["n"] += 1
                     c["tp"] += found[id(g)] is not None
-                claimed = {k for k in hits if k is not None}
-                for k, d in enumerate(dets):
-                    if k not in claimed and d.obj_id in specs:
-                        detection_counts.setdefault(d.obj_id, {"tp": 0, "fp": 0, "n": 0})["fp"] += 1
+                _, alarms = frame_outcome(dets, [(g.obj_id, info.bbox_obj, info.visib_fract) for g, info in pairs], MIN_VISIB)
+                for d in (dets[k] for k in alarms if dets[k].obj_id in specs):
+                    detection_counts.setdefault(d.obj_id, {"tp": 0, "fp": 0, "n": 0})["fp"] += 1
         preds_found = iter(predict(rgb, K, boxes) if boxes else [])
         per_object = (time.perf_counter() - start) / len(insts)
         missed = Prediction(np.eye(3), np.zeros(3), False)
         preds = [next(preds_found) if detector is None or found[id(g)] is not None else missed for g, _ in insts]
         for (g, info), p in zip(insts, preds, strict=True):
-            spec = specs[g.obj_id]
-            if p.ok:
-                scores = pose_scores(p.R, p.t, g.R, g.t, K, points[g.obj_id], spec.diameter, spec.symmetric)
-            else:
-                scores = {k: 0.0 for k in SUMMARY_KEYS} | {"rot_err_deg": 180.0, "trans_err_mm": float("inf")}
+            scores = instance_scores(specs[g.obj_id], points[g.obj_id], K, g.R, g.t, (p.R, p.t) if p.ok else None)
             records.append(
                 Record(
                     g.obj_id,

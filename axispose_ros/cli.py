@@ -14,10 +14,10 @@ from axispose_core.cli import _ids, build_parser
 
 
 def _make_bag(args: argparse.Namespace) -> int:
-    from axispose_core.data.objects import LMO_NAMES, objects_from_models
+    from axispose_core.data.objects import objects_from_models
     from axispose_ros.bag import make_bag
 
-    objects = objects_from_models(args.models, args.objects or None, names=LMO_NAMES)
+    objects = objects_from_models(args.models, args.objects or None)
     s = make_bag(args.data, args.out, objects, args.models, storage=args.format, fps=args.fps, limit=args.limit)
     print(f"wrote {s.path} ({args.format}): {s.frames} frames, {s.instances} GT instances, {s.bytes / 1e6:.1f} MB")
     return 0

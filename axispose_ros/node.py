@@ -46,9 +46,9 @@ from sensor_msgs.msg import CameraInfo, Image, RegionOfInterest
 from visualization_msgs.msg import Marker, MarkerArray
 
 from axispose_core.agm.model import Cancelled
+from axispose_core.axis_image import draw_axes
 from axispose_core.camera import crop_transform
 from axispose_core.checkpoint import CheckpointError
-from axispose_core.data.synth.preview import draw_axes
 from axispose_core.estimator import Estimator
 from axispose_msgs.msg import Detection, DetectionArray
 from axispose_ros.conversions import InputError, Undistorter, camera_for_image, camera_from_info, image_to_rgb, rgb_to_image

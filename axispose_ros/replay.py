@@ -37,8 +37,7 @@ from tqdm import tqdm
 from visualization_msgs.msg import MarkerArray
 
 import axispose_msgs
-from axispose_core.evaluate import SUMMARY_KEYS, Record, summarize
-from axispose_core.metrics import pose_scores
+from axispose_core.evaluate import Record, instance_scores, summarize
 from axispose_msgs.msg import DetectionArray
 from axispose_ros.bag import (
     FORMATS,
@@ -373,12 +372,8 @@ def _report(node, gt, poses, cameras, boxes, points, arrays, latency, counts, co
             ests = list(poses.get(stamp, {}).get(name, []))
             for R_gt, t_gt in instances:
                 best = min(range(len(ests)), key=lambda i: np.linalg.norm(ests[i][1] - t_gt)) if ests else None
-                if best is not None:
-                    R, t = ests.pop(best)
-                    scores = pose_scores(R, t, R_gt, t_gt, K, points[name], spec.diameter, spec.symmetric)
-                else:
-                    R, t = np.eye(3), np.zeros(3)
-                    scores = {key: 0.0 for key in SUMMARY_KEYS} | {"rot_err_deg": 180.0, "trans_err_mm": float("inf")}
+                R, t = ests.pop(best) if best is not None else (np.eye(3), np.zeros(3))
+                scores = instance_scores(spec, points[name], K, R_gt, t_gt, (R, t) if best is not None else None)
                 records.append(
                     Record(
                         spec.obj_id,

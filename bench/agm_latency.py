@@ -19,9 +19,9 @@ import numpy as np
 import torch
 from write_results import write_results
 
+from axispose_core.data.bop import bop_frames
+from axispose_core.detect.scoring import frame_instances
 from axispose_core.estimator import Estimator
-from axispose_core.train.dataset import bop_frames
-from axispose_core.train.detector import frame_instances
 
 
 def _median_ms(fn, repeats: int) -> float:

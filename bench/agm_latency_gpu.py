@@ -22,9 +22,9 @@ import numpy as np
 import torch
 from write_results import write_results
 
+from axispose_core.data.bop import bop_frames
+from axispose_core.detect.scoring import frame_instances
 from axispose_core.estimator import Estimator
-from axispose_core.train.dataset import bop_frames
-from axispose_core.train.detector import frame_instances
 
 MODES = ("fp32", "bf16", "bf16+graphs")
 

@@ -20,7 +20,8 @@ from write_results import write_results
 from axispose_core.metrics import re
 from axispose_core.tbm.backproject import backproject
 from axispose_core.tbm.line_fit import fit_axis_keypoints
-from axispose_core.tbm.reader import SHIPPED_READER, load_reader, synth_batch
+from axispose_core.tbm.reader import SHIPPED_READER, load_reader
+from axispose_core.train.reader import synth_batch
 
 
 def main() -> None:

@@ -185,3 +185,50 @@ def test_missing_file_and_broken_ply(tmp_path):
     bad.write_text("ply\nformat ascii 1.0\nelement vertex 1\nproperty float x\nend_header\nzzz\n")
     with pytest.raises(BopFormatError, match=r"obj_000001\.ply"):
         load_ply(bad)
+
+
+def test_camera_json_gives_K_and_image_size_or_says_what_is_wrong(lmo_dir, tmp_path):
+    from axispose_core.data.bop import load_camera
+
+    K, width, height = load_camera(lmo_dir / "camera.json")
+    assert np.allclose(K, LMO_K) and (width, height) == (640, 480)
+    bad = tmp_path / "camera.json"
+    bad.write_text(json.dumps({"fx": 500.0, "fy": 500.0, "cx": 320.0}))
+    with pytest.raises(BopFormatError, match="missing field 'cy'"):
+        load_camera(bad)
+    bad.write_text(json.dumps({"fx": -500.0, "fy": 500.0, "cx": 320.0, "cy": 240.0}))
+    with pytest.raises(BopFormatError, match=r"camera\.json"):
+        load_camera(bad)
+    bad.write_text(json.dumps({"fx": 500.0, "fy": 500.0, "cx": 320.0, "cy": 240.0, "width": "640"}))
+    with pytest.raises(BopFormatError, match="width and height"):
+        load_camera(bad)
+    bad.write_text(json.dumps({"fx": 500.0, "fy": 500.0, "cx": 320.0, "cy": 240.0}))
+    assert load_camera(bad)[1:] == (None, None)
+
+
+def test_object_names_come_from_the_models_folder(lmo_dir, tmp_path):
+    import shutil
+
+    from axispose_core.data.objects import NAMES_FILE, dataset_objects, object_names
+
+    assert object_names(lmo_dir / "models")[1] == "ape"  # LM-O's models: LM-O's names
+    own = tmp_path / "own"
+    own.mkdir()
+    info = json.loads((lmo_dir / "models" / "models_info.json").read_text())
+    (own / "models_info.json").write_text(json.dumps({"1": info["1"] | {"diameter": 55.0}}))
+    assert object_names(own) == {} and objects_from_models(own)[0].name == "obj_000001"  # not 'ape': another object
+    (own / NAMES_FILE).write_text(json.dumps({"1": "mug"}))
+    assert objects_from_models(own)[0].name == "mug"
+    (own / NAMES_FILE).write_text(json.dumps({"1": "my mug"}))
+    with pytest.raises(ValueError, match="my mug"):
+        object_names(own)
+    # Training on several folders reads the objects of all of them; one id with two sizes is refused.
+    lmo = tmp_path / "lmo"
+    lmo.mkdir()
+    shutil.copy(lmo_dir / "models" / "models_info.json", lmo)
+    (own / NAMES_FILE).write_text(json.dumps({"1": "mug"}))
+    (own / "models_info.json").write_text(json.dumps({"20": info["1"]}))
+    assert [(o.obj_id, o.name) for o in dataset_objects([lmo, own])][-2:] == [(12, "holepuncher"), (20, "obj_000020")]
+    (own / "models_info.json").write_text(json.dumps({"1": info["1"] | {"diameter": 55.0}}))
+    with pytest.raises(ValueError, match="object 1 has diameter"):
+        dataset_objects([lmo, own])

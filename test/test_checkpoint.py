@@ -21,6 +21,45 @@ class Outer:
     scales: tuple[float, ...] = (1.0,)
 
 
+@dataclass(frozen=True)
+class NetA:
+    kind: str = "a"
+    width: int = 8
+
+
+@dataclass(frozen=True)
+class NetB:
+    kind: str = "b"
+    width: int = 8
+    depth: int = 2
+
+
+@dataclass(frozen=True)
+class Slots:
+    either: NetA | NetB | None = None
+    only: NetA = field(default_factory=NetA)
+
+
+def test_a_config_union_is_resolved_by_kind_never_by_the_first_class_that_fits():
+    assert config_from_dict(Slots, {"either": {"kind": "b", "width": 4}}).either == NetB(width=4)
+    assert config_from_dict(Slots, {"either": {"kind": "a", "width": 4}}).either == NetA(width=4)  # NetB would fit too
+    with pytest.raises(CheckpointError, match="'kind' must say which of"):
+        config_from_dict(Slots, {"either": {"width": 4}})
+    with pytest.raises(CheckpointError, match="kind 'c' is not one of"):
+        config_from_dict(Slots, {"either": {"kind": "c"}})
+    with pytest.raises(CheckpointError, match="kind 'b' is not one of"):  # a single-class slot checks the kind too
+        config_from_dict(Slots, {"only": {"kind": "b", "width": 4}})
+    assert config_from_dict(Slots, {"only": {"width": 4}}).only == NetA(width=4)  # written before kinds: the only class
+
+
+def test_shipped_checkpoint_written_before_kinds_loads_with_its_classes_kinds():
+    from axispose_core.estimator import Estimator
+    from axispose_ros.node import DEFAULT_CHECKPOINT
+
+    cfg = Estimator.load(DEFAULT_CHECKPOINT).config
+    assert cfg.agm.denoiser.kind == "unet" and cfg.localiser.kind == "centernet"
+
+
 def test_nested_config_round_trip(tmp_path):
     cfg = Outer("x", Inner(32), (0.5, 2.0))
     save_checkpoint(tmp_path / "c.safetensors", "test", cfg, {"net": torch.nn.Linear(2, 2)}, extra={"steps": 3})

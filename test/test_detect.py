@@ -17,19 +17,13 @@ from axispose_core.data.crops import instance_crop
 from axispose_core.data.objects import objects_from_models
 from axispose_core.detect.decode import Detection, decode, draw_targets, focal_loss, iou, match
 from axispose_core.detect.model import STRIDE, Localiser, LocaliserConfig
+from axispose_core.detect.scoring import detection_scores, frame_outcome
+from axispose_core.detect.weights import KIND, load_localiser, warm_start
 from axispose_core.estimator import Estimator, EstimatorConfig
 from axispose_core.tbm.reader import SHIPPED_READER, load_reader
 from axispose_core.train.dataset import AxisCropDataset
-from axispose_core.train.detector import (
-    KIND,
-    DetectionDataset,
-    DetectorTrainConfig,
-    detection_scores,
-    frame_outcome,
-    load_localiser,
-    train_detector,
-    warm_start,
-)
+from axispose_core.train.detector import DetectionDataset, DetectorTrainConfig, train_detector
+from axispose_core.train.loop import OptimConfig
 from axispose_core.train.resume import state_path
 
 TINY = LocaliserConfig(obj_ids=(1, 5), input_size=(160, 128), channels=(8, 16, 24, 32))
@@ -107,7 +101,8 @@ def test_frame_outcome_scores_visible_instances_and_spares_detections_of_hidden_
 def trained(frames, tmp_path_factory):
     torch.manual_seed(0)
     before = Localiser(TINY).eval()
-    cfg = DetectorTrainConfig(localiser=TINY, steps=150, batch=4, lr=3e-3, warmup=10, workers=0, save_every=1000, ema_decay=0.9)
+    optim = OptimConfig(steps=150, batch=4, lr=3e-3, warmup=10, workers=0, save_every=1000, ema_decay=0.9)
+    cfg = DetectorTrainConfig(localiser=TINY, optim=optim)
     out = tmp_path_factory.mktemp("det") / "det.safetensors"
     train_detector(cfg, [frames], out, progress=False)
     return before, out
@@ -260,11 +255,11 @@ def test_warm_start_copies_what_matches_and_leaves_the_rest_fresh(trained, estim
 
 
 def test_a_warm_started_run_keeps_naming_its_start_when_resumed(frames, trained, tmp_path):
-    cfg = DetectorTrainConfig(localiser=TINY, steps=2, batch=2, warmup=1, workers=0, save_every=1000)
+    cfg = DetectorTrainConfig(localiser=TINY, optim=OptimConfig(steps=2, batch=2, warmup=1, workers=0, save_every=1000))
     out = tmp_path / "warm.safetensors"
     train_detector(cfg, [frames], out, init=trained[1], progress=False)
     assert read_checkpoint(out, KIND, LocaliserConfig)[2]["training"]["init"] == str(trained[1])
-    train_detector(replace(cfg, steps=3), [frames], out, resume=state_path(out), progress=False)
+    train_detector(replace(cfg, optim=replace(cfg.optim, steps=3)), [frames], out, resume=state_path(out), progress=False)
     record = read_checkpoint(out, KIND, LocaliserConfig)[2]["training"]
     assert record["steps"] == 3 and record["init"] == str(trained[1])
 

@@ -73,8 +73,8 @@ def test_loss_falls_on_a_tiny_set(data):
 
 def test_train_direct_cli_then_eval_and_resume(data, lmo_dir, tmp_path):
     cfg = tmp_path / "cfg.yaml"
-    fields = {"steps": 4, "batch": 2, "workers": 0, "warmup": 1, "save_every": 2, "val_every": 2, "val_samples": 4,
-              "size": 64, "encoder": TINY_AGM_YAML["denoiser"]["encoder"]}  # fmt: skip
+    optim = {"steps": 4, "batch": 2, "workers": 0, "warmup": 1, "save_every": 2, "val_every": 2}
+    fields = {"optim": optim, "val_samples": 4, "size": 64, "encoder": TINY_AGM_YAML["denoiser"]["encoder"]}
     cfg.write_text(yaml.safe_dump(fields))
     out = tmp_path / "direct.safetensors"
     args = ["train-direct", "--data", str(data), "--val", str(data), "--out", str(out), "--config", str(cfg), "--threads", "1"]
@@ -82,11 +82,11 @@ def test_train_direct_cli_then_eval_and_resume(data, lmo_dir, tmp_path):
     est = DirectEstimator.load(out)
     assert {o.obj_id for o in est.model.config.objects} == {1, 5, 6}
     rows = (tmp_path / "direct.csv").read_text().splitlines()
-    assert rows[0] == "step,loss,lr,seconds,val_rot_median_deg,val_rot_within_15deg,val_kp_err_px,val_depth_head"
-    assert any(r.split(",")[4] for r in rows[1:])
+    assert rows[0] == "step,samples,loss,lr,seconds,val_rot_median_deg,val_rot_within_15deg,val_kp_err_px,val_depth_head"
+    assert any(r.split(",")[5] for r in rows[1:])
     assert torch.load(str(out) + ".state.pt", weights_only=False)["step"] == 4
     longer = tmp_path / "longer.yaml"
-    longer.write_text(yaml.safe_dump(fields | {"steps": 6}))
+    longer.write_text(yaml.safe_dump(fields | {"optim": optim | {"steps": 6}}))
     assert main([*args[:-4], "--config", str(longer), "--resume", str(out) + ".state.pt", "--threads", "1"]) == 0
     assert torch.load(str(out) + ".state.pt", weights_only=False)["step"] == 6
     report = tmp_path / "rep.json"

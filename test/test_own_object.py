@@ -19,12 +19,13 @@ def test_mug_from_mesh_to_node(tmp_path, capsys):
                  "--images-per-scene", "3", "--seed", "7"]) == 0  # fmt: skip
     assert "as object 1" in capsys.readouterr().out
     cfg = tmp_path / "train.yaml"
-    cfg.write_text(yaml.safe_dump({"steps": 3, "batch": 2, "workers": 0, "warmup": 1, "save_every": 3, "val_every": 3,
+    cfg.write_text(yaml.safe_dump({"optim": {"steps": 3, "batch": 2, "workers": 0, "warmup": 1, "save_every": 3, "val_every": 3},
                                    "agm": {"denoiser": {"size": 64, "channels": 8, "multipliers": [1, 2], "groups": 4}}}))  # fmt: skip
     ckpt = tmp_path / "mug.safetensors"
     assert main(["train", "--data", str(data), "--out", str(ckpt), "--config", str(cfg), "--threads", "1"]) == 0
     (mug,) = Estimator.load(ckpt).config.objects
     assert mug.obj_id == 1 and 0.12 < mug.diameter < 0.2  # metres: the mesh's units were honoured
+    assert mug.name == "mug"  # named after its file, not after LM-O's object 1
     bag = tmp_path / "mug_bag"
     assert main(["make-bag", "--data", str(data / "000000"), "--models", str(data / "models"), "--out", str(bag)]) == 0
     report = tmp_path / "report.json"
@@ -32,3 +33,4 @@ def test_mug_from_mesh_to_node(tmp_path, capsys):
                  "--steps", "1", "--threads", "1"]) == 0  # fmt: skip
     got = json.loads(report.read_text())
     assert got["counts"]["frames_processed"] == 3 and set(got["objects"]) == {"1"} and got["objects"]["1"]["n"] >= 1
+    assert got["objects"]["1"]["name"] == "mug"

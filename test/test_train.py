@@ -15,13 +15,9 @@ from axispose_core.data.synth.config import SynthConfig
 from axispose_core.data.synth.generate import generate
 from axispose_core.estimator import Estimator
 
+OPTIM = {"steps": 4, "batch": 2, "workers": 0, "warmup": 1, "save_every": 2, "val_every": 2}
 TINY = {
-    "steps": 4,
-    "batch": 2,
-    "workers": 0,
-    "warmup": 1,
-    "save_every": 2,
-    "val_every": 2,
+    "optim": OPTIM,
     "val_samples": 2,
     "val_steps": 1,
     "agm": TINY_AGM_YAML,
@@ -36,8 +32,10 @@ def data(tmp_path_factory, lmo_dir):
 
 
 def _config(tmp_path, **overrides):
+    """A tiny TrainConfig YAML; overrides of optimisation fields (steps, lr, ...) go into its `optim` section."""
     path = tmp_path / f"cfg_{len(list(tmp_path.glob('cfg_*.yaml')))}.yaml"
-    path.write_text(yaml.safe_dump({**TINY, **overrides}))
+    optim = OPTIM | {k: v for k, v in overrides.items() if k in OPTIM or k in ("lr", "bf16", "seed")}
+    path.write_text(yaml.safe_dump({**TINY, **{k: v for k, v in overrides.items() if k not in optim}, "optim": optim}))
     return str(path)
 
 
@@ -50,9 +48,9 @@ def test_short_run_then_resume(data, tmp_path):
     state = torch.load(str(out) + ".state.pt", weights_only=False)
     assert state["step"] == 4
     rows = (tmp_path / "agm.csv").read_text().splitlines()
-    assert rows[0].startswith("step,crops,loss") and any(r.split(",")[5] for r in rows[1:])  # validation logged
+    assert rows[0].startswith("step,samples,loss") and any(r.split(",")[5] for r in rows[1:])  # validation logged
     # Another recipe is refused; the same config continues from step 4 (already done); more steps extend the run.
-    with pytest.raises(ValueError, match=r"another configuration \(lr\)"):
+    with pytest.raises(ValueError, match=r"another configuration \(optim\)"):
         main(["train", "--data", str(data), "--out", str(out), "--config", _config(tmp_path, lr=5e-4), "--resume", str(out) + ".state.pt"])
     assert main(["train", "--data", str(data), "--out", str(out), "--config", cfg, "--resume", str(out) + ".state.pt"]) == 0
     assert torch.load(str(out) + ".state.pt", weights_only=False)["step"] == 4
@@ -110,9 +108,9 @@ def test_stream_training_is_seeded_resumable_and_validated(lmo_dir, tmp_path):
     assert {o.obj_id for o in runs[0].config.objects} == {1, 5} and "crop stream" in runs[0].config.training["data"][0]
     header, *rows = (tmp_path / "a.csv").read_text().splitlines()
     columns = header.split(",")
-    assert columns[:6] == ["step", "crops", "loss", "lr", "seconds", "val_loss"]
+    assert columns[:6] == ["step", "samples", "loss", "lr", "seconds", "val_loss"]
     last = dict(zip(columns, rows[-1].split(","), strict=True))
-    assert last["step"] == "3" and last["crops"] == "6"  # 3 steps of batch 2
+    assert last["step"] == "3" and last["samples"] == "6"  # 3 steps of batch 2
     # held-out metrics of every part measured: keypoints, both depth sources' errors, the surface points
     assert float(last["val_kp_err_px"]) > 0 and float(last["val_depth_head"]) > 0 and float(last["val_points_err"]) > 0
     state = str(tmp_path / "a.safetensors") + ".state.pt"
@@ -227,5 +225,5 @@ def test_a_resumed_run_may_change_its_stream_from_the_saved_step_on_but_not_befo
         resume(replace(occluded, curriculum=(CurriculumStage(until=5),)))  # steps 5 and 6 were trained on the easy stream
     with pytest.raises(ValueError, match="curriculum"):
         resume(replace(easy, curriculum=(CurriculumStage(until=3, occluded_prob=0.5),)))
-    with pytest.raises(ValueError, match="batch"):
-        resume(replace(occluded, batch=3, curriculum=(CurriculumStage(until=7),)))
+    with pytest.raises(ValueError, match="min_visib"):
+        resume(replace(occluded, min_visib=0.5, curriculum=(CurriculumStage(until=7),)))

@@ -41,6 +41,8 @@ class EncoderConfig:
 
 @dataclass(frozen=True)
 class DenoiserConfig:
+    kind: str = "unet"
+    """Which denoiser class this configures (`agm/model.py`'s DENOISERS); a new denoiser registers its own."""
     size: int = 64
     """Side of the crop and of the axis image (px)."""
     channels: int = 32

@@ -59,6 +59,11 @@ class Cancelled(Exception):
     """Sampling was stopped between DDIM steps by its `cancelled` callback."""
 
 
+DENOISERS: dict[str, type[nn.Module]] = {"unet": Denoiser}
+"""Denoiser classes by the `kind` of their config: a new one is registered here, its config class added to the
+type of AGMConfig.denoiser with its own `kind` (checkpoints name it, `config_from_dict` picks by it)."""
+
+
 @dataclass(frozen=True)
 class AGMConfig:
     version: int = VERSION
@@ -87,7 +92,7 @@ class AxisGenerator(nn.Module):
         if config.version != VERSION:
             raise ValueError(f"AGM version {config.version} is not this AxisPose's ({VERSION})")
         self.config = config
-        self.denoiser = Denoiser(config.denoiser)
+        self.denoiser = DENOISERS[config.denoiser.kind](config.denoiser)
         self.scheduler = DDIMScheduler(config.scheduler)
 
     def encode(self, crops: torch.Tensor, objects: torch.Tensor) -> Encoding:

@@ -311,6 +311,23 @@ def load_scene_camera(path: str | Path) -> dict[int, np.ndarray]:
     return cams
 
 
+def load_camera(path: str | Path) -> tuple[np.ndarray, int | None, int | None]:
+    """A dataset's camera.json: K (3x3, validated) and the image width and height where it gives them."""
+    path = Path(path)
+    cam = _read_json(path)
+    where = "camera"
+    K = np.array([[_field(path, where, cam, "fx"), 0.0, _field(path, where, cam, "cx")],
+                  [0.0, _field(path, where, cam, "fy"), _field(path, where, cam, "cy")], [0.0, 0.0, 1.0]])  # fmt: skip
+    try:
+        K = validate_intrinsics(_numbers(path, where, "fx, fy, cx, cy", K, 9).reshape(3, 3))
+    except IntrinsicsError as err:
+        raise BopFormatError(f"{path}: {err}") from err
+    size = [cam.get(k) for k in ("width", "height")]
+    if any(v is not None and (not isinstance(v, int) or v <= 0) for v in size):
+        raise BopFormatError(f"{path}: width and height must be positive integers, got {size}")
+    return K, size[0], size[1]
+
+
 def write_scene_camera(path: str | Path, cams: dict[int, np.ndarray], depth_scale: float = 1.0) -> None:
     """Write scene_camera.json."""
     out = {str(i): {"cam_K": np.asarray(K).ravel().tolist(), "depth_scale": depth_scale} for i, K in sorted(cams.items())}
@@ -454,3 +471,27 @@ class BopScene:
             h, w = read_bgr(self.rgb_path(im_id)).shape[:2]
             self._estimated[im_id] = estimate_gt_info(self.cameras[im_id], self.gt[im_id], self.models_dir, w, h)
         return list(zip(self.gt[im_id], self._estimated[im_id], strict=True))
+
+
+def scene_dirs(root: str | Path) -> list[Path]:
+    """A scene folder itself, or the scene folders of a BOP split/dataset folder."""
+    root = Path(root)
+    if (root / "scene_gt.json").exists():
+        return [root]
+    scenes = sorted(p for p in root.iterdir() if (p / "scene_gt.json").exists()) if root.is_dir() else []
+    if not scenes:
+        raise BopFormatError(f"{root}: neither a BOP scene folder nor a folder of scenes")
+    return scenes
+
+
+def bop_frames(roots: list[str | Path], models_dir: str | Path | None = None) -> list[tuple[BopScene, int]]:
+    """Every (scene, image id) of the BOP folders (each a scene or a folder of scenes), in folder and image order.
+    Its users read the instances' boxes and visibility: a scene without scene_gt_info.json has them estimated
+    from the models in `models_dir`, and without models it is a BopFormatError here, before any frame is read."""
+    scenes = [BopScene(sd, models_dir) for root in roots for sd in scene_dirs(root)]
+    for scene in scenes:
+        if scene.gt_info is None and models_dir is None:
+            raise BopFormatError(
+                f"{scene.root}: no scene_gt_info.json; give the object models to estimate the instances' boxes and visibility"
+            )
+    return [(scene, im_id) for scene in scenes for im_id in scene.image_ids]

@@ -5,6 +5,7 @@ Everything downstream (synthesis, metrics, training) then reads the folder like 
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 
 import numpy as np
@@ -13,6 +14,7 @@ from scipy.spatial import ConvexHull
 from scipy.spatial.distance import pdist
 
 from axispose_core.data.bop import MM, BopFormatError, Mesh, ObjectInfo, load_ply, model_path, write_models_info
+from axispose_core.data.objects import NAMES_FILE, object_name
 
 
 def load_obj(path: str | Path, units: float = MM) -> Mesh:
@@ -87,15 +89,19 @@ def object_info(obj_id: int, mesh: Mesh) -> ObjectInfo:
 
 
 def import_meshes(paths: list[str | Path], out_dir: str | Path, units: float = MM, first_id: int = 1) -> dict[int, Path]:
-    """Write each mesh as obj_<id>.ply (ids from `first_id`, in the given order) plus models_info.json into out_dir."""
+    """Write each mesh as obj_<id>.ply (ids from `first_id`, in the given order) plus models_info.json and the
+    objects' names (from the file names, `object_name`; a repeated one gets its id appended) into out_dir."""
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
-    infos, ids = {}, {}
+    infos, ids, names = {}, {}, {}
     for k, p in enumerate(paths):
         obj_id = first_id + k
         mesh = load_mesh(p, units)
         write_ply(model_path(out_dir, obj_id), mesh)
         infos[obj_id] = object_info(obj_id, mesh)
         ids[obj_id] = Path(p)
+        name = object_name(Path(p).stem, obj_id)
+        names[obj_id] = name if name not in names.values() else f"{name}_{obj_id}"
     write_models_info(out_dir / "models_info.json", infos)
+    (out_dir / NAMES_FILE).write_text(json.dumps({str(i): n for i, n in names.items()}, indent=2) + "\n")
     return ids

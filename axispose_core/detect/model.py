@@ -25,6 +25,8 @@ STRIDE = 8
 
 @dataclass(frozen=True)
 class LocaliserConfig:
+    kind: str = "centernet"
+    """Which localiser class this configures (LOCALISERS); a new localiser registers its own."""
     obj_ids: tuple[int, ...] = ()
     input_size: tuple[int, int] = (320, 240)
     """(width, height) the frame is resized to; both multiples of 16."""
@@ -112,3 +114,13 @@ class Localiser(nn.Module):
         thr = self.config.threshold if threshold is None else threshold
         dets = decode(heat.cpu(), size.cpu(), offset.cpu(), list(self.config.obj_ids), STRIDE, thr, self.config.max_per_object)[0]
         return [Detection(d.obj_id, d.score, (d.center[0] * sx, d.center[1] * sy), (d.size[0] * sx, d.size[1] * sy)) for d in dets]
+
+
+LOCALISERS: dict[str, type[Localiser]] = {"centernet": Localiser}
+"""Localiser classes by the `kind` of their config: a new one (same `detect` interface) is registered here, its
+config class added to the type of EstimatorConfig.localiser with its own `kind`."""
+
+
+def build_localiser(config: LocaliserConfig) -> Localiser:
+    """The localiser network `config` describes (untrained)."""
+    return LOCALISERS[config.kind](config)

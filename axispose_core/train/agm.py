@@ -15,11 +15,8 @@ splits the batches (rank r takes every world-th stream sample from r); rank 0 wr
 
 from __future__ import annotations
 
-import copy
-import csv
 import dataclasses
 import os
-import time
 from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -27,22 +24,18 @@ from pathlib import Path
 import numpy as np
 import torch
 import torch.distributed as dist
-from torch.utils.data import DataLoader, DistributedSampler, RandomSampler
-from tqdm import tqdm
 
 from axispose_core.agm.model import AGMConfig, AxisGenerator, depth_from_log, log_depth_target
 from axispose_core.axis_image import axis_keypoints
-from axispose_core.data.objects import LMO_NAMES, ObjectSpec, objects_from_models
-from axispose_core.data.synth.config import StreamConfig, SynthConfig
+from axispose_core.data.objects import dataset_objects
+from axispose_core.data.synth.config import StreamConfig
 from axispose_core.data.synth.stream import CropStream, CropStreamDataset, stream_loader
 from axispose_core.estimator import Estimator, EstimatorConfig
 from axispose_core.metrics import re
 from axispose_core.tbm.backproject import backproject_readings
 from axispose_core.tbm.reader import SHIPPED_READER, KeypointReader, load_reader
 from axispose_core.train.dataset import AxisCropDataset
-from axispose_core.train.loop import optimizer_step, training_device, training_record
-from axispose_core.train.resume import load_run_state, save_run_state, state_path
-from axispose_core.train.schedule import warmup_cosine
+from axispose_core.train.loop import OptimConfig, epochs, fit, training_device, training_record, world
 
 
 @dataclass(frozen=True)
@@ -64,26 +57,15 @@ class CurriculumStage:
 @dataclass(frozen=True)
 class TrainConfig:
     agm: AGMConfig = field(default_factory=AGMConfig)
-    steps: int = 20000
-    batch: int = 32
-    lr: float = 1e-3
-    weight_decay: float = 1e-4
-    warmup: int = 200
-    grad_clip: float = 1.0
-    ema_decay: float = 0.995
-    seed: int = 0
-    workers: int = 2
+    optim: OptimConfig = field(default_factory=lambda: OptimConfig(steps=20000, batch=32, ema_decay=0.995, workers=2, bf16=True))
     min_visib: float = 0.1
-    save_every: int = 200
-    val_every: int = 500
+    """Least visible fraction of the BOP instances trained on (BOP folders only)."""
     val_samples: int = 32
     val_steps: int = 4
     stream: StreamConfig = field(default_factory=StreamConfig)
     """The crop stream trained on when no BOP folders are given; its crop size must be the denoiser's."""
     val_seed: int = 1_000_000
     """Seed of the held-out stream samples: fixed, so that the curves of different runs read the same crops."""
-    bf16: bool = True
-    """Mixed precision (bfloat16 autocast) on the CPU as on CUDA: 1.6x faster steps on a CPU with AVX-512 BF16."""
     curriculum: tuple[CurriculumStage, ...] = ()
     """Easier streams first, in order of `until`; `stream` from the last stage's `until` on, and for validation.
     Measured: unoccluded crops teach the encoder pose about twice as fast per step, also on occluded ones. A
@@ -104,13 +86,6 @@ def same_stream_before(saved: dict, now: TrainConfig, step: int) -> bool:
     new = dataclasses.asdict(now)
     starts = {0} | {s["until"] for c in (saved, new) for s in c.get("curriculum", ()) if s["until"] < step}
     return all(stream_at(saved, s) == stream_at(new, s) for s in starts)
-
-
-def dataset_objects(root: str | Path) -> list[ObjectSpec]:
-    """The objects a synthetic dataset shows (its synth_config.json), else all of its models_info.json."""
-    synth = Path(root) / "synth_config.json"
-    ids = list(SynthConfig.load(synth).objects) if synth.exists() else None
-    return objects_from_models(root, ids or None, names=LMO_NAMES)
 
 
 def validate(
@@ -182,11 +157,6 @@ def curriculum_batches(
             return
 
 
-def stream_objects(stream: CropStream) -> list[ObjectSpec]:
-    """The stream's objects as a checkpoint names them (LM-O names by id, as `dataset_objects`)."""
-    return [dataclasses.replace(o, name=LMO_NAMES.get(o.obj_id, o.name)) for o in stream.objects]
-
-
 def _batch_of(items: list[dict[str, torch.Tensor]]) -> dict[str, torch.Tensor]:
     return {k: torch.stack([it[k] for it in items]) for k in items[0] if k != "keypoints"}
 
@@ -220,35 +190,39 @@ def train_agm(
     distributed = "RANK" in os.environ and "WORLD_SIZE" in os.environ
     if distributed and not dist.is_initialized():
         dist.init_process_group("nccl" if torch.cuda.is_available() and device != "cpu" else "gloo")
-    rank = dist.get_rank() if distributed else 0
+    rank, size = world()
     dev = training_device(device)
     if dev.type == "cuda" and distributed:
         dev = torch.device("cuda", int(os.environ.get("LOCAL_RANK", 0)))
     out = Path(out)
     out.parent.mkdir(parents=True, exist_ok=True)
-    torch.manual_seed(cfg.seed + rank)
-    world = dist.get_world_size() if distributed else 1
-    size = cfg.agm.denoiser.size
+    optim = cfg.optim
+    torch.manual_seed(optim.seed + rank)
+    crop = cfg.agm.denoiser.size
     reader = load_reader(reader_path or SHIPPED_READER)
-    if reader.config.size != size:
-        raise ValueError(f"the keypoint reader reads {reader.config.size}px images; the AGM is configured for {size}px")
-    stream, train_set = None, None
+    if reader.config.size != crop:
+        raise ValueError(f"the keypoint reader reads {reader.config.size}px images; the AGM is configured for {crop}px")
     if data:
-        objects = dataset_objects(data[0])
-        train_set = AxisCropDataset(data, objects, size, cfg.min_visib, seed=cfg.seed)
+        objects = dataset_objects(data)
+        train_set = AxisCropDataset(data, objects, crop, cfg.min_visib, seed=optim.seed)
         if not len(train_set):
             raise ValueError(f"no training instances with visib_fract >= {cfg.min_visib} in {data}")
+        batches = epochs(train_set, optim)
     else:
         if models is None:
             raise ValueError("give BOP folders to train on, or the object models for the crop stream")
-        if cfg.stream.size != size:
-            raise ValueError(f"the crop stream renders {cfg.stream.size}px crops; the AGM is configured for {size}px")
+        if cfg.stream.size != crop:
+            raise ValueError(f"the crop stream renders {cfg.stream.size}px crops; the AGM is configured for {crop}px")
         stream = CropStream(cfg.stream, models)
-        objects = stream_objects(stream)
+        objects = stream.objects
         untils = [stage.until for stage in cfg.curriculum]
         if untils != sorted(untils) or any(u < 1 for u in untils):
             raise ValueError(f"curriculum stages must end at increasing steps >= 1, got {untils}")
         stages = [(stage.until, CropStream(stage.stream(cfg.stream), models)) for stage in cfg.curriculum] + [(None, stream)]
+
+        def batches(step: int) -> Iterator[dict[str, torch.Tensor]]:
+            return curriculum_batches(stages, optim.batch, step, size, rank, optim.workers)
+
     if len(objects) > cfg.agm.denoiser.encoder.objects:
         n = cfg.agm.denoiser.encoder.objects
         raise ValueError(f"{len(objects)} objects to train on, but the AGM's encoder embeds {n} (agm.denoiser.encoder.objects)")
@@ -258,94 +232,32 @@ def train_agm(
         if start_from.config.agm != cfg.agm:
             raise ValueError(f"{init}: its AGM is {start_from.config.agm}, the config asks for {cfg.agm}")
         model.denoiser.load_state_dict(start_from.agm.denoiser.state_dict())
-    model = model.to(dev)
-    ema = copy.deepcopy(model).eval()
-    opt = torch.optim.AdamW(model.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
-    sched = torch.optim.lr_scheduler.LambdaLR(opt, lambda s: warmup_cosine(s, cfg.warmup, cfg.steps))
-    step, started_from = 0, str(init) if init else None
-    if resume:  # its weights are the run's own; the record keeps naming what its first call started from
-        step, started_from = load_run_state(
-            resume, cfg, model, ema, opt, sched, ("stream", "curriculum"), lambda saved, at: same_stream_before(saved, cfg, at)
-        )
-    net = torch.nn.parallel.DistributedDataParallel(model) if distributed else model
     scales = torch.tensor([o.scale for o in objects], dtype=torch.float64)
-    val_batch, val_lengths = None, None
-    if rank == 0 and (val_data or stream is not None):
+    validate_ema = None
+    if rank == 0 and (val_data or not data):
         if val_data:
-            val_set = AxisCropDataset(val_data, objects, size, 0.3, jitter=None, color_aug=False, seed=cfg.seed)
+            val_set = AxisCropDataset(val_data, objects, crop, 0.3, jitter=None, color_aug=False, seed=optim.seed)
             idx = np.linspace(0, len(val_set) - 1, min(cfg.val_samples, len(val_set))).astype(int)
             items = [val_set[int(i)] for i in idx]
         else:  # held-out stream samples: the same crops in every run of this stream configuration
             held_out = CropStreamDataset(CropStream(dataclasses.replace(cfg.stream, seed=cfg.val_seed), models))
             items = [held_out[i] for i in range(cfg.val_samples)]
-        val_batch = with_depth_target(_batch_of(items), scales, size)
+        val_batch = {k: v.to(dev) for k, v in with_depth_target(_batch_of(items), scales, crop).items()}
         val_lengths = np.stack([objects[int(it["object"])].axes.lengths for it in items])
-    log = open(out.with_suffix(".csv"), "a", newline="") if rank == 0 else None
-    writer = csv.writer(log) if log else None
-    if writer and step == 0:
-        writer.writerow(["step", "crops", "loss", "lr", "seconds", *VAL_COLUMNS])
-    use_amp = cfg.bf16
-    start = time.time()
-    bar = tqdm(total=cfg.steps, initial=step, desc="train agm", disable=not progress or rank != 0)
-    gen = torch.Generator().manual_seed(cfg.seed * 1000 + step + rank)
 
-    def batches():
-        """Training batches from `step` on, endlessly: the stream's next samples, or epochs of the BOP crops."""
-        if stream is not None:
-            yield from curriculum_batches(stages, cfg.batch, step, world, rank, cfg.workers)
-            return
-        epoch = step * cfg.batch // len(train_set)
-        while True:
-            train_set.epoch = epoch
-            sampler = (
-                DistributedSampler(train_set, seed=cfg.seed + epoch)
-                if distributed
-                else RandomSampler(train_set, generator=torch.Generator().manual_seed(cfg.seed + epoch))
-            )
-            yield from DataLoader(train_set, batch_size=cfg.batch, sampler=sampler, num_workers=cfg.workers, drop_last=True)
-            epoch += 1
+        def validate_ema(ema: torch.nn.Module) -> dict[str, float]:
+            with torch.autocast(dev.type, dtype=torch.bfloat16, enabled=optim.bf16):
+                return validate(ema, reader, val_batch, val_lengths, cfg.val_steps)
 
-    def out_of_time() -> bool:
-        return max_minutes is not None and time.time() - start > 60 * max_minutes
+    def loss(net: torch.nn.Module, batch: dict[str, torch.Tensor], gen: torch.Generator) -> torch.Tensor:
+        return net(with_depth_target(batch, scales.to(batch["t"].device), crop), gen)
 
-    def save() -> None:
-        if rank != 0:
-            return
-        est_cfg = EstimatorConfig(
-            agm=cfg.agm,
-            reader=reader.config,
-            objects=tuple(objects),
-            training=training_record(data or [f"crop stream of {models}"], step, cfg.batch, time.time() - start, dev, started_from),
-        )
+    def save(ema: torch.nn.Module, step: int, seconds: float, started_from: str | None) -> None:
+        record = training_record(data or [f"crop stream of {models}"], step, optim.batch * size, seconds, dev, started_from)
+        est_cfg = EstimatorConfig(agm=cfg.agm, reader=reader.config, objects=tuple(objects), training=record)
         Estimator(est_cfg, ema, reader, "cpu" if dev.type == "cpu" else str(dev)).save(out)
-        save_run_state(state_path(out), cfg, model, ema, opt, sched, step, started_from)
 
-    try:
-        for batch in batches() if step < cfg.steps and not out_of_time() else ():
-            batch = {k: v.to(dev) for k, v in with_depth_target(batch, scales, size).items()}
-            with torch.autocast(dev.type, dtype=torch.bfloat16, enabled=use_amp):
-                loss = net(batch, gen)
-            optimizer_step(loss, model, ema, opt, sched, cfg.grad_clip, cfg.ema_decay)
-            step += 1
-            bar.update(1)
-            bar.set_postfix(loss=f"{loss.item():.4f}")
-            val = {}
-            if val_batch is not None and step % cfg.val_every == 0:
-                with torch.autocast(dev.type, dtype=torch.bfloat16, enabled=use_amp):
-                    val = validate(ema, reader, {k: v.to(dev) for k, v in val_batch.items()}, val_lengths, cfg.val_steps)
-            if writer and (step % 10 == 0 or val):
-                writer.writerow([step, step * cfg.batch * world, f"{loss.item():.5f}", f"{sched.get_last_lr()[0]:.2e}",
-                                 f"{time.time() - start:.1f}", *(val.get(c, "") for c in VAL_COLUMNS)])  # fmt: skip
-                log.flush()
-            if step % cfg.save_every == 0:
-                save()
-            if step >= cfg.steps or out_of_time():
-                break
-        save()
-    finally:
-        bar.close()
-        if log:
-            log.close()
-        if distributed:
-            dist.barrier()
-    return step
+    return fit(
+        cfg, model, batches, loss, out, save, validate_ema, VAL_COLUMNS, resume, dev, max_minutes, progress, "train agm",
+        str(init) if init else None, ("stream", "curriculum"), lambda saved, at: same_stream_before(saved, cfg, at),
+    )  # fmt: skip

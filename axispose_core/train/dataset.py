@@ -9,35 +9,11 @@ import numpy as np
 import torch
 from torch.utils.data import Dataset
 
-from axispose_core.data.bop import BopFormatError, BopScene
+from axispose_core.data.bop import BopScene, bop_frames
 from axispose_core.data.crops import CropJitter, axis_target, instance_crop
 from axispose_core.data.objects import ObjectSpec
 
 DEFAULT_JITTER = CropJitter()
-
-
-def scene_dirs(root: str | Path) -> list[Path]:
-    """A scene folder itself, or the scene folders of a BOP split/dataset folder."""
-    root = Path(root)
-    if (root / "scene_gt.json").exists():
-        return [root]
-    scenes = sorted(p for p in root.iterdir() if (p / "scene_gt.json").exists()) if root.is_dir() else []
-    if not scenes:
-        raise BopFormatError(f"{root}: neither a BOP scene folder nor a folder of scenes")
-    return scenes
-
-
-def bop_frames(roots: list[str | Path], models_dir: str | Path | None = None) -> list[tuple[BopScene, int]]:
-    """Every (scene, image id) of the BOP folders (each a scene or a folder of scenes), in folder and image order.
-    Its users read the instances' boxes and visibility: a scene without scene_gt_info.json has them estimated
-    from the models in `models_dir`, and without models it is a BopFormatError here, before any frame is read."""
-    scenes = [BopScene(sd, models_dir) for root in roots for sd in scene_dirs(root)]
-    for scene in scenes:
-        if scene.gt_info is None and models_dir is None:
-            raise BopFormatError(
-                f"{scene.root}: no scene_gt_info.json; give the object models to estimate the instances' boxes and visibility"
-            )
-    return [(scene, im_id) for scene in scenes for im_id in scene.image_ids]
 
 
 @dataclass(frozen=True)

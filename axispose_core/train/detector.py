@@ -10,7 +10,6 @@ and shifted at random (boxes follow) and colour-jittered on top of the data's ow
 
 from __future__ import annotations
 
-import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -19,37 +18,26 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 from torch.utils.data import Dataset
-from tqdm import tqdm
 
-from axispose_core.checkpoint import CheckpointError, load_state, read_checkpoint, read_metadata, save_checkpoint
-from axispose_core.data.bop import BopScene
-from axispose_core.detect.decode import Detection, draw_targets, focal_loss, match
-from axispose_core.detect.model import STRIDE, Localiser, LocaliserConfig
-from axispose_core.estimator import KIND as ESTIMATOR
-from axispose_core.train.dataset import bop_frames
-from axispose_core.train.loop import fit, training_device, training_record
-
-KIND = "localiser"
+from axispose_core.checkpoint import save_checkpoint
+from axispose_core.data.bop import bop_frames
+from axispose_core.detect.decode import draw_targets, focal_loss
+from axispose_core.detect.model import STRIDE, Localiser, LocaliserConfig, build_localiser
+from axispose_core.detect.scoring import detection_scores, frame_instances
+from axispose_core.detect.weights import KIND, warm_start
+from axispose_core.train.loop import OptimConfig, epochs, fit, training_device, training_record
 
 
 @dataclass(frozen=True)
 class DetectorTrainConfig:
     localiser: LocaliserConfig = field(default_factory=LocaliserConfig)
-    steps: int = 4000
-    batch: int = 16
-    lr: float = 2e-3
-    weight_decay: float = 1e-4
-    warmup: int = 100
-    grad_clip: float = 5.0
-    ema_decay: float = 0.99
-    seed: int = 0
-    workers: int = 1
+    optim: OptimConfig = field(
+        default_factory=lambda: OptimConfig(steps=4000, batch=16, lr=2e-3, warmup=100, grad_clip=5.0, ema_decay=0.99)
+    )
     min_visib: float = 0.1
     occluded_weight: float = 0.0
     size_weight: float = 0.1
     offset_weight: float = 1.0
-    save_every: int = 200
-    val_every: int = 500
     val_frames: int = 40
 
 
@@ -120,89 +108,6 @@ def detector_loss(model: Localiser, batch: dict[str, torch.Tensor], cfg: Detecto
     return focal_loss(heat, batch["heat"], mask) + cfg.size_weight * size_loss + cfg.offset_weight * off_loss
 
 
-def frame_instances(scene: BopScene, im_id: int, obj_ids: tuple[int, ...]) -> list[tuple[int, tuple[int, int, int, int], float]]:
-    """The frame's (obj_id, bbox_obj, visib_fract) instances of the given objects, as `frame_outcome` takes them."""
-    return [(g.obj_id, info.bbox_obj, info.visib_fract) for g, info in scene.instances(im_id) if g.obj_id in obj_ids]
-
-
-def frame_outcome(
-    dets: list[Detection], insts: list[tuple[int, tuple[float, float, float, float], float]], min_visib: float
-) -> tuple[dict[int, bool], list[int]]:
-    """The detection protocol on one frame's (obj_id, bbox_obj, visib_fract) instances: for each instance with
-    visib_fract >= min_visib (by index) whether a detection found it at IoU 0.5, and the indices of the false
-    alarms. A detection that matches a less visible instance is neither a hit nor a false alarm."""
-    hits = match(dets, [(o, b) for o, b, _ in insts])
-    claimed = {k for k in hits if k is not None}
-    found = {g: k is not None for g, ((_, _, v), k) in enumerate(zip(insts, hits, strict=True)) if v >= min_visib}
-    return found, [k for k in range(len(dets)) if k not in claimed]
-
-
-def detection_scores(
-    model: Localiser, data: list[str | Path], min_visib: float = 0.3, limit: int | None = None, progress: bool = False
-) -> dict:
-    """Recall and precision at IoU 0.5 per object on BOP frames (GT: bbox_obj with visib_fract >= min_visib;
-    detections of less visible instances are neither hits nor false positives), and ms per frame."""
-    ids = model.config.obj_ids
-    tp, fp, n_gt = dict.fromkeys(ids, 0), dict.fromkeys(ids, 0), dict.fromkeys(ids, 0)
-    times = []
-    for scene, im_id in tqdm(bop_frames(data)[:limit], desc="detect", disable=not progress):
-        rgb = scene.rgb(im_id)
-        start = time.perf_counter()
-        dets = model.detect(rgb)
-        times.append(time.perf_counter() - start)
-        insts = frame_instances(scene, im_id, ids)
-        found, alarms = frame_outcome(dets, insts, min_visib)
-        for g, hit in found.items():
-            n_gt[insts[g][0]] += 1
-            tp[insts[g][0]] += hit
-        for k in alarms:
-            fp[dets[k].obj_id] += 1
-    per = {
-        str(o): {"n": n_gt[o], "recall": tp[o] / n_gt[o] if n_gt[o] else float("nan"),
-                 "precision": tp[o] / (tp[o] + fp[o]) if tp[o] + fp[o] else float("nan")}
-        for o in ids
-    }  # fmt: skip
-    ms = 1000 * np.array(times or [0.0])
-    total_gt, total_tp = sum(n_gt.values()), sum(tp.values())
-    return {
-        "objects": per,
-        "recall": total_tp / total_gt if total_gt else float("nan"),
-        "precision": total_tp / (total_tp + sum(fp.values())) if total_tp + sum(fp.values()) else float("nan"),
-        "ms_per_frame": {"median": float(np.median(ms)), "p90": float(np.percentile(ms, 90))},
-    }
-
-
-def load_localiser(path: str | Path, device: str = "cpu") -> Localiser:
-    """A trained localiser in eval mode, from its own checkpoint or from an estimator checkpoint that carries one
-    (without building the estimator's AGM)."""
-    kind = read_metadata(path, None)["kind"]
-    config: LocaliserConfig | None = None
-    if kind == KIND:
-        config, states, _ = read_checkpoint(path, KIND, LocaliserConfig)
-    elif kind == ESTIMATOR:  # its localiser alone: an estimator of an older AGM version still lends its localiser
-        config, states, _ = read_checkpoint(path, ESTIMATOR, LocaliserConfig, section="localiser")
-    if config is None:
-        raise CheckpointError(f"{path}: a {kind!r} checkpoint without a localiser")
-    model = Localiser(config)
-    load_state(model, states.get("localiser", {}), str(path))
-    return model.to(device).eval()
-
-
-def warm_start(model: Localiser, path: str | Path) -> list[str]:
-    """Copy into `model` the weights of a trained localiser (`load_localiser`: its own checkpoint, or an
-    estimator's that carries one) wherever names and shapes match, so a wider or deeper localiser, or one for other
-    objects, need not relearn what the trained one knows. The heatmap head is copied only for the same objects in
-    the same order (its channels are the objects). Returns the tensor names left at their fresh initialisation."""
-    source = load_localiser(path)
-    same_objects = source.config.obj_ids == model.config.obj_ids
-    own = model.state_dict()
-    take = {
-        k: v for k, v in source.state_dict().items() if k in own and v.shape == own[k].shape and (same_objects or not k.startswith("heat."))
-    }
-    model.load_state_dict(take, strict=False)
-    return sorted(set(own) - set(take))
-
-
 def train_detector(
     cfg: DetectorTrainConfig,
     data: list[str | Path],
@@ -220,26 +125,26 @@ def train_detector(
     dev = training_device(device)
     out = Path(out)
     out.parent.mkdir(parents=True, exist_ok=True)
-    torch.manual_seed(cfg.seed)
-    train_set = DetectionDataset(data, cfg.localiser, cfg.min_visib, seed=cfg.seed, occluded_weight=cfg.occluded_weight)
+    torch.manual_seed(cfg.optim.seed)
+    train_set = DetectionDataset(data, cfg.localiser, cfg.min_visib, seed=cfg.optim.seed, occluded_weight=cfg.occluded_weight)
     if not len(train_set):
         raise ValueError(f"no frames in {data}")
 
     def save(ema: torch.nn.Module, step: int, seconds: float, started_from: str | None) -> None:
-        provenance = training_record(data, step, cfg.batch, seconds, dev, started_from)
+        provenance = training_record(data, step, cfg.optim.batch, seconds, dev, started_from)
         save_checkpoint(out, KIND, cfg.localiser, {"localiser": ema}, extra={"training": provenance})
 
     def validate(ema: torch.nn.Module) -> dict[str, float]:
         scores = detection_scores(ema, val_data, limit=cfg.val_frames)
         return {"val_recall": scores["recall"], "val_precision": scores["precision"]}
 
-    model = Localiser(cfg.localiser)
+    model = build_localiser(cfg.localiser)
     if init and not resume:
         fresh = warm_start(model, init)
         shown = (": " + ", ".join(fresh[:6]) + (" ..." if len(fresh) > 6 else "")) if fresh else ""
         print(f"started from {init}; {len(fresh)} of {len(model.state_dict())} tensors start fresh{shown}")
     return fit(
-        cfg, model, train_set, lambda model, batch: detector_loss(model, batch, cfg), out, save,
+        cfg, model, epochs(train_set, cfg.optim), lambda net, batch, _: detector_loss(net, batch, cfg), out, save,
         validate if val_data else None, ("val_recall", "val_precision"), resume, dev, max_minutes, progress, "train detector",
         str(init) if init else None,
     )  # fmt: skip

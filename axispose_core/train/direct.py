@@ -15,35 +15,25 @@ from axispose_core.agm.denoiser import EncoderConfig
 from axispose_core.agm.model import depth_from_log
 from axispose_core.axis_image import axis_keypoints
 from axispose_core.baseline.direct import DirectConfig, DirectEstimator, DirectRegressor, regression_loss
+from axispose_core.data.objects import dataset_objects
 from axispose_core.data.synth.config import StreamConfig
 from axispose_core.data.synth.stream import CropStream, CropStreamDataset, stream_loader
 from axispose_core.metrics import re
 from axispose_core.tbm.backproject import backproject
-from axispose_core.train.agm import dataset_objects, stream_objects, with_depth_target
+from axispose_core.train.agm import with_depth_target
 from axispose_core.train.dataset import AxisCropDataset
-from axispose_core.train.loop import fit, training_device, training_record
+from axispose_core.train.loop import OptimConfig, epochs, fit, training_device, training_record
 
 
 @dataclass(frozen=True)
 class DirectTrainConfig:
     encoder: EncoderConfig = field(default_factory=EncoderConfig)
     size: int = 64
-    steps: int = 3000
-    batch: int = 16
-    lr: float = 1e-3
-    weight_decay: float = 1e-4
-    warmup: int = 100
-    grad_clip: float = 1.0
-    ema_decay: float = 0.99
-    seed: int = 0
-    workers: int = 1
+    optim: OptimConfig = field(default_factory=lambda: OptimConfig(steps=3000, batch=16, warmup=100, ema_decay=0.99, bf16=True))
     min_visib: float = 0.1
-    save_every: int = 200
-    val_every: int = 500
     val_samples: int = 64
     stream: StreamConfig = field(default_factory=StreamConfig)
     val_seed: int = 1_000_000
-    bf16: bool = True
 
 
 class KeypointCropDataset(AxisCropDataset):
@@ -73,8 +63,8 @@ def train_direct(
     out.parent.mkdir(parents=True, exist_ok=True)
     stream, train_set = None, None
     if data:
-        objects = dataset_objects(data[0])
-        train_set = KeypointCropDataset(data, objects, cfg.size, cfg.min_visib, seed=cfg.seed)
+        objects = dataset_objects(data)
+        train_set = KeypointCropDataset(data, objects, cfg.size, cfg.min_visib, seed=cfg.optim.seed)
         if not len(train_set):
             raise ValueError(f"no training instances with visib_fract >= {cfg.min_visib} in {data}")
     else:
@@ -83,13 +73,13 @@ def train_direct(
         if cfg.stream.size != cfg.size:
             raise ValueError(f"the crop stream renders {cfg.stream.size}px crops; the regressor is configured for {cfg.size}px")
         stream = CropStream(cfg.stream, models)
-        objects = stream_objects(stream)
+        objects = stream.objects
     config = DirectConfig(encoder=cfg.encoder, size=cfg.size, objects=tuple(objects))
-    torch.manual_seed(cfg.seed)
+    torch.manual_seed(cfg.optim.seed)
     scales = torch.tensor([o.scale for o in objects], dtype=torch.float64)
     val_batch = None
     if val_data:
-        val_set = KeypointCropDataset(val_data, objects, cfg.size, 0.3, jitter=None, color_aug=False, seed=cfg.seed)
+        val_set = KeypointCropDataset(val_data, objects, cfg.size, 0.3, jitter=None, color_aug=False, seed=cfg.optim.seed)
         items = [val_set[int(i)] for i in np.linspace(0, len(val_set) - 1, min(cfg.val_samples, len(val_set))).astype(int)]
         val_batch = {k: torch.stack([it[k] for it in items]) for k in items[0]}
     elif stream is not None:  # the AGM trainer's held-out crops
@@ -98,11 +88,11 @@ def train_direct(
         val_batch = {k: torch.stack([it[k] for it in items]) for k in items[0]}
 
     def save(ema: torch.nn.Module, step: int, seconds: float, init: str | None) -> None:
-        record = training_record(data or [f"crop stream of {models}"], step, cfg.batch, seconds, dev, init)
+        record = training_record(data or [f"crop stream of {models}"], step, cfg.optim.batch, seconds, dev, init)
         DirectEstimator(ema).save(out, extra={"training": record})
 
     def validate(ema: torch.nn.Module) -> dict[str, float]:
-        with torch.inference_mode(), torch.autocast(dev.type, dtype=torch.bfloat16, enabled=cfg.bf16):
+        with torch.inference_mode(), torch.autocast(dev.type, dtype=torch.bfloat16, enabled=cfg.optim.bf16):
             enc = ema.encoder(val_batch["crop"].to(dev), val_batch["object"].to(dev))
             kps = ((ema.head(enc.context).view(-1, 4, 2).float() + 1) * 0.5 * cfg.size - 0.5).double().cpu().numpy()
         errs, kp_errs, depth = [], [], []
@@ -115,14 +105,14 @@ def train_direct(
         return {"val_rot_median_deg": float(np.median(errs)), "val_rot_within_15deg": float(np.mean(np.array(errs) < 15.0)),
                 "val_kp_err_px": float(np.median(kp_errs)), "val_depth_head": float(np.median(depth))}  # fmt: skip
 
-    def loss(model: torch.nn.Module, batch: dict[str, torch.Tensor]) -> torch.Tensor:
+    def loss(model: torch.nn.Module, batch: dict[str, torch.Tensor], _: torch.Generator) -> torch.Tensor:
         return regression_loss(model, with_depth_target(batch, scales.to(batch["t"].device), cfg.size))
 
     def batches(step: int):
-        return stream_loader(stream, cfg.batch, start=step * cfg.batch, workers=cfg.workers)
+        return stream_loader(stream, cfg.optim.batch, start=step * cfg.optim.batch, workers=cfg.optim.workers)
 
     return fit(
-        cfg, DirectRegressor(config), train_set, loss, out, save, validate if val_batch else None,
-        ("val_rot_median_deg", "val_rot_within_15deg", "val_kp_err_px", "val_depth_head"), resume, dev, max_minutes, progress,
-        "train direct", batches=batches if stream is not None else None,
+        cfg, DirectRegressor(config), batches if stream is not None else epochs(train_set, cfg.optim), loss, out, save,
+        validate if val_batch else None, ("val_rot_median_deg", "val_rot_within_15deg", "val_kp_err_px", "val_depth_head"),
+        resume, dev, max_minutes, progress, "train direct",
     )  # fmt: skip

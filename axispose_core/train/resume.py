@@ -1,7 +1,8 @@
-"""The resume state both trainers (AGM, localiser) keep beside their checkpoint: OUT.state.pt, read by --resume."""
+"""The resume state every trainer keeps beside its checkpoint: OUT.state.pt, read by --resume."""
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 from collections.abc import Callable
 from pathlib import Path
@@ -37,9 +38,39 @@ def save_run_state(
     tmp.replace(path)
 
 
-# Fields a resumed run may change: its length (the cosine schedule stretches to the new total, so a finished run
-# can be extended) and how often it saves and validates. Anything else would make the weights a different recipe.
+# Fields of `optim` a resumed run may change: its length (the cosine schedule stretches to the new total, so a
+# finished run can be extended) and how often it saves and validates. Anything else makes the weights another recipe.
 EXTENDABLE = ("steps", "save_every", "val_every")
+
+
+def _nest_moved_fields(saved: dict[str, Any], cfg: Any) -> None:
+    """A state written while a nested section's fields were top-level (e.g. the optimiser's before `optim`): those
+    keys moved into the section, so that the same recipe compares equal."""
+    own = {f.name for f in dataclasses.fields(cfg)}
+    for f in dataclasses.fields(cfg):
+        section = getattr(cfg, f.name)
+        if f.name in saved or not dataclasses.is_dataclass(section):
+            continue
+        inner = {g.name for g in dataclasses.fields(section)}
+        moved = {k: saved.pop(k) for k in list(saved) if k in inner and k not in own}
+        if moved:
+            saved[f.name] = moved
+
+
+def _fill_new_fields(saved: dict[str, Any], cfg: Any) -> None:
+    """A field added since the state was written (at any depth), left at its default, is the same recipe."""
+    now = dataclasses.asdict(cfg)
+    for f in dataclasses.fields(cfg):
+        value = getattr(cfg, f.name)
+        if f.name in saved:
+            if dataclasses.is_dataclass(value) and isinstance(saved[f.name], dict):
+                _fill_new_fields(saved[f.name], value)
+            continue
+        if f.default is dataclasses.MISSING and f.default_factory is dataclasses.MISSING:
+            continue
+        default = f.default if f.default is not dataclasses.MISSING else f.default_factory()
+        if now[f.name] == (dataclasses.asdict(default) if dataclasses.is_dataclass(default) else default):
+            saved[f.name] = now[f.name]
 
 
 def load_run_state(
@@ -58,20 +89,18 @@ def load_run_state(
     before the saved step (e.g. a curriculum stage appended after it), since the weights are then the new
     recipe's too."""
     state = torch.load(path, map_location="cpu", weights_only=False)
-    saved, now = dict(state["config"]), dataclasses.asdict(cfg)
-    for f in dataclasses.fields(cfg):  # a field added since, left at its default, is the same recipe
-        if f.name in saved or (f.default is dataclasses.MISSING and f.default_factory is dataclasses.MISSING):
-            continue
-        default = f.default if f.default is not dataclasses.MISSING else f.default_factory()
-        if now[f.name] == (dataclasses.asdict(default) if dataclasses.is_dataclass(default) else default):
-            saved[f.name] = now[f.name]
-    same = data_fields and same_data is not None and same_data(saved, state["step"])
-    for key in EXTENDABLE + (data_fields if same else ()):
-        saved.pop(key, None), now.pop(key, None)
+    saved, now = copy.deepcopy(dict(state["config"])), dataclasses.asdict(cfg)
+    _nest_moved_fields(saved, cfg)
+    _fill_new_fields(saved, cfg)
+    for key in EXTENDABLE:
+        saved.get("optim", {}).pop(key, None), now.get("optim", {}).pop(key, None)
+    if data_fields and same_data is not None and same_data(saved, state["step"]):
+        for key in data_fields:
+            saved.pop(key, None), now.pop(key, None)
     if saved != now:
         changed = sorted(k for k in saved.keys() | now.keys() if saved.get(k) != now.get(k))
-        raise ValueError(f"{path}: saved by a run with another configuration ({', '.join(changed)}); "
-                         f"only {', '.join(EXTENDABLE)} may change on resume, and the data from the saved step on")  # fmt: skip
+        raise ValueError(f"{path}: saved by a run with another configuration ({', '.join(changed)}); only "
+                         f"optim.{', optim.'.join(EXTENDABLE)} may change on resume, and the data from the saved step on")  # fmt: skip
     model.load_state_dict(state["model"])
     ema.load_state_dict(state["ema"])
     opt.load_state_dict(state["opt"])

@@ -32,6 +32,7 @@ from axispose_core.data.bop import (
     write_scene_gt,
     write_scene_gt_info,
 )
+from axispose_core.data.objects import NAMES_FILE
 from axispose_core.data.synth.config import SynthConfig
 from axispose_core.data.synth.randomize import background, camera_effects, cutouts, light, object_tint
 from axispose_core.data.synth.raster import RenderMesh, render, vertex_normals
@@ -182,6 +183,8 @@ def generate(
         raise ValueError(f"{out} holds data of a different configuration ({cfg_path}); choose another --out")
     cfg.save(cfg_path)
     shutil.copyfile(models_dir / "models_info.json", out / "models_info.json")
+    if (models_dir / NAMES_FILE).exists():
+        shutil.copyfile(models_dir / NAMES_FILE, out / NAMES_FILE)
     cache = Path(mesh_cache) if mesh_cache is not None else out / ".mesh_cache"
     for i in cfg.objects:  # parse the PLYs once here, so workers start from the cache
         load_render_mesh(models_dir, i, cache)

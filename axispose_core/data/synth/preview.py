@@ -8,23 +8,10 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from axispose_core.axis_image import AxisSpec, axis_keypoints
+from axispose_core.axis_image import AxisSpec, draw_axes
 from axispose_core.camera import Camera
-from axispose_core.data.bop import BopScene, load_models_info, read_bgr
+from axispose_core.data.bop import BopScene, load_models_info, read_bgr, scene_dirs
 from axispose_core.data.synth.stream import CropStream
-
-AXIS_BGR = ((0, 0, 255), (0, 255, 0), (255, 0, 0))  # X red, Y green, Z blue
-
-
-def draw_axes(image_bgr: np.ndarray, K: np.ndarray, R: np.ndarray, t: np.ndarray, lengths: np.ndarray, thickness: int = 2) -> None:
-    """Draw the axis convention's three segments onto a BGR image in place."""
-    try:
-        kp = axis_keypoints(K, R, t, lengths)
-    except ValueError:
-        return
-    o = tuple(round(v) for v in kp[0])
-    for k in range(3):
-        cv2.line(image_bgr, o, tuple(round(v) for v in kp[k + 1]), AXIS_BGR[k], thickness, cv2.LINE_AA)
 
 
 def contact_sheet(data_dir: str | Path, out: str | Path, count: int = 16, columns: int = 4, tile_width: int = 320) -> Path:
@@ -32,7 +19,7 @@ def contact_sheet(data_dir: str | Path, out: str | Path, count: int = 16, column
     data_dir = Path(data_dir)
     infos = load_models_info(data_dir / "models_info.json")
     tiles = []
-    for scene_dir in sorted(p for p in data_dir.iterdir() if (p / "scene_gt_info.json").exists()):
+    for scene_dir in scene_dirs(data_dir):
         scene = BopScene(scene_dir)
         for im_id in scene.image_ids:
             img = read_bgr(scene.rgb_path(im_id))
