@@ -51,11 +51,13 @@ def _pick_kind(options: list[type], data: dict[str, Any], source: str) -> type:
 
 def config_from_dict(cls: type[C], data: dict[str, Any], source: str = "config") -> C:
     """Build a (possibly nested) config dataclass from a dict, naming any missing or unknown key. Where a field
-    may hold one of several config classes (a union), their `kind` fields tell them apart."""
+    may hold one of several config classes (a union), their `kind` fields tell them apart. Keys a class lists in
+    its `RETIRED` (fields earlier versions wrote that no longer configure anything) are ignored."""
     if not isinstance(data, dict):
         raise CheckpointError(f"{source}: expected a mapping for {cls.__name__}")
     fields = {f.name: f for f in dataclasses.fields(cls)}  # type: ignore[arg-type]
     hints = get_type_hints(cls)
+    data = {k: v for k, v in data.items() if k not in getattr(cls, "RETIRED", ())}
     unknown = sorted(set(data) - set(fields))
     if unknown:
         raise CheckpointError(f"{source}: unknown key(s) {unknown} for {cls.__name__}")

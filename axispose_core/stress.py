@@ -1,7 +1,7 @@
 """Image degradations for stress evaluation: what a robot camera gives in a dim room or while moving.
 
 Each takes an RGB uint8 frame and a seeded generator and returns a degraded RGB uint8 frame of the same shape,
-so a stress run is reproducible (`axispose eval --perturb ...`, bench/stress.py).
+so a stress run is reproducible (`axispose eval --perturb ...`).
 """
 
 from __future__ import annotations

@@ -27,7 +27,8 @@ PANELS = (
 
 
 def read_curve(path: str | Path) -> dict[str, list[float]]:
-    """The validation rows of a trainer CSV: step, crops, cumulative wall hours and every PANELS column present."""
+    """The validation rows of a trainer CSV: step, samples seen ("crops" in CSVs of older versions), cumulative
+    wall hours and every PANELS column present."""
     rows = list(csv.DictReader(open(path, newline="")))
     out: dict[str, list[float]] = {"step": [], "crops": [], "hours": []}
     offset, last = 0.0, 0.0
@@ -39,7 +40,7 @@ def read_curve(path: str | Path) -> dict[str, list[float]]:
         if not row.get("val_rot_median_deg"):
             continue
         out["step"].append(int(row["step"]))
-        out["crops"].append(int(row.get("crops") or 0))
+        out["crops"].append(int(row.get("samples") or row.get("crops") or 0))
         out["hours"].append((offset + seconds) / 3600)
         for key, _ in PANELS:
             if row.get(key):

@@ -140,3 +140,12 @@ def test_bad_checkpoints_are_refused_clearly(tmp_path):
         load_reader(corrupt)
     with pytest.raises(CheckpointError, match="not found"):
         load_reader(tmp_path / "missing.safetensors")
+
+
+def test_reader_config_of_an_earlier_version_loads_without_its_retired_training_keys():
+    from axispose_core.checkpoint import config_from_dict
+
+    old = {"size": 32, "channels": 16, "blocks": [1, 2], "steps": 3000, "batch": 32, "lr": 0.002, "degrade_prob": 0.7, "seed": 0}
+    assert config_from_dict(ReaderConfig, old) == ReaderConfig(size=32, channels=16, blocks=(1, 2))
+    with pytest.raises(CheckpointError, match="unknown key"):
+        config_from_dict(ReaderConfig, {"size": 32, "depth": 3})

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
+from typing import ClassVar
 
 import numpy as np
 import torch
@@ -28,6 +29,9 @@ SHIPPED_READER = Path(__file__).resolve().parents[1] / "models" / "tbm_reader.sa
 @dataclass(frozen=True)
 class ReaderConfig:
     """The keypoint reader's network; saved inside its checkpoint (training: train/reader.py)."""
+
+    RETIRED: ClassVar[frozenset[str]] = frozenset({"steps", "batch", "lr", "degrade_prob", "seed"})
+    """Training settings that checkpoints of earlier versions kept here."""
 
     size: int = 64
     channels: int = 32
