@@ -30,7 +30,7 @@ def _train_reader(args: argparse.Namespace) -> int:
 
     torch.set_num_threads(args.threads)
     cfg = _config(ReaderTrainConfig, args.config)
-    step = train_reader(cfg, args.out, args.resume, args.device, args.max_minutes)
+    step = train_reader(cfg, args.out, _run_options(args))
     print(f"stopped at step {step} of {cfg.optim.steps}; keypoint reader {args.out}")
     return 0
 
@@ -109,7 +109,7 @@ def _train(args: argparse.Namespace) -> int:
 
     torch.set_num_threads(args.threads)
     cfg = _config(TrainConfig, args.config)
-    step = train_agm(cfg, args.data, args.out, init=args.init, models=args.models, **_training_kwargs(args))
+    step = train_agm(cfg, args.data, args.out, args.val, _run_options(args), init=args.init, models=args.models)
     print(f"stopped at step {step} of {cfg.optim.steps}; checkpoint {args.out}")
     return 0
 
@@ -121,7 +121,7 @@ def _train_direct(args: argparse.Namespace) -> int:
 
     torch.set_num_threads(args.threads)
     cfg = _config(DirectTrainConfig, args.config)
-    step = train_direct(cfg, args.data, args.out, models=args.models, **_training_kwargs(args))
+    step = train_direct(cfg, args.data, args.out, args.val, _run_options(args), models=args.models)
     print(f"stopped at step {step} of {cfg.optim.steps}; direct-regression baseline {args.out}")
     return 0
 
@@ -154,7 +154,7 @@ def _train_detector(args: argparse.Namespace) -> int:
     if not cfg.localiser.obj_ids:  # default: the objects the data shows
         ids = tuple(o.obj_id for o in dataset_objects(args.data))
         cfg = dataclasses.replace(cfg, localiser=dataclasses.replace(cfg.localiser, obj_ids=ids))
-    step = train_detector(cfg, args.data, args.out, init=args.init, **_training_kwargs(args))
+    step = train_detector(cfg, args.data, args.out, args.val, _run_options(args), init=args.init)
     print(f"stopped at step {step} of {cfg.optim.steps}; localiser {args.out}")
     return _score_and_attach(args)
 
@@ -235,10 +235,16 @@ def _report(args: argparse.Namespace, records, objects, config: dict, counts: di
 
 
 def _training_args(
-    parser: argparse.ArgumentParser, what: str, config_cls: str, example: str, data_help: str | None = None, data: bool = True
+    parser: argparse.ArgumentParser,
+    what: str,
+    config_cls: str,
+    example: str,
+    data_help: str | None = None,
+    data: bool = True,
+    stream: bool = False,
 ) -> None:
     """The options every trainer shares (data, output, config, resume, device, time cap, threads); `data_help`
-    makes --data optional, `data` False leaves out --data and --val."""
+    makes --data optional, `data` False leaves out --data and --val, `stream` adds the crop stream's --models."""
     if data:
         parser.add_argument(
             "--data", nargs="+", required=data_help is None, help=data_help or "BOP dataset folders written by `axispose synth`"
@@ -251,11 +257,16 @@ def _training_args(
     parser.add_argument("--device", default="auto", choices=["cpu", "cuda", "auto"])
     parser.add_argument("--max-minutes", type=float, default=None, help="stop (and save) after this much wall time")
     parser.add_argument("--threads", type=int, default=2)
+    if stream:
+        help = "BOP models folder the crop stream renders (default: ../shared/data/lmo/models beside the clone)"
+        parser.add_argument("--models", default=str(SHARED_LMO / "models"), help=help)
 
 
-def _training_kwargs(args: argparse.Namespace) -> dict:
-    """The keyword arguments every trainer takes from the options `_training_args` declares."""
-    return {"val_data": args.val, "resume": args.resume, "device": args.device, "max_minutes": args.max_minutes}
+def _run_options(args: argparse.Namespace):
+    """How this call of a trainer runs, from the options `_training_args` declares."""
+    from axispose_core.train.loop import RunOptions
+
+    return RunOptions(resume=args.resume, device=args.device, max_minutes=args.max_minutes)
 
 
 def _ids(text: str) -> list[int]:
@@ -296,9 +307,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     tn = sub.add_parser("train", help="train the AGM (axis generation) on the crop stream, or on BOP folders")
     _training_args(tn, "estimator checkpoint", "TrainConfig", "config/train_agm.yaml",
-                   data_help="BOP folders to train on instead of the crop stream (e.g. a user's own annotated frames)")  # fmt: skip
-    tn.add_argument("--models", default=str(SHARED_LMO / "models"),
-                    help="BOP models folder the crop stream renders (default: ../shared/data/lmo/models beside the clone)")  # fmt: skip
+                   data_help="BOP folders to train on instead of the crop stream (e.g. a user's own frames)", stream=True)  # fmt: skip
     tn.add_argument("--init", help="estimator checkpoint with the same AGM network to start from (its weights; a fresh "
                     "optimiser and schedule), e.g. the shipped model")  # fmt: skip
     tn.set_defaults(func=_train)
@@ -312,9 +321,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     tr = sub.add_parser("train-direct", help="train the direct-regression baseline (keypoints from the crop, no diffusion)")
     _training_args(tr, "regressor checkpoint", "DirectTrainConfig", "config/train_direct.yaml",
-                   data_help="BOP folders to train on instead of the crop stream")  # fmt: skip
-    tr.add_argument("--models", default=str(SHARED_LMO / "models"),
-                    help="BOP models folder the crop stream renders (default: ../shared/data/lmo/models beside the clone)")  # fmt: skip
+                   data_help="BOP folders to train on instead of the crop stream", stream=True)  # fmt: skip
     tr.set_defaults(func=_train_direct)
 
     ev = sub.add_parser("eval", help="pose metrics of a checkpoint on BOP scenes (JSON report, plots)")
@@ -363,8 +370,9 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
-def main(argv: Sequence[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
+def main(argv: Sequence[str] | None = None, parser: argparse.ArgumentParser | None = None) -> int:
+    """Run the command `argv` names with `parser`'s commands (default: the core's)."""
+    args = (parser or build_parser()).parse_args(argv)
     return int(args.func(args))
 
 

@@ -11,6 +11,7 @@ from collections.abc import Sequence
 from pathlib import Path
 
 from axispose_core.cli import _ids, build_parser
+from axispose_core.cli import main as core_main
 
 
 def _make_bag(args: argparse.Namespace) -> int:
@@ -102,8 +103,7 @@ def build_ros_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    args = build_ros_parser().parse_args(argv)
-    return int(args.func(args))
+    return core_main(argv, build_ros_parser())
 
 
 if __name__ == "__main__":

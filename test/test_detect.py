@@ -23,7 +23,7 @@ from axispose_core.estimator import Estimator, EstimatorConfig
 from axispose_core.tbm.reader import SHIPPED_READER, load_reader
 from axispose_core.train.dataset import AxisCropDataset
 from axispose_core.train.detector import DetectionDataset, DetectorTrainConfig, train_detector
-from axispose_core.train.loop import OptimConfig
+from axispose_core.train.loop import OptimConfig, RunOptions
 from axispose_core.train.resume import state_path
 
 TINY = LocaliserConfig(obj_ids=(1, 5), input_size=(160, 128), channels=(8, 16, 24, 32))
@@ -104,7 +104,7 @@ def trained(frames, tmp_path_factory):
     optim = OptimConfig(steps=150, batch=4, lr=3e-3, warmup=10, workers=0, save_every=1000, ema_decay=0.9)
     cfg = DetectorTrainConfig(localiser=TINY, optim=optim)
     out = tmp_path_factory.mktemp("det") / "det.safetensors"
-    train_detector(cfg, [frames], out, progress=False)
+    train_detector(cfg, [frames], out, run=RunOptions(progress=False))
     return before, out
 
 
@@ -257,9 +257,9 @@ def test_warm_start_copies_what_matches_and_leaves_the_rest_fresh(trained, estim
 def test_a_warm_started_run_keeps_naming_its_start_when_resumed(frames, trained, tmp_path):
     cfg = DetectorTrainConfig(localiser=TINY, optim=OptimConfig(steps=2, batch=2, warmup=1, workers=0, save_every=1000))
     out = tmp_path / "warm.safetensors"
-    train_detector(cfg, [frames], out, init=trained[1], progress=False)
+    train_detector(cfg, [frames], out, run=RunOptions(progress=False), init=trained[1])
     assert read_checkpoint(out, KIND, LocaliserConfig)[2]["training"]["init"] == str(trained[1])
-    train_detector(replace(cfg, optim=replace(cfg.optim, steps=3)), [frames], out, resume=state_path(out), progress=False)
+    train_detector(replace(cfg, optim=replace(cfg.optim, steps=3)), [frames], out, run=RunOptions(state_path(out), progress=False))
     record = read_checkpoint(out, KIND, LocaliserConfig)[2]["training"]
     assert record["steps"] == 3 and record["init"] == str(trained[1])
 

@@ -93,14 +93,14 @@ def test_degrade_is_seeded_and_bounded():
 def test_training_fits_rendered_axis_images_and_resumes(tmp_path):
     import csv
 
-    from axispose_core.train.loop import OptimConfig
+    from axispose_core.train.loop import OptimConfig, RunOptions
     from axispose_core.train.reader import ReaderTrainConfig, train_reader
     from axispose_core.train.resume import state_path
 
     optim = OptimConfig(steps=120, batch=16, lr=3e-3, warmup=10, ema_decay=0.9, workers=0, save_every=1000, val_every=40)
     cfg = ReaderTrainConfig(reader=ReaderConfig(size=32, channels=16, blocks=(1, 2)), optim=optim, degrade_prob=0.0, val_samples=32)
     out = tmp_path / "reader.safetensors"
-    assert train_reader(cfg, out, device="cpu", progress=False) == 120
+    assert train_reader(cfg, out, RunOptions(device="cpu", progress=False)) == 120
     rows = list(csv.DictReader(open(out.with_suffix(".csv"))))
     loss = [float(r["loss"]) for r in rows]
     assert np.mean(loss[-3:]) < 0.5 * np.mean(loss[:3])
@@ -108,7 +108,7 @@ def test_training_fits_rendered_axis_images_and_resumes(tmp_path):
     assert len(val) == 3 and val[-1] < val[0]
     assert load_reader(out).config == cfg.reader
     longer = dataclasses.replace(cfg, optim=dataclasses.replace(optim, steps=130))
-    assert train_reader(longer, out, resume=state_path(out), device="cpu", progress=False) == 130
+    assert train_reader(longer, out, RunOptions(state_path(out), "cpu", progress=False)) == 130
 
 
 def test_checkpoint_round_trip_keeps_config_and_outputs(tmp_path):

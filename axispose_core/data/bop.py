@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import json
 import logging
+from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -156,15 +157,24 @@ def _int_key(path: Path, key: str) -> int:
         raise BopFormatError(f"{path}: key '{key}' is not an integer id") from err
 
 
+def _keyed(path: Path, what: str, lists: bool = False) -> Iterator[tuple[int, Any]]:
+    """(id, entry) of a BOP JSON object keyed by `what` id ("object" or "image"); with `lists`, each entry must be
+    a list (of instances)."""
+    data = _read_json(path)
+    if not isinstance(data, dict):
+        raise BopFormatError(f"{path}: expected an object keyed by {what} id")
+    for key, entry in data.items():
+        i = _int_key(path, key)
+        if lists and not isinstance(entry, list):
+            raise BopFormatError(f"{path}: {what} {i}: expected a list of instances")
+        yield i, entry
+
+
 def load_models_info(path: str | Path) -> dict[int, ObjectInfo]:
     """models_info.json as ObjectInfo by object id (diameters, boxes and symmetry offsets converted to metres)."""
     path = Path(path)
-    data = _read_json(path)
-    if not isinstance(data, dict):
-        raise BopFormatError(f"{path}: expected an object keyed by object id")
     infos = {}
-    for key, entry in data.items():
-        obj_id = _int_key(path, key)
+    for obj_id, entry in _keyed(path, "object"):
         where = f"object {obj_id}"
         diameter = float(_numbers(path, where, "diameter", _field(path, where, entry, "diameter"), 1)[0]) * MM
         if diameter <= 0:
@@ -246,15 +256,9 @@ def read_scene_gt(path: str | Path) -> SceneGT:
     """scene_gt.json: per image id, the instances in file order (their index names the mask files). Rotations
     within ROTATION_TOL of orthonormal are projected to the nearest rotation and counted; others are refused."""
     path = Path(path)
-    data = _read_json(path)
-    if not isinstance(data, dict):
-        raise BopFormatError(f"{path}: expected an object keyed by image id")
     scene: dict[int, list[GTInstance]] = {}
     projected, worst = 0, 0.0
-    for key, entries in data.items():
-        im_id = _int_key(path, key)
-        if not isinstance(entries, list):
-            raise BopFormatError(f"{path}: image {im_id}: expected a list of instances")
+    for im_id, entries in _keyed(path, "image", lists=True):
         insts = []
         for k, e in enumerate(entries):
             where = f"image {im_id} instance {k}"
@@ -296,12 +300,8 @@ def write_scene_gt(path: str | Path, scene: dict[int, list[GTInstance]]) -> None
 def load_scene_camera(path: str | Path) -> dict[int, np.ndarray]:
     """scene_camera.json: K (3x3, pixels) per image id, validated."""
     path = Path(path)
-    data = _read_json(path)
-    if not isinstance(data, dict):
-        raise BopFormatError(f"{path}: expected an object keyed by image id")
     cams = {}
-    for key, e in data.items():
-        im_id = _int_key(path, key)
+    for im_id, e in _keyed(path, "image"):
         where = f"image {im_id}"
         K = _numbers(path, where, "cam_K", _field(path, where, e, "cam_K"), 9).reshape(3, 3)
         try:
@@ -337,14 +337,8 @@ def write_scene_camera(path: str | Path, cams: dict[int, np.ndarray], depth_scal
 def load_scene_gt_info(path: str | Path) -> dict[int, list[GTInfo]]:
     """scene_gt_info.json, entries in the same order as scene_gt.json."""
     path = Path(path)
-    data = _read_json(path)
-    if not isinstance(data, dict):
-        raise BopFormatError(f"{path}: expected an object keyed by image id")
     out: dict[int, list[GTInfo]] = {}
-    for key, entries in data.items():
-        im_id = _int_key(path, key)
-        if not isinstance(entries, list):
-            raise BopFormatError(f"{path}: image {im_id}: expected a list of instances")
+    for im_id, entries in _keyed(path, "image", lists=True):
         infos = []
         for k, e in enumerate(entries):
             where = f"image {im_id} instance {k}"

@@ -35,7 +35,7 @@ from axispose_core.metrics import re
 from axispose_core.tbm.backproject import backproject_readings
 from axispose_core.tbm.reader import SHIPPED_READER, KeypointReader, load_reader
 from axispose_core.train.dataset import AxisCropDataset
-from axispose_core.train.loop import OptimConfig, epochs, fit, training_device, training_record, world
+from axispose_core.train.loop import DEFAULT_RUN, OptimConfig, RunOptions, epochs, fit, training_device, training_record, world
 
 
 @dataclass(frozen=True)
@@ -171,11 +171,8 @@ def train_agm(
     data: list[str | Path] | None,
     out: str | Path,
     val_data: list[str | Path] | None = None,
+    run: RunOptions = DEFAULT_RUN,
     reader_path: str | Path | None = None,
-    resume: str | Path | None = None,
-    device: str = "auto",
-    max_minutes: float | None = None,
-    progress: bool = True,
     init: str | Path | None = None,
     models: str | Path | None = None,
 ) -> int:
@@ -189,9 +186,9 @@ def train_agm(
     """
     distributed = "RANK" in os.environ and "WORLD_SIZE" in os.environ
     if distributed and not dist.is_initialized():
-        dist.init_process_group("nccl" if torch.cuda.is_available() and device != "cpu" else "gloo")
+        dist.init_process_group("nccl" if torch.cuda.is_available() and run.device != "cpu" else "gloo")
     rank, size = world()
-    dev = training_device(device)
+    dev = training_device(run.device)
     if dev.type == "cuda" and distributed:
         dev = torch.device("cuda", int(os.environ.get("LOCAL_RANK", 0)))
     out = Path(out)
@@ -227,7 +224,7 @@ def train_agm(
         n = cfg.agm.denoiser.encoder.objects
         raise ValueError(f"{len(objects)} objects to train on, but the AGM's encoder embeds {n} (agm.denoiser.encoder.objects)")
     model = AxisGenerator(cfg.agm)
-    if init and not resume:
+    if init and not run.resume:
         start_from = Estimator.load(init)
         if start_from.config.agm != cfg.agm:
             raise ValueError(f"{init}: its AGM is {start_from.config.agm}, the config asks for {cfg.agm}")
@@ -258,6 +255,6 @@ def train_agm(
         Estimator(est_cfg, ema, reader, "cpu" if dev.type == "cpu" else str(dev)).save(out)
 
     return fit(
-        cfg, model, batches, loss, out, save, validate_ema, VAL_COLUMNS, resume, dev, max_minutes, progress, "train agm",
+        cfg, model, batches, loss, out, save, validate_ema, VAL_COLUMNS, run, dev, "train agm",
         str(init) if init else None, ("stream", "curriculum"), lambda saved, at: same_stream_before(saved, cfg, at),
     )  # fmt: skip

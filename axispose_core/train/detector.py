@@ -25,7 +25,7 @@ from axispose_core.detect.decode import draw_targets, focal_loss
 from axispose_core.detect.model import STRIDE, Localiser, LocaliserConfig, build_localiser
 from axispose_core.detect.scoring import detection_scores, frame_instances
 from axispose_core.detect.weights import KIND, warm_start
-from axispose_core.train.loop import OptimConfig, epochs, fit, training_device, training_record
+from axispose_core.train.loop import DEFAULT_RUN, OptimConfig, RunOptions, epochs, fit, training_device, training_record
 
 
 @dataclass(frozen=True)
@@ -113,16 +113,13 @@ def train_detector(
     data: list[str | Path],
     out: str | Path,
     val_data: list[str | Path] | None = None,
-    resume: str | Path | None = None,
-    device: str = "auto",
-    max_minutes: float | None = None,
-    progress: bool = True,
+    run: RunOptions = DEFAULT_RUN,
     init: str | Path | None = None,
 ) -> int:
     """Train (or continue) the localiser; OUT holds the EMA weights with their config. Returns the step reached.
     `init`: a trained checkpoint to start from (`warm_start`); a resumed run restores its own weights instead (and
     keeps recording the checkpoint its first call started from)."""
-    dev = training_device(device)
+    dev = training_device(run.device)
     out = Path(out)
     out.parent.mkdir(parents=True, exist_ok=True)
     torch.manual_seed(cfg.optim.seed)
@@ -139,12 +136,12 @@ def train_detector(
         return {"val_recall": scores["recall"], "val_precision": scores["precision"]}
 
     model = build_localiser(cfg.localiser)
-    if init and not resume:
+    if init and not run.resume:
         fresh = warm_start(model, init)
         shown = (": " + ", ".join(fresh[:6]) + (" ..." if len(fresh) > 6 else "")) if fresh else ""
         print(f"started from {init}; {len(fresh)} of {len(model.state_dict())} tensors start fresh{shown}")
     return fit(
         cfg, model, epochs(train_set, cfg.optim), lambda net, batch, _: detector_loss(net, batch, cfg), out, save,
-        validate if val_data else None, ("val_recall", "val_precision"), resume, dev, max_minutes, progress, "train detector",
+        validate if val_data else None, ("val_recall", "val_precision"), run, dev, "train detector",
         str(init) if init else None,
     )  # fmt: skip

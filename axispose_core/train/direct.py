@@ -22,7 +22,7 @@ from axispose_core.metrics import re
 from axispose_core.tbm.backproject import backproject
 from axispose_core.train.agm import with_depth_target
 from axispose_core.train.dataset import AxisCropDataset
-from axispose_core.train.loop import OptimConfig, epochs, fit, training_device, training_record
+from axispose_core.train.loop import DEFAULT_RUN, OptimConfig, RunOptions, epochs, fit, training_device, training_record
 
 
 @dataclass(frozen=True)
@@ -51,14 +51,11 @@ def train_direct(
     data: list[str | Path] | None,
     out: str | Path,
     val_data: list[str | Path] | None = None,
-    resume: str | Path | None = None,
-    device: str = "auto",
-    max_minutes: float | None = None,
-    progress: bool = True,
+    run: RunOptions = DEFAULT_RUN,
     models: str | Path | None = None,
 ) -> int:
     """Train (or continue) the regressor; OUT holds the EMA weights with their config. Returns the step reached."""
-    dev = training_device(device)
+    dev = training_device(run.device)
     out = Path(out)
     out.parent.mkdir(parents=True, exist_ok=True)
     stream, train_set = None, None
@@ -114,5 +111,5 @@ def train_direct(
     return fit(
         cfg, DirectRegressor(config), batches if stream is not None else epochs(train_set, cfg.optim), loss, out, save,
         validate if val_batch else None, ("val_rot_median_deg", "val_rot_within_15deg", "val_kp_err_px", "val_depth_head"),
-        resume, dev, max_minutes, progress, "train direct",
+        run, dev, "train direct",
     )  # fmt: skip

@@ -65,6 +65,20 @@ def ema_update(ema: torch.nn.Module, model: torch.nn.Module, decay: float) -> No
         be.copy_(bm)
 
 
+@dataclass(frozen=True)
+class RunOptions:
+    """How one call of a trainer runs, as against what it trains (its config): the state to resume, the device
+    ("auto": CUDA when there is one), a wall-time cap after which it saves and stops, and a progress bar."""
+
+    resume: str | Path | None = None
+    device: str = "auto"
+    max_minutes: float | None = None
+    progress: bool = True
+
+
+DEFAULT_RUN = RunOptions()
+
+
 def training_device(device: str) -> torch.device:
     """ "auto": CUDA when there is one, else the CPU; otherwise the named device."""
     if device == "auto":
@@ -117,10 +131,8 @@ def fit(
     save: Callable[[torch.nn.Module, int, float, str | None], None],
     validate: Callable[[torch.nn.Module], dict[str, float]] | None = None,
     val_columns: tuple[str, ...] = (),
-    resume: str | Path | None = None,
+    run: RunOptions = DEFAULT_RUN,
     device: torch.device | str = "cpu",
-    max_minutes: float | None = None,
-    progress: bool = True,
     desc: str = "train",
     init: str | None = None,
     data_fields: tuple[str, ...] = (),
@@ -130,7 +142,8 @@ def fit(
 
     `batches(step)` yields the training batches from `step` on (the crop stream's next samples, or `epochs`), so a
     resumed run continues where it stopped. `loss_fn(net, batch, generator)` gets the batch on the device and the
-    run's seeded generator for any randomness of its own. `save(ema, step, seconds, init)` writes the checkpoint;
+    run's seeded generator for any randomness of its own (`device` is where `run.device` resolved to). `save(ema,
+    step, seconds, init)` writes the checkpoint;
     `validate(ema)` gives the `val_columns` every `val_every` steps. Seed torch with cfg.optim.seed before building
     `model`, so its initial weights follow the seed too. `init` names the checkpoint `model` was warm-started from;
     a resumed run takes it from its state, so that every call records it. `cfg` is saved in the resume state and
@@ -143,8 +156,8 @@ def fit(
     opt = torch.optim.AdamW(model.parameters(), lr=optim.lr, weight_decay=optim.weight_decay)
     sched = torch.optim.lr_scheduler.LambdaLR(opt, lambda s: warmup_cosine(s, optim.warmup, optim.steps))
     step = 0
-    if resume:
-        step, init = load_run_state(resume, cfg, model, ema, opt, sched, data_fields, same_data)
+    if run.resume:
+        step, init = load_run_state(run.resume, cfg, model, ema, opt, sched, data_fields, same_data)
     net = torch.nn.parallel.DistributedDataParallel(model) if size > 1 else model
     gen = torch.Generator().manual_seed(optim.seed * 1000 + step + rank)
     log = open(out.with_suffix(".csv"), "a", newline="") if rank == 0 else None
@@ -160,9 +173,9 @@ def fit(
             save_run_state(state_path(out), cfg, model, ema, opt, sched, step, init)
 
     def done() -> bool:
-        return step >= optim.steps or (max_minutes is not None and time.time() - start > 60 * max_minutes)
+        return step >= optim.steps or (run.max_minutes is not None and time.time() - start > 60 * run.max_minutes)
 
-    bar = tqdm(total=optim.steps, initial=step, desc=desc, disable=not progress or rank != 0)
+    bar = tqdm(total=optim.steps, initial=step, desc=desc, disable=not run.progress or rank != 0)
     try:
         for batch in batches(step) if not done() else ():
             model.train()

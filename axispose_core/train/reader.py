@@ -16,7 +16,7 @@ from axispose_core.axis_image import axis_keypoints, render_axis_keypoints_torch
 from axispose_core.checkpoint import save_checkpoint
 from axispose_core.pose_sampling import sample_patch
 from axispose_core.tbm.reader import KIND, KeypointReader, ReaderConfig
-from axispose_core.train.loop import OptimConfig, fit, training_device, training_record
+from axispose_core.train.loop import DEFAULT_RUN, OptimConfig, RunOptions, fit, training_device, training_record
 
 VAL_SEED = 1_000_000
 
@@ -113,13 +113,10 @@ def synth_batch(
 def train_reader(
     cfg: ReaderTrainConfig,
     out: str | Path,
-    resume: str | Path | None = None,
-    device: str = "auto",
-    max_minutes: float | None = None,
-    progress: bool = True,
+    run: RunOptions = DEFAULT_RUN,
 ) -> int:
     """Train (or continue) a reader; OUT holds the EMA weights with their config. Returns the step reached."""
-    dev = training_device(device)
+    dev = training_device(run.device)
     out = Path(out)
     out.parent.mkdir(parents=True, exist_ok=True)
     optim = cfg.optim
@@ -146,5 +143,4 @@ def train_reader(
         record = training_record(["rendered axis images"], step, optim.batch, seconds, dev, init)
         save_checkpoint(out, KIND, cfg.reader, {"reader": ema}, extra={"training": record})
 
-    return fit(cfg, KeypointReader(cfg.reader), batches, loss, out, save, validate, ("val_kp_err_px",), resume, dev, max_minutes,
-               progress, "train reader")  # fmt: skip
+    return fit(cfg, KeypointReader(cfg.reader), batches, loss, out, save, validate, ("val_kp_err_px",), run, dev, "train reader")
