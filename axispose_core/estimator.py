@@ -231,7 +231,7 @@ class Estimator:
                 enc.repeat(hypotheses), steps, generator=gen, guidance=guidance if scale > 0 else None, guidance_scale=scale,
                 cancelled=cancelled,
             )  # fmt: skip
-        log_depth = enc.log_depth.float().cpu().numpy()
+        log_depth = enc.log_depth.detach().float().cpu().numpy()  # guided sampling runs outside inference mode
         images = ((axes.float() + 1) * 0.5).clamp(0, 1)
         readings = self.reader.read(images)
         results = backproject_readings(Kp_all, readings, lengths_all)  # every box's hypotheses in one refinement

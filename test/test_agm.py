@@ -228,6 +228,17 @@ def test_bfloat16_runs_the_agm_in_bfloat16_but_keeps_depth_and_poses_in_float32(
     assert pose.axis_image.dtype == np.float32 and np.isfinite(pose.head_depth)
 
 
+def test_guided_estimates_give_poses_with_the_encoders_depth():
+    """Run-time guidance samples outside inference mode, so the encoder's outputs carry gradients there."""
+    reader = load_reader(SHIPPED_READER)
+    cfg = EstimatorConfig(agm=AGMConfig(denoiser=TINY), reader=reader.config, objects=tuple(lmo_objects()[:2]), ddim_steps=2)
+    est = Estimator(cfg, AxisGenerator(cfg.agm), reader)
+    image = (np.random.default_rng(0).uniform(0, 255, (480, 640, 3))).astype(np.uint8)
+    K = np.array([[572.4, 0, 325.3], [0, 573.6, 242.0], [0, 0, 1]])
+    poses = est.estimate(image, K, [(1, (300, 200, 60, 70)), (5, (100, 100, 80, 80))], guidance_scale=1.0, hypotheses=2)
+    assert len(poses) == 2 and all(np.isfinite(p.head_depth) for p in poses)
+
+
 def test_a_checkpoint_of_the_earlier_agm_is_refused_in_one_line(tmp_path):
     """An estimator saved before the AGM's version 2 (no `version`, the old denoiser fields) says what it is."""
     path = tmp_path / "old.safetensors"
