@@ -23,12 +23,16 @@ class Outer:
 
 @dataclass(frozen=True)
 class NetA:
+    """One of two network configs that can fill a slot, told apart by their `kind`."""
+
     kind: str = "a"
     width: int = 8
 
 
 @dataclass(frozen=True)
 class NetB:
+    """The other: the same fields as NetA and one more, so that a dict without a kind fits both."""
+
     kind: str = "b"
     width: int = 8
     depth: int = 2
