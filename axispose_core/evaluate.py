@@ -27,7 +27,7 @@ from axispose_core.camera import crop_image, crop_intrinsics, square_around_box
 from axispose_core.data.bop import bop_frames, load_ply, model_path, read_bgr
 from axispose_core.data.objects import ObjectSpec
 from axispose_core.detect.decode import Detection, match
-from axispose_core.detect.scoring import frame_outcome
+from axispose_core.detect.scoring import false_alarms
 from axispose_core.metrics import ADD_THRESHOLDS, REPROJ_THRESHOLDS, pose_scores
 
 MIN_VISIB = 0.1
@@ -133,8 +133,7 @@ def evaluate(
                     c = detection_counts.setdefault(g.obj_id, {"tp": 0, "fp": 0, "n": 0})
                     c["n"] += 1
                     c["tp"] += found[id(g)] is not None
-                _, alarms = frame_outcome(dets, [(g.obj_id, info.bbox_obj, info.visib_fract) for g, info in pairs], MIN_VISIB)
-                for d in (dets[k] for k in alarms if dets[k].obj_id in specs):
+                for d in (dets[k] for k in false_alarms(hits, len(dets)) if dets[k].obj_id in specs):
                     detection_counts.setdefault(d.obj_id, {"tp": 0, "fp": 0, "n": 0})["fp"] += 1
         preds_found = iter(predict(rgb, K, boxes) if boxes else [])
         per_object = (time.perf_counter() - start) / len(insts)

@@ -56,8 +56,9 @@ def is_lmo(infos: dict[int, ObjectInfo]) -> bool:
     return bool(infos) and all(i in LMO_DIAMETERS and abs(info.diameter - LMO_DIAMETERS[i]) < 1e-4 for i, info in infos.items())
 
 
-def object_names(models_dir: str | Path) -> dict[int, str]:
-    """The names of a models folder's objects: its names.json, else LM-O's names for LM-O's models, else none."""
+def object_names(models_dir: str | Path, infos: dict[int, ObjectInfo] | None = None) -> dict[int, str]:
+    """The names of a models folder's objects: its names.json, else LM-O's names for LM-O's models (`infos`: its
+    models_info.json where the caller has read it), else none."""
     path = Path(models_dir) / NAMES_FILE
     if path.exists():
         try:
@@ -69,14 +70,15 @@ def object_names(models_dir: str | Path) -> dict[int, str]:
             raise ValueError(f"{path}: names must be distinct, start with a letter and hold only letters, digits and '_' "
                              f"(topic and parameter names are made of them): {bad or sorted(names.values())}")  # fmt: skip
         return names
-    return dict(LMO_NAMES) if is_lmo(load_models_info(Path(models_dir) / "models_info.json")) else {}
+    infos = load_models_info(Path(models_dir) / "models_info.json") if infos is None else infos
+    return dict(LMO_NAMES) if is_lmo(infos) else {}
 
 
 def objects_from_models(models_dir: str | Path, obj_ids: list[int] | None = None, names: dict[int, str] | None = None) -> list[ObjectSpec]:
     """ObjectSpecs from a BOP folder's models_info.json (λ_O = half the diameter), named by `names`, else by
     `object_names`; unnamed ids become obj_<id>."""
     infos = load_models_info(Path(models_dir) / "models_info.json")
-    names = object_names(models_dir) if names is None else names
+    names = object_names(models_dir, infos) if names is None else names
     ids = sorted(infos) if obj_ids is None else obj_ids
     missing = [i for i in ids if i not in infos]
     if missing:

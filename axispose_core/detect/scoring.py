@@ -19,6 +19,12 @@ def frame_instances(scene: BopScene, im_id: int, obj_ids: tuple[int, ...]) -> li
     return [(g.obj_id, info.bbox_obj, info.visib_fract) for g, info in scene.instances(im_id) if g.obj_id in obj_ids]
 
 
+def false_alarms(hits: list[int | None], count: int) -> list[int]:
+    """Indices of the `count` detections that no instance claimed in `match`'s `hits` (one per instance)."""
+    claimed = {k for k in hits if k is not None}
+    return [k for k in range(count) if k not in claimed]
+
+
 def frame_outcome(
     dets: list[Detection], insts: list[tuple[int, tuple[float, float, float, float], float]], min_visib: float
 ) -> tuple[dict[int, bool], list[int]]:
@@ -26,9 +32,8 @@ def frame_outcome(
     visib_fract >= min_visib (by index) whether a detection found it at IoU 0.5, and the indices of the false
     alarms. A detection that matches a less visible instance is neither a hit nor a false alarm."""
     hits = match(dets, [(o, b) for o, b, _ in insts])
-    claimed = {k for k in hits if k is not None}
     found = {g: k is not None for g, ((_, _, v), k) in enumerate(zip(insts, hits, strict=True)) if v >= min_visib}
-    return found, [k for k in range(len(dets)) if k not in claimed]
+    return found, false_alarms(hits, len(dets))
 
 
 def detection_scores(

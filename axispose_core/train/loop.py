@@ -142,9 +142,9 @@ def fit(
 
     `batches(step)` yields the training batches from `step` on (the crop stream's next samples, or `epochs`), so a
     resumed run continues where it stopped. `loss_fn(net, batch, generator)` gets the batch on the device and the
-    run's seeded generator for any randomness of its own (`device` is where `run.device` resolved to). `save(ema,
-    step, seconds, init)` writes the checkpoint;
-    `validate(ema)` gives the `val_columns` every `val_every` steps. Seed torch with cfg.optim.seed before building
+    run's seeded generator for any randomness of its own (`device` is where `run.device` resolved to).
+    `save(ema, step, seconds, init)` writes the checkpoint; `validate(ema)` gives the `val_columns` every
+    `val_every` steps. Seed torch with cfg.optim.seed before building
     `model`, so its initial weights follow the seed too. `init` names the checkpoint `model` was warm-started from;
     a resumed run takes it from its state, so that every call records it. `cfg` is saved in the resume state and
     must match on resume but for the run's length, how often it saves and validates, and `data_fields` where
