@@ -49,15 +49,31 @@ def _pick_kind(options: list[type], data: dict[str, Any], source: str) -> type:
     return options[0]
 
 
+def nest_moved_keys(cls: type, data: dict[str, Any]) -> dict[str, Any]:
+    """`data`, a config dict an earlier version wrote, with the keys that have since moved into a nested section
+    put there, at every depth: a key `cls` no longer has goes into the one section that has a field of that name
+    and that `data` does not hold yet (e.g. the optimiser's fields before `optim` gathered them)."""
+    fields = {f.name for f in dataclasses.fields(cls)}  # type: ignore[arg-type]
+    hints = get_type_hints(cls)
+    sections = {n: t for n, t in hints.items() if n in fields and isinstance(t, type) and dataclasses.is_dataclass(t)}
+    out = dict(data)
+    for key in [k for k in data if k not in fields and k not in getattr(cls, "RETIRED", ())]:
+        homes = [n for n, t in sections.items() if n not in data and key in {f.name for f in dataclasses.fields(t)}]
+        if len(homes) == 1:
+            out.setdefault(homes[0], {})[key] = out.pop(key)
+    return {k: nest_moved_keys(sections[k], v) if k in sections and isinstance(v, dict) else v for k, v in out.items()}
+
+
 def config_from_dict(cls: type[C], data: dict[str, Any], source: str = "config") -> C:
     """Build a (possibly nested) config dataclass from a dict, naming any missing or unknown key. Where a field
     may hold one of several config classes (a union), their `kind` fields tell them apart. Keys a class lists in
-    its `RETIRED` (fields earlier versions wrote that no longer configure anything) are ignored."""
+    its `RETIRED` (fields earlier versions wrote that no longer configure anything) are ignored, and keys that
+    have moved into a nested section are read from where they were (`nest_moved_keys`)."""
     if not isinstance(data, dict):
         raise CheckpointError(f"{source}: expected a mapping for {cls.__name__}")
     fields = {f.name: f for f in dataclasses.fields(cls)}  # type: ignore[arg-type]
     hints = get_type_hints(cls)
-    data = {k: v for k, v in data.items() if k not in getattr(cls, "RETIRED", ())}
+    data = {k: v for k, v in nest_moved_keys(cls, data).items() if k not in getattr(cls, "RETIRED", ())}
     unknown = sorted(set(data) - set(fields))
     if unknown:
         raise CheckpointError(f"{source}: unknown key(s) {unknown} for {cls.__name__}")

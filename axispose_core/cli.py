@@ -109,7 +109,7 @@ def _train(args: argparse.Namespace) -> int:
 
     torch.set_num_threads(args.threads)
     cfg = _config(TrainConfig, args.config)
-    step = train_agm(cfg, args.data, args.out, args.val, _run_options(args), init=args.init, models=args.models)
+    step = train_agm(cfg, _crop_sources(args), args.out, _run_options(args), init=args.init)
     print(f"stopped at step {step} of {cfg.optim.steps}; checkpoint {args.out}")
     return 0
 
@@ -121,7 +121,7 @@ def _train_direct(args: argparse.Namespace) -> int:
 
     torch.set_num_threads(args.threads)
     cfg = _config(DirectTrainConfig, args.config)
-    step = train_direct(cfg, args.data, args.out, args.val, _run_options(args), models=args.models)
+    step = train_direct(cfg, _crop_sources(args), args.out, _run_options(args))
     print(f"stopped at step {step} of {cfg.optim.steps}; direct-regression baseline {args.out}")
     return 0
 
@@ -260,6 +260,13 @@ def _training_args(
     if stream:
         help = "BOP models folder the crop stream renders (default: ../shared/data/lmo/models beside the clone)"
         parser.add_argument("--models", default=str(SHARED_LMO / "models"), help=help)
+
+
+def _crop_sources(args: argparse.Namespace):
+    """A crop trainer's --data, --val and --models."""
+    from axispose_core.train.sources import CropSources
+
+    return CropSources(tuple(args.data or ()), tuple(args.val or ()), args.models)
 
 
 def _run_options(args: argparse.Namespace):

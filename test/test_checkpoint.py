@@ -1,3 +1,4 @@
+import dataclasses
 import json
 from dataclasses import dataclass, field
 
@@ -6,7 +7,7 @@ import torch
 from safetensors import safe_open
 from safetensors.torch import save_file
 
-from axispose_core.checkpoint import CheckpointError, config_from_dict, read_checkpoint, save_checkpoint
+from axispose_core.checkpoint import CheckpointError, config_from_dict, nest_moved_keys, read_checkpoint, save_checkpoint
 
 
 @dataclass(frozen=True)
@@ -85,6 +86,21 @@ def test_a_section_reads_alone_whatever_the_rest_of_the_config_holds(tmp_path):
     inner, states, _ = read_checkpoint(path, "test", Inner, section="inner")
     assert inner == Inner(32) and set(states["net"]) == {"weight", "bias"}
     assert read_checkpoint(path, "test", Inner, section="absent")[0] is None
+
+
+def test_keys_that_moved_into_a_section_are_read_from_where_an_earlier_version_wrote_them():
+    from axispose_core.train.agm import TrainConfig
+
+    cfg = TrainConfig()
+    now = dataclasses.asdict(cfg)
+    # Before `optim` gathered the optimiser's fields (`seed` is also one of the stream's, which was written), and
+    # before `agm.encoder_loss` gathered the encoder's loss weights.
+    old = {k: v for k, v in now.items() if k != "optim"} | now["optim"]
+    old["agm"] = {k: v for k, v in now["agm"].items() if k != "encoder_loss"} | now["agm"]["encoder_loss"]
+    assert nest_moved_keys(TrainConfig, old) == now
+    assert config_from_dict(TrainConfig, old) == cfg
+    with pytest.raises(CheckpointError, match=r"unknown key.*no_such_field"):
+        config_from_dict(TrainConfig, old | {"no_such_field": 1})
 
 
 def test_half_storage_halves_the_file_and_loads_back_into_float32(tmp_path):

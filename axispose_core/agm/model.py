@@ -46,13 +46,25 @@ def encoder_losses(enc: Encoding, batch: dict[str, torch.Tensor]) -> dict[str, t
     return parts
 
 
-def weighted_total(parts: dict[str, torch.Tensor], main: str, weights: dict[str, float]) -> torch.Tensor:
-    """parts[main] + the encoder's losses weighted by `weights` (those the batch had)."""
-    total = parts[main] + parts["unused"]
-    for name, w in weights.items():
-        if name in parts:
-            total = total + w * parts[name]
-    return total
+@dataclass(frozen=True)
+class EncoderLossConfig:
+    """Weights of the crop encoder's auxiliary losses (`encoder_losses`), one section for every network built on
+    the encoder (the AGM, the direct baseline), so that all learn from the same signal."""
+
+    points_weight: float = 1.0
+    """The dense surface-coordinate loss (L1 over the visible pixels), where samples have it."""
+    mask_weight: float = 0.5
+    """The visible-mask loss (binary cross-entropy)."""
+    depth_weight: float = 1.0
+    """The scale-invariant depth loss (L1 on the log)."""
+
+    def total(self, parts: dict[str, torch.Tensor], main: str) -> torch.Tensor:
+        """parts[main] + the encoder's losses the batch had, weighted."""
+        total = parts[main] + parts["unused"]
+        for name, w in (("points", self.points_weight), ("mask", self.mask_weight), ("depth", self.depth_weight)):
+            if name in parts:
+                total = total + w * parts[name]
+        return total
 
 
 class Cancelled(Exception):
@@ -76,12 +88,7 @@ class AGMConfig:
     line_weight: float = 10.0
     """Extra loss weight on the pixels the target's axes cover (~5 % of a 64 px image): without it the loss is
     met by an all-background image, which is what an unweighted run converged to."""
-    points_weight: float = 1.0
-    """Weight of the encoder's dense surface-coordinate loss (L1 over the visible pixels) where samples have it."""
-    mask_weight: float = 0.5
-    """Weight of its visible-mask loss (binary cross-entropy)."""
-    depth_weight: float = 1.0
-    """Weight of its scale-invariant depth loss (L1 on the log)."""
+    encoder_loss: EncoderLossConfig = field(default_factory=EncoderLossConfig)
 
 
 class AxisGenerator(nn.Module):
@@ -119,9 +126,7 @@ class AxisGenerator(nn.Module):
             out = sched.from_eps(eps_g, t, x_t, clip=sched.config.prediction_type != "epsilon")
         weight = 1 + cfg.line_weight * (x0 > -1).any(dim=1, keepdim=True).to(x0.dtype)
         parts = {"diffusion": (weight * (out.float() - sched.target(x0, noise, t)) ** 2).mean(), **encoder_losses(enc, batch)}
-        parts["total"] = weighted_total(
-            parts, "diffusion", {"points": cfg.points_weight, "mask": cfg.mask_weight, "depth": cfg.depth_weight}
-        )
+        parts["total"] = cfg.encoder_loss.total(parts, "diffusion")
         return parts
 
     def forward(self, batch: dict[str, torch.Tensor], generator: torch.Generator | None = None) -> torch.Tensor:

@@ -17,7 +17,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from axispose_core.agm.denoiser import CropEncoder, EncoderConfig
-from axispose_core.agm.model import encoder_losses, weighted_total
+from axispose_core.agm.model import EncoderLossConfig, encoder_losses
 from axispose_core.checkpoint import load_state, read_checkpoint, save_checkpoint
 from axispose_core.data.objects import ObjectSpec
 from axispose_core.estimator import crop_batch
@@ -34,10 +34,7 @@ class DirectConfig:
     size: int = 64
     objects: tuple[ObjectSpec, ...] = ()
     crop_pad: float = 1.25
-    points_weight: float = 1.0
-    mask_weight: float = 0.5
-    depth_weight: float = 1.0
-    """The encoder's auxiliary losses, weighted as the AGM's (`AGMConfig`), so that both learn from the same signal."""
+    encoder_loss: EncoderLossConfig = field(default_factory=EncoderLossConfig)
 
 
 class DirectRegressor(nn.Module):
@@ -60,10 +57,7 @@ class DirectRegressor(nn.Module):
         kp = self.head(enc.context).view(-1, 4, 2)
         target = keypoints_to_normalised(batch["keypoints"].to(kp.dtype), self.config.size)
         parts = {"keypoints": F.smooth_l1_loss(kp.float(), target.float(), beta=0.02), **encoder_losses(enc, batch)}
-        cfg = self.config
-        parts["total"] = weighted_total(
-            parts, "keypoints", {"points": cfg.points_weight, "mask": cfg.mask_weight, "depth": cfg.depth_weight}
-        )
+        parts["total"] = self.config.encoder_loss.total(parts, "keypoints")
         return parts
 
     def keypoints(self, crops: torch.Tensor, objects: torch.Tensor) -> torch.Tensor:

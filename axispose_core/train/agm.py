@@ -4,7 +4,8 @@ resumable.
 By default every training sample is a crop-stream sample (`data/synth/stream.py`) never seen before: step s
 uses samples s*batch ... (s+1)*batch - 1, so a resumed run continues where it stopped and no data is stored.
 BOP folders (`data`) train on their annotated crops instead, e.g. to fine-tune on a user's own frames.
-Validation reads a fixed held-out batch: stream samples of seed `val_seed` (or crops of `val_data`).
+Validation reads a fixed held-out batch (`train/sources.py`): stream samples of seed `val_seed`, or crops of
+held-out BOP folders.
 
 A run writes OUT (the estimator checkpoint, EMA weights, config inside) and OUT.state.pt (model, EMA,
 optimiser, step, RNG: what `--resume` needs), both atomically every `save_every` steps and at the end, and
@@ -27,15 +28,15 @@ import torch.distributed as dist
 
 from axispose_core.agm.model import AGMConfig, AxisGenerator, depth_from_log, log_depth_target
 from axispose_core.axis_image import axis_keypoints
-from axispose_core.data.objects import dataset_objects
 from axispose_core.data.synth.config import StreamConfig
-from axispose_core.data.synth.stream import CropStream, CropStreamDataset, stream_loader
+from axispose_core.data.synth.stream import CropStream, stream_loader
 from axispose_core.estimator import Estimator, EstimatorConfig
 from axispose_core.metrics import re
 from axispose_core.tbm.backproject import backproject_readings
 from axispose_core.tbm.reader import SHIPPED_READER, KeypointReader, load_reader
 from axispose_core.train.dataset import AxisCropDataset
 from axispose_core.train.loop import DEFAULT_RUN, OptimConfig, RunOptions, epochs, fit, training_device, training_record, world
+from axispose_core.train.sources import CropSources
 
 
 @dataclass(frozen=True)
@@ -168,18 +169,16 @@ def with_depth_target(batch: dict[str, torch.Tensor], scales: torch.Tensor, size
 
 def train_agm(
     cfg: TrainConfig,
-    data: list[str | Path] | None,
+    sources: CropSources,
     out: str | Path,
-    val_data: list[str | Path] | None = None,
     run: RunOptions = DEFAULT_RUN,
     reader_path: str | Path | None = None,
     init: str | Path | None = None,
-    models: str | Path | None = None,
 ) -> int:
     """Train (or continue) the AGM; returns the step reached.
 
-    Without `data` the samples come from the crop stream of `cfg.stream` over the BOP models folder `models`;
-    with it, from the annotated crops of those BOP folders. `init`: an estimator checkpoint with the same AGM
+    Without BOP folders in `sources` the samples come from the crop stream of `cfg.stream` over its models
+    folder; with them, from their annotated crops. `init`: an estimator checkpoint with the same AGM
     network whose (EMA) weights a new run starts from, with a fresh optimiser and schedule, e.g. to train the
     shipped model on; a resumed run restores its own weights and keeps recording the checkpoint its first call
     started from.
@@ -199,23 +198,14 @@ def train_agm(
     reader = load_reader(reader_path or SHIPPED_READER)
     if reader.config.size != crop:
         raise ValueError(f"the keypoint reader reads {reader.config.size}px images; the AGM is configured for {crop}px")
-    if data:
-        objects = dataset_objects(data)
-        train_set = AxisCropDataset(data, objects, crop, cfg.min_visib, seed=optim.seed)
-        if not len(train_set):
-            raise ValueError(f"no training instances with visib_fract >= {cfg.min_visib} in {data}")
+    objects, train_set, stream = sources.training(AxisCropDataset, cfg.stream, crop, cfg.min_visib, optim.seed)
+    if train_set is not None:
         batches = epochs(train_set, optim)
     else:
-        if models is None:
-            raise ValueError("give BOP folders to train on, or the object models for the crop stream")
-        if cfg.stream.size != crop:
-            raise ValueError(f"the crop stream renders {cfg.stream.size}px crops; the AGM is configured for {crop}px")
-        stream = CropStream(cfg.stream, models)
-        objects = stream.objects
         untils = [stage.until for stage in cfg.curriculum]
         if untils != sorted(untils) or any(u < 1 for u in untils):
             raise ValueError(f"curriculum stages must end at increasing steps >= 1, got {untils}")
-        stages = [(stage.until, CropStream(stage.stream(cfg.stream), models)) for stage in cfg.curriculum] + [(None, stream)]
+        stages = [(stage.until, CropStream(stage.stream(cfg.stream), sources.models)) for stage in cfg.curriculum] + [(None, stream)]
 
         def batches(step: int) -> Iterator[dict[str, torch.Tensor]]:
             return curriculum_batches(stages, optim.batch, step, size, rank, optim.workers)
@@ -231,14 +221,8 @@ def train_agm(
         model.denoiser.load_state_dict(start_from.agm.denoiser.state_dict())
     scales = torch.tensor([o.scale for o in objects], dtype=torch.float64)
     validate_ema = None
-    if rank == 0 and (val_data or not data):
-        if val_data:
-            val_set = AxisCropDataset(val_data, objects, crop, 0.3, jitter=None, color_aug=False, seed=optim.seed)
-            idx = np.linspace(0, len(val_set) - 1, min(cfg.val_samples, len(val_set))).astype(int)
-            items = [val_set[int(i)] for i in idx]
-        else:  # held-out stream samples: the same crops in every run of this stream configuration
-            held_out = CropStreamDataset(CropStream(dataclasses.replace(cfg.stream, seed=cfg.val_seed), models))
-            items = [held_out[i] for i in range(cfg.val_samples)]
+    items = sources.held_out(AxisCropDataset, objects, cfg.stream, cfg.val_seed, crop, cfg.val_samples, optim.seed) if rank == 0 else []
+    if items:
         val_batch = {k: v.to(dev) for k, v in with_depth_target(_batch_of(items), scales, crop).items()}
         val_lengths = np.stack([objects[int(it["object"])].axes.lengths for it in items])
 
@@ -250,7 +234,7 @@ def train_agm(
         return net(with_depth_target(batch, scales.to(batch["t"].device), crop), gen)
 
     def save(ema: torch.nn.Module, step: int, seconds: float, started_from: str | None) -> None:
-        record = training_record(data or [f"crop stream of {models}"], step, optim.batch * size, seconds, dev, started_from)
+        record = training_record(sources.describe(), step, optim.batch * size, seconds, dev, started_from)
         est_cfg = EstimatorConfig(agm=cfg.agm, reader=reader.config, objects=tuple(objects), training=record)
         Estimator(est_cfg, ema, reader, "cpu" if dev.type == "cpu" else str(dev)).save(out)
 

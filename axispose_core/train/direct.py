@@ -4,7 +4,6 @@
 
 from __future__ import annotations
 
-import dataclasses
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -15,14 +14,14 @@ from axispose_core.agm.denoiser import EncoderConfig
 from axispose_core.agm.model import depth_from_log
 from axispose_core.axis_image import axis_keypoints
 from axispose_core.baseline.direct import DirectConfig, DirectEstimator, DirectRegressor, regression_loss
-from axispose_core.data.objects import dataset_objects
 from axispose_core.data.synth.config import StreamConfig
-from axispose_core.data.synth.stream import CropStream, CropStreamDataset, stream_loader
+from axispose_core.data.synth.stream import stream_loader
 from axispose_core.metrics import re
 from axispose_core.tbm.backproject import backproject
 from axispose_core.train.agm import with_depth_target
 from axispose_core.train.dataset import AxisCropDataset
 from axispose_core.train.loop import DEFAULT_RUN, OptimConfig, RunOptions, epochs, fit, training_device, training_record
+from axispose_core.train.sources import CropSources
 
 
 @dataclass(frozen=True)
@@ -46,46 +45,20 @@ class KeypointCropDataset(AxisCropDataset):
         return {k: item[k] for k in ("crop", "object", "K", "R", "t")} | {"keypoints": torch.from_numpy(kp).float()}
 
 
-def train_direct(
-    cfg: DirectTrainConfig,
-    data: list[str | Path] | None,
-    out: str | Path,
-    val_data: list[str | Path] | None = None,
-    run: RunOptions = DEFAULT_RUN,
-    models: str | Path | None = None,
-) -> int:
+def train_direct(cfg: DirectTrainConfig, sources: CropSources, out: str | Path, run: RunOptions = DEFAULT_RUN) -> int:
     """Train (or continue) the regressor; OUT holds the EMA weights with their config. Returns the step reached."""
     dev = training_device(run.device)
     out = Path(out)
     out.parent.mkdir(parents=True, exist_ok=True)
-    stream, train_set = None, None
-    if data:
-        objects = dataset_objects(data)
-        train_set = KeypointCropDataset(data, objects, cfg.size, cfg.min_visib, seed=cfg.optim.seed)
-        if not len(train_set):
-            raise ValueError(f"no training instances with visib_fract >= {cfg.min_visib} in {data}")
-    else:
-        if models is None:
-            raise ValueError("give BOP folders to train on, or the object models for the crop stream")
-        if cfg.stream.size != cfg.size:
-            raise ValueError(f"the crop stream renders {cfg.stream.size}px crops; the regressor is configured for {cfg.size}px")
-        stream = CropStream(cfg.stream, models)
-        objects = stream.objects
+    objects, train_set, stream = sources.training(KeypointCropDataset, cfg.stream, cfg.size, cfg.min_visib, cfg.optim.seed)
     config = DirectConfig(encoder=cfg.encoder, size=cfg.size, objects=tuple(objects))
     torch.manual_seed(cfg.optim.seed)
     scales = torch.tensor([o.scale for o in objects], dtype=torch.float64)
-    val_batch = None
-    if val_data:
-        val_set = KeypointCropDataset(val_data, objects, cfg.size, 0.3, jitter=None, color_aug=False, seed=cfg.optim.seed)
-        items = [val_set[int(i)] for i in np.linspace(0, len(val_set) - 1, min(cfg.val_samples, len(val_set))).astype(int)]
-        val_batch = {k: torch.stack([it[k] for it in items]) for k in items[0]}
-    elif stream is not None:  # the AGM trainer's held-out crops
-        held_out = CropStreamDataset(CropStream(dataclasses.replace(cfg.stream, seed=cfg.val_seed), models))
-        items = [held_out[i] for i in range(cfg.val_samples)]
-        val_batch = {k: torch.stack([it[k] for it in items]) for k in items[0]}
+    items = sources.held_out(KeypointCropDataset, objects, cfg.stream, cfg.val_seed, cfg.size, cfg.val_samples, cfg.optim.seed)
+    val_batch = {k: torch.stack([it[k] for it in items]) for k in items[0]} if items else None
 
     def save(ema: torch.nn.Module, step: int, seconds: float, init: str | None) -> None:
-        record = training_record(data or [f"crop stream of {models}"], step, cfg.optim.batch, seconds, dev, init)
+        record = training_record(sources.describe(), step, cfg.optim.batch, seconds, dev, init)
         DirectEstimator(ema).save(out, extra={"training": record})
 
     def validate(ema: torch.nn.Module) -> dict[str, float]:

@@ -10,6 +10,8 @@ from typing import Any
 
 import torch
 
+from axispose_core.checkpoint import nest_moved_keys
+
 
 def state_path(out: Path) -> Path:
     """Where the resume state of checkpoint `out` lives."""
@@ -41,20 +43,6 @@ def save_run_state(
 # Fields of `optim` a resumed run may change: its length (the cosine schedule stretches to the new total, so a
 # finished run can be extended) and how often it saves and validates. Anything else makes the weights another recipe.
 EXTENDABLE = ("steps", "save_every", "val_every")
-
-
-def _nest_moved_fields(saved: dict[str, Any], cfg: Any) -> None:
-    """A state written while a nested section's fields were top-level (e.g. the optimiser's before `optim`): those
-    keys moved into the section, so that the same recipe compares equal."""
-    own = {f.name for f in dataclasses.fields(cfg)}
-    for f in dataclasses.fields(cfg):
-        section = getattr(cfg, f.name)
-        if f.name in saved or not dataclasses.is_dataclass(section):
-            continue
-        inner = {g.name for g in dataclasses.fields(section)}
-        moved = {k: saved.pop(k) for k in list(saved) if k in inner and k not in own}
-        if moved:
-            saved[f.name] = moved
 
 
 def _fill_new_fields(saved: dict[str, Any], cfg: Any) -> None:
@@ -90,7 +78,7 @@ def load_run_state(
     recipe's too."""
     state = torch.load(path, map_location="cpu", weights_only=False)
     saved, now = copy.deepcopy(dict(state["config"])), dataclasses.asdict(cfg)
-    _nest_moved_fields(saved, cfg)
+    saved = nest_moved_keys(type(cfg), saved)
     _fill_new_fields(saved, cfg)
     for key in EXTENDABLE:
         saved.get("optim", {}).pop(key, None), now.get("optim", {}).pop(key, None)

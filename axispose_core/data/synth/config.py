@@ -40,8 +40,8 @@ class SceneConfig:
 
 
 @dataclass(frozen=True)
-class RandomizationConfig:
-    """Domain randomisation of appearance."""
+class BackgroundConfig:
+    """What is behind the objects."""
 
     photo_background_prob: float = 0.6
     photos: tuple[str, ...] = PHOTOS
@@ -50,6 +50,12 @@ class RandomizationConfig:
     """Side of the photograph's random crop, as a fraction of its height."""
     textures: tuple[str, ...] = TEXTURES
     """Procedural backgrounds to draw from: noise, stripes, checkers, gradient, markers, clutter."""
+
+
+@dataclass(frozen=True)
+class LightConfig:
+    """The light and the objects' materials."""
+
     light_intensity: tuple[float, float] = (0.6, 1.4)
     light_color_jitter: float = 0.15
     ambient: tuple[float, float] = (0.15, 0.6)
@@ -58,21 +64,39 @@ class RandomizationConfig:
     shininess: tuple[float, float] = (5.0, 60.0)
     object_brightness: tuple[float, float] = (0.75, 1.25)
     object_color_jitter: float = 0.08
+
+
+@dataclass(frozen=True)
+class SensorConfig:
+    """The camera between the scene and the pixels, in the order `randomize.camera_effects` applies it; a knob at
+    0 draws no random number."""
+
     blur_prob: float = 0.3
     blur_sigma: tuple[float, float] = (0.3, 1.5)
-    noise_std: tuple[float, float] = (0.0, 0.03)
-    noise_shot: float = 0.0
-    """Extra noise in the dark: std x (1 + noise_shot x (1 - brightness))."""
     motion_blur_prob: float = 0.0
     motion_blur_px: tuple[float, float] = (2.0, 8.0)
     white_balance: float = 0.0
     """Per-channel gain jitter (std) of the camera's white balance."""
-    gamma: tuple[float, float] = (0.0, 0.0)
-    """Exponent range of the camera's tone curve (0, 0: linear, and no number drawn)."""
     contrast: float = 0.0
-    """Contrast and saturation jitter (std of the gains about 1; 0: none, and no number drawn)."""
+    """Contrast and saturation jitter (std of the gains about 1)."""
+    gamma: tuple[float, float] = (0.0, 0.0)
+    """Exponent range of the camera's tone curve (0, 0: linear)."""
+    noise_std: tuple[float, float] = (0.0, 0.03)
+    noise_shot: float = 0.0
+    """Extra noise in the dark: std x (1 + noise_shot x (1 - brightness))."""
     jpeg_quality: tuple[int, int] = (60, 95)
+    """Applied when the image is saved (frames) or encoded in memory (crops)."""
+
+
+@dataclass(frozen=True)
+class RandomizationConfig:
+    """Domain randomisation of appearance, by what it varies."""
+
+    background: BackgroundConfig = field(default_factory=BackgroundConfig)
+    light: LightConfig = field(default_factory=LightConfig)
+    sensor: SensorConfig = field(default_factory=SensorConfig)
     cutout_prob: float = 0.3
+    """Share of frames with flat-coloured rectangles pasted over them (`randomize.cutouts`)."""
     cutouts: tuple[int, int] = (1, 3)
     cutout_size: tuple[float, float] = (0.04, 0.15)
     """Side of a cut-out occluder as a fraction of the image width."""
@@ -101,19 +125,19 @@ class SynthConfig:
 
 
 STREAM_RANDOMIZATION = RandomizationConfig(
-    photo_background_prob=0.5,
-    photos=ALL_PHOTOS,
-    textures=ALL_TEXTURES,
-    specular=(0.0, 0.5),
-    blur_sigma=(0.3, 1.2),
-    noise_std=(0.0, 0.04),
-    noise_shot=1.0,
-    motion_blur_prob=0.15,
-    motion_blur_px=(2.0, 7.0),
-    white_balance=0.06,
-    gamma=(0.8, 1.25),
-    contrast=0.12,
-    jpeg_quality=(50, 95),
+    background=BackgroundConfig(photo_background_prob=0.5, photos=ALL_PHOTOS, textures=ALL_TEXTURES),
+    light=LightConfig(specular=(0.0, 0.5)),
+    sensor=SensorConfig(
+        blur_sigma=(0.3, 1.2),
+        noise_std=(0.0, 0.04),
+        noise_shot=1.0,
+        motion_blur_prob=0.15,
+        motion_blur_px=(2.0, 7.0),
+        white_balance=0.06,
+        gamma=(0.8, 1.25),
+        contrast=0.12,
+        jpeg_quality=(50, 95),
+    ),
     cutout_prob=0.0,
 )
 """The crop stream's appearance: every photograph and texture, highlights, and the whole camera model on."""

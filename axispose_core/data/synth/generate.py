@@ -86,16 +86,16 @@ def render_image(cfg: SynthConfig, meshes: dict[int, RenderMesh], diameters: dic
     for p in placements:
         if p.obj_id:
             m = meshes[p.obj_id]
-            m = RenderMesh(m.vertices, m.faces, np.clip(m.colors * object_tint(rng, rcfg), 0, 1), m.normals)
+            m = RenderMesh(m.vertices, m.faces, np.clip(m.colors * object_tint(rng, rcfg.light), 0, 1), m.normals)
         else:
             m = primitive(rng, p.radius)
         posed.append((m, p.R, p.t))
-    bg = background(rng, rcfg, w, h)
-    res = render(posed, K, w, h, light(rng, rcfg))
+    bg = background(rng, rcfg.background, w, h)
+    res = render(posed, K, w, h, light(rng, rcfg.light))
     image = np.where(res.instance[..., None] >= 0, res.rgb.astype(np.float32), bg)
     occluded = cutouts(rng, rcfg, image)
-    image = camera_effects(rng, rcfg, image)
-    quality = int(rng.integers(rcfg.jpeg_quality[0], rcfg.jpeg_quality[1] + 1))
+    image = camera_effects(rng, rcfg.sensor, image)
+    quality = int(rng.integers(rcfg.sensor.jpeg_quality[0], rcfg.sensor.jpeg_quality[1] + 1))
     gt, info, masks, masks_visib = [], [], [], []
     for i, p in enumerate(placements):
         if not p.obj_id:

@@ -15,7 +15,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from axispose_core.data.synth.config import PHOTOS, TEXTURES, RandomizationConfig
+from axispose_core.data.synth.config import PHOTOS, TEXTURES, BackgroundConfig, LightConfig, RandomizationConfig, SensorConfig
 from axispose_core.data.synth.raster import Light
 
 
@@ -102,7 +102,7 @@ def _procedural(rng: np.random.Generator, width: int, height: int, kinds: tuple[
     return (a[None, None] * mix[..., None] + b[None, None] * (1 - mix[..., None])).astype(np.float32)
 
 
-def background(rng: np.random.Generator, cfg: RandomizationConfig, width: int, height: int, zoom: float = 1.0) -> np.ndarray:
+def background(rng: np.random.Generator, cfg: BackgroundConfig, width: int, height: int, zoom: float = 1.0) -> np.ndarray:
     """A width x height RGB background: a random crop of a photograph (flipped, tinted) or a procedural texture.
     `zoom` < 1 shows that part of a frame's background: the photograph's crop shrinks by it."""
     if rng.uniform() < cfg.photo_background_prob:
@@ -120,7 +120,7 @@ def background(rng: np.random.Generator, cfg: RandomizationConfig, width: int, h
     return np.clip(img, 0, 1).astype(np.float32)
 
 
-def light(rng: np.random.Generator, cfg: RandomizationConfig) -> Light:
+def light(rng: np.random.Generator, cfg: LightConfig) -> Light:
     """A directional light from the camera's hemisphere, of random intensity and tint, with random ambient."""
     d = rng.normal(size=3)
     d[2] = abs(d[2]) + 0.3  # travelling away from the camera: lights the visible side
@@ -131,7 +131,7 @@ def light(rng: np.random.Generator, cfg: RandomizationConfig) -> Light:
     return Light(d / np.linalg.norm(d), color, ambient, float(rng.uniform(*cfg.specular)), float(rng.uniform(*cfg.shininess)))
 
 
-def object_tint(rng: np.random.Generator, cfg: RandomizationConfig) -> np.ndarray:
+def object_tint(rng: np.random.Generator, cfg: LightConfig) -> np.ndarray:
     """Per-object RGB gain: brightness times a small colour jitter."""
     return rng.uniform(*cfg.object_brightness) * np.clip(1 + rng.normal(0, cfg.object_color_jitter, 3), 0.7, 1.3)
 
@@ -164,7 +164,7 @@ def cutouts(rng: np.random.Generator, cfg: RandomizationConfig, image: np.ndarra
     return mask.astype(bool)
 
 
-def camera_effects(rng: np.random.Generator, cfg: RandomizationConfig, image: np.ndarray, scale: float = 1.0) -> np.ndarray:
+def camera_effects(rng: np.random.Generator, cfg: SensorConfig, image: np.ndarray, scale: float = 1.0) -> np.ndarray:
     """The camera between scene and pixels: optical and motion blur, white balance, contrast and saturation,
     gamma, sensor noise (more of it in the dark where `noise_shot` says so); JPEG artefacts come from saving
     (`jpeg` for in-memory images). `scale`: image pixels per frame pixel, for blur lengths given in frame pixels."""

@@ -59,15 +59,16 @@ VISIB_TOL = 0.02
 
 @dataclass(frozen=True)
 class CropSample:
-    """One crop with everything known about it; images are size x size, keypoints in crop pixels."""
+    """One crop of object `obj_id` with everything known about it; images are size x size, keypoints in crop
+    pixels."""
 
+    obj_id: int
     crop: np.ndarray
     """uint8 RGB."""
     axes: np.ndarray
     """Axis-image target, float32 RGB (= X, Y, Z) in [0, 1]."""
     keypoints: np.ndarray
     """(4, 2): projected origin, X, Y and Z endpoints."""
-    obj_id: int
     K: np.ndarray
     """The frame camera."""
     K_crop: np.ndarray
@@ -165,7 +166,7 @@ class CropStream:
         """The object's mesh at the level of detail for `apparent` crop pixels across, re-tinted."""
         level = int(np.clip(np.floor(np.log2(self.cfg.size / self.cfg.framing.pad / max(apparent, 1e-6))), 0, LODS - 1))
         m = self.models[obj_id].mesh(level)
-        return RenderMesh(m.vertices, m.faces, np.clip(m.colors * object_tint(rng, self.cfg.randomization), 0, 1), m.normals)
+        return RenderMesh(m.vertices, m.faces, np.clip(m.colors * object_tint(rng, self.cfg.randomization.light), 0, 1), m.normals)
 
     def _primitive(self, rng: np.random.Generator, radius: float) -> RenderMesh:
         """A primitive of the pool scaled to `radius`, in a new colour (its own colour variation kept)."""
@@ -190,7 +191,7 @@ class CropStream:
         want = rng.uniform(lo, hi) if occluded else 1.0
         center, side = self._framing(rng, bbox_from_model(self.K, R, t, model.hull), want)
         Kc = crop_intrinsics(self.K, center, side, S)
-        lit = light(rng, rcfg)
+        lit = light(rng, rcfg.light)
         radius = 0.5 * model.spec.diameter
         f = 0.5 * (Kc[0, 0] + Kc[1, 1])
         posed = [(self._tinted(rng, obj_id, 2 * radius * f / t[2]), R, t)]
@@ -223,7 +224,7 @@ class CropStream:
         owned = (res.instance >= 0) | covered
         zoom = side / cfg.height
         n = int(np.clip(round(side), 16, 2 * S))
-        bg = cv2.resize(background(rng, rcfg, n, n, zoom), (S, S), interpolation=cv2.INTER_AREA if n > S else cv2.INTER_LINEAR)
+        bg = cv2.resize(background(rng, rcfg.background, n, n, zoom), (S, S), interpolation=cv2.INTER_AREA if n > S else cv2.INTER_LINEAR)
         image = np.where(owned[..., None], image, bg).astype(np.float32)
         image = self._camera(rng, image, side)
         image[~inside] = 0.0
@@ -328,14 +329,14 @@ class CropStream:
     def _camera(self, rng: np.random.Generator, image: np.ndarray, side: float) -> np.ndarray:
         """The camera's effects at the frame's own resolution there: a crop cut from fewer frame pixels than it has
         is blurred, noisy and blocky at that scale, then resampled up (as crop_image's bilinear warp does)."""
-        S, rcfg = self.cfg.size, self.cfg.randomization
-        quality = int(rng.integers(rcfg.jpeg_quality[0], rcfg.jpeg_quality[1] + 1))
+        S, sensor = self.cfg.size, self.cfg.randomization.sensor
+        quality = int(rng.integers(sensor.jpeg_quality[0], sensor.jpeg_quality[1] + 1))
         n = round(side)
         if n < S:
             small = cv2.resize(image, (n, n), interpolation=cv2.INTER_AREA)
-            small = jpeg(camera_effects(rng, rcfg, small), quality)
+            small = jpeg(camera_effects(rng, sensor, small), quality)
             return cv2.resize(small, (S, S), interpolation=cv2.INTER_LINEAR)
-        return jpeg(camera_effects(rng, rcfg, image, scale=S / side), quality)
+        return jpeg(camera_effects(rng, sensor, image, scale=S / side), quality)
 
 
 class CropStreamDataset(Dataset):
