@@ -73,6 +73,11 @@ class SensorConfig:
 
     blur_prob: float = 0.3
     blur_sigma: tuple[float, float] = (0.3, 1.5)
+    chromatic: float = 0.0
+    """Largest lateral chromatic aberration: red and blue magnified by ±δ about the frame's centre, |δ| up to this
+    (0.002 shifts them 0.8 px at a VGA frame's corners)."""
+    vignetting: tuple[float, float] = (0.0, 0.0)
+    """Range of the light lost at the frame's corners (falling off with the squared distance from its centre)."""
     motion_blur_prob: float = 0.0
     motion_blur_px: tuple[float, float] = (2.0, 8.0)
     white_balance: float = 0.0
@@ -81,6 +86,9 @@ class SensorConfig:
     """Contrast and saturation jitter (std of the gains about 1)."""
     gamma: tuple[float, float] = (0.0, 0.0)
     """Exponent range of the camera's tone curve (0, 0: linear)."""
+    dynamic_range: tuple[float, float] = (0.0, 0.0)
+    """Range of the share of [0, 1] a low-dynamic-range sensor loses, split at random between crushed shadows and
+    clipped highlights."""
     noise_std: tuple[float, float] = (0.0, 0.03)
     noise_shot: float = 0.0
     """Extra noise in the dark: std x (1 + noise_shot x (1 - brightness))."""

@@ -164,12 +164,32 @@ def cutouts(rng: np.random.Generator, cfg: RandomizationConfig, image: np.ndarra
     return mask.astype(bool)
 
 
-def camera_effects(rng: np.random.Generator, cfg: SensorConfig, image: np.ndarray, scale: float = 1.0) -> np.ndarray:
-    """The camera between scene and pixels: optical and motion blur, white balance, contrast and saturation,
-    gamma, sensor noise (more of it in the dark where `noise_shot` says so); JPEG artefacts come from saving
-    (`jpeg` for in-memory images). `scale`: image pixels per frame pixel, for blur lengths given in frame pixels."""
+def camera_effects(
+    rng: np.random.Generator,
+    cfg: SensorConfig,
+    image: np.ndarray,
+    scale: float = 1.0,
+    origin: tuple[float, float] = (0.0, 0.0),
+    frame: tuple[int, int] | None = None,
+) -> np.ndarray:
+    """The camera between scene and pixels: optical blur, lateral chromatic aberration and vignetting, motion blur,
+    white balance, contrast and saturation, gamma, a low dynamic range, sensor noise (more of it in the dark where
+    `noise_shot` says so); JPEG artefacts come from saving (`jpeg` for in-memory images). `scale`: image pixels per
+    frame pixel, for lengths given in frame pixels; `origin`: the frame coordinates of the image's top-left
+    corner and `frame` the frame's (width, height) (None: the image is the frame), for the effects that grow
+    away from the frame's centre."""
     if rng.uniform() < cfg.blur_prob:
         image = cv2.GaussianBlur(image, (0, 0), max(0.05, scale * rng.uniform(*cfg.blur_sigma)))
+    if cfg.chromatic > 0 or cfg.vignetting[1] > 0:
+        h, w = image.shape[:2]
+        fw, fh = frame or (w / scale, h / scale)
+        dx = origin[0] + (np.arange(w, dtype=np.float32) + 0.5) / scale - 0.5 * fw  # frame px from its centre
+        dy = origin[1] + (np.arange(h, dtype=np.float32) + 0.5) / scale - 0.5 * fh
+        if cfg.chromatic > 0:
+            image = _chromatic(image, rng.uniform(-cfg.chromatic, cfg.chromatic), dx, dy, scale)
+        if cfg.vignetting[1] > 0:
+            r2 = (dy[:, None] ** 2 + dx[None, :] ** 2) / (0.25 * (fw * fw + fh * fh))
+            image = image * (1 - np.float32(rng.uniform(*cfg.vignetting)) * r2)[..., None]
     if cfg.motion_blur_prob > 0 and rng.uniform() < cfg.motion_blur_prob:
         image = motion_blur(image, scale * rng.uniform(*cfg.motion_blur_px), rng.uniform(0, 180))
     if cfg.white_balance > 0:
@@ -181,6 +201,10 @@ def camera_effects(rng: np.random.Generator, cfg: SensorConfig, image: np.ndarra
         image = mean + (image - mean) * np.float32(np.clip(1 + rng.normal(0, cfg.contrast), 0.5, 1.5))
     if cfg.gamma[1] > 0:
         image = np.clip(image, 0, 1) ** np.float32(rng.uniform(*cfg.gamma))
+    if cfg.dynamic_range[1] > 0:
+        lost = rng.uniform(*cfg.dynamic_range)
+        black = lost * rng.uniform()
+        image = np.clip((image - np.float32(black)) / np.float32(1 - lost), 0, 1)
     std = rng.uniform(*cfg.noise_std)
     if std > 0:
         # OpenCV's generator, seeded from ours, is several times faster than NumPy's for a full frame.
@@ -191,6 +215,20 @@ def camera_effects(rng: np.random.Generator, cfg: SensorConfig, image: np.ndarra
             noise *= 1 + cfg.noise_shot * (1 - np.clip(image.mean(axis=-1, keepdims=True), 0, 1))
         image = image + noise
     return np.clip(image, 0, 1)
+
+
+def _chromatic(image: np.ndarray, delta: float, dx: np.ndarray, dy: np.ndarray, scale: float) -> np.ndarray:
+    """Red magnified by 1 + delta and blue by 1 - delta about the frame's centre (`dx`, `dy`: each image column's
+    and row's frame offset from it): the colour fringes a lens leaves at the edges of a frame."""
+    out = image.copy()
+    cols, rows = np.arange(len(dx), dtype=np.float32), np.arange(len(dy), dtype=np.float32)
+    for channel, m in ((0, 1 + delta), (2, 1 - delta)):
+        # The channel's value at a pixel is the scene's where the lens drew it from: offsets shrunk by m.
+        map_x = np.broadcast_to(cols + (dx / m - dx) * scale, (len(dy), len(dx)))
+        map_y = np.broadcast_to((rows + (dy / m - dy) * scale)[:, None], (len(dy), len(dx)))
+        out[..., channel] = cv2.remap(image[..., channel], np.ascontiguousarray(map_x, np.float32), np.ascontiguousarray(map_y, np.float32),
+                                      cv2.INTER_LINEAR, borderMode=cv2.BORDER_REFLECT)  # fmt: skip
+    return out
 
 
 def motion_blur(image: np.ndarray, length: float, angle_deg: float) -> np.ndarray:

@@ -226,7 +226,7 @@ class CropStream:
         n = int(np.clip(round(side), 16, 2 * S))
         bg = cv2.resize(background(rng, rcfg.background, n, n, zoom), (S, S), interpolation=cv2.INTER_AREA if n > S else cv2.INTER_LINEAR)
         image = np.where(owned[..., None], image, bg).astype(np.float32)
-        image = self._camera(rng, image, side)
+        image = self._camera(rng, image, center, side)
         image[~inside] = 0.0
         mask_visib = visible & ~covered
         visib = float(mask_visib.sum() / full.sum())
@@ -326,17 +326,19 @@ class CropStream:
         out[y0:y1, x0:x1][covered[y0:y1, x0:x1]] = rgb[y0 - y : y1 - y, x0 - x : x1 - x][covered[y0:y1, x0:x1]]
         return covered, out
 
-    def _camera(self, rng: np.random.Generator, image: np.ndarray, side: float) -> np.ndarray:
+    def _camera(self, rng: np.random.Generator, image: np.ndarray, center: tuple[float, float], side: float) -> np.ndarray:
         """The camera's effects at the frame's own resolution there: a crop cut from fewer frame pixels than it has
-        is blurred, noisy and blocky at that scale, then resampled up (as crop_image's bilinear warp does)."""
+        is blurred, noisy and blocky at that scale, then resampled up (as crop_image's bilinear warp does); lens
+        effects grow with the crop's distance from the frame's centre."""
         S, sensor = self.cfg.size, self.cfg.randomization.sensor
         quality = int(rng.integers(sensor.jpeg_quality[0], sensor.jpeg_quality[1] + 1))
         n = round(side)
+        where = {"origin": (center[0] - 0.5 * side, center[1] - 0.5 * side), "frame": (self.cfg.width, self.cfg.height)}
         if n < S:
             small = cv2.resize(image, (n, n), interpolation=cv2.INTER_AREA)
-            small = jpeg(camera_effects(rng, sensor, small), quality)
+            small = jpeg(camera_effects(rng, sensor, small, **where), quality)  # n ~ side: one frame px per px
             return cv2.resize(small, (S, S), interpolation=cv2.INTER_LINEAR)
-        return jpeg(camera_effects(rng, sensor, image, scale=S / side), quality)
+        return jpeg(camera_effects(rng, sensor, image, scale=S / side, **where), quality)
 
 
 class CropStreamDataset(Dataset):
