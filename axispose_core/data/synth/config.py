@@ -22,6 +22,13 @@ ALL_PHOTOS = (*PHOTOS, "cell.png", "clock_motion.png", "matplotlib:mpl-data/samp
 TEXTURES = ("noise", "stripes", "checkers", "gradient")
 """The procedural backgrounds of the frame recipe; `ALL_TEXTURES` adds printed markers and clutter."""
 ALL_TEXTURES = (*TEXTURES, "markers", "clutter")
+SURFACES = ("wood", "cloth", "paper")
+"""Procedural table-top materials (also drawable as backgrounds)."""
+
+
+TABLE_TEXTURE = 512
+"""Side (px) of a table top's texture."""
+SPLITS = ("train", "held_out", "all")
 
 
 @dataclass(frozen=True)
@@ -37,6 +44,23 @@ class SceneConfig:
     cluster_spread: float = 0.6
     """Lateral spread of objects around the scene centre, in object diameters (smaller: more occlusion)."""
     distractor_size: tuple[float, float] = (0.03, 0.15)
+    distractor_meshes: float = 0.0
+    """Share of the distractors that are pybullet_data meshes (`clutter.py`) rather than primitive shapes."""
+    distractor_split: str = "train"
+    """Which of those meshes: "train" (nine in ten), "held_out" (the tenth, for stress sets) or "all"."""
+    table_prob: float = 0.0
+    """Share of frames whose objects rest on a textured table top (`table.py`) instead of floating in front of
+    the background."""
+    table_elevation_deg: tuple[float, float] = (15.0, 75.0)
+    """The camera's elevation above the table top."""
+    table_size: tuple[float, float] = (0.8, 2.5)
+    """Side range (m) of the table top; beyond its edges, the background."""
+    table_texel: tuple[float, float] = (0.0008, 0.004)
+    """Metres per pixel of its texture (`TABLE_TEXTURE` px, repeated mirrored)."""
+
+    def __post_init__(self) -> None:
+        if self.distractor_split not in SPLITS:
+            raise ValueError(f"distractor_split must be one of {SPLITS}, got {self.distractor_split!r}")
 
 
 @dataclass(frozen=True)
@@ -49,7 +73,11 @@ class BackgroundConfig:
     photo_scale: tuple[float, float] = (0.4, 1.0)
     """Side of the photograph's random crop, as a fraction of its height."""
     textures: tuple[str, ...] = TEXTURES
-    """Procedural backgrounds to draw from: noise, stripes, checkers, gradient, markers, clutter."""
+    """Procedural backgrounds to draw from: noise, stripes, checkers, gradient, markers, clutter, wood, cloth, paper."""
+
+
+TABLE_TOP = BackgroundConfig(photo_background_prob=0.25, textures=(*SURFACES, "markers"))
+"""Table tops: wood, cloth, paper, printed markers; a quarter of them a photograph."""
 
 
 @dataclass(frozen=True)
@@ -64,6 +92,8 @@ class LightConfig:
     shininess: tuple[float, float] = (5.0, 60.0)
     object_brightness: tuple[float, float] = (0.75, 1.25)
     object_color_jitter: float = 0.08
+    shadows: float = 0.0
+    """Share of frames whose light casts shadows, on the objects and the table (`raster.ShadowMap`)."""
 
 
 @dataclass(frozen=True)
@@ -101,6 +131,8 @@ class RandomizationConfig:
     """Domain randomisation of appearance, by what it varies."""
 
     background: BackgroundConfig = field(default_factory=BackgroundConfig)
+    table_top: BackgroundConfig = field(default_factory=lambda: TABLE_TOP)
+    """The texture of a table top (`SceneConfig.table_prob`)."""
     light: LightConfig = field(default_factory=LightConfig)
     sensor: SensorConfig = field(default_factory=SensorConfig)
     cutout_prob: float = 0.3

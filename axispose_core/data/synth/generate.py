@@ -33,10 +33,12 @@ from axispose_core.data.bop import (
     write_scene_gt_info,
 )
 from axispose_core.data.objects import NAMES_FILE
-from axispose_core.data.synth.config import SynthConfig
+from axispose_core.data.synth.clutter import distractor_mesh
+from axispose_core.data.synth.config import TABLE_TEXTURE, SynthConfig
 from axispose_core.data.synth.randomize import background, camera_effects, cutouts, light, object_tint
 from axispose_core.data.synth.raster import RenderMesh, render, vertex_normals
-from axispose_core.data.synth.scene import primitive, sample_placements
+from axispose_core.data.synth.scene import Placement, primitive, sample_placements, sample_table_scene
+from axispose_core.data.synth.table import Table, light_from_above, rest_on, shade_table, table_pixels
 
 
 def load_render_mesh(models_dir: str | Path, obj_id: int, cache_dir: str | Path | None = None) -> RenderMesh:
@@ -72,6 +74,9 @@ class SynthImage:
     masks: list[np.ndarray]
     masks_visib: list[np.ndarray]
     depth: np.ndarray
+    """Of the meshes (m; inf elsewhere, 0 under cut-outs)."""
+    table: Table | None = None
+    """The table top the objects rest on, if the frame has one."""
 
 
 def render_image(cfg: SynthConfig, meshes: dict[int, RenderMesh], diameters: dict[int, float], scene_id: int, im_id: int) -> SynthImage:
@@ -81,17 +86,33 @@ def render_image(cfg: SynthConfig, meshes: dict[int, RenderMesh], diameters: dic
     w, h = cfg.width, cfg.height
     rcfg = cfg.randomization
     radii = {i: 0.5 * diameters[i] for i in meshes}
-    placements = sample_placements(rng, cfg.scene, radii, K, w, h)
+    table = None
+    if cfg.scene.table_prob > 0 and rng.uniform() < cfg.scene.table_prob:
+        texture = background(rng, rcfg.table_top, TABLE_TEXTURE, TABLE_TEXTURE)
+        placements, table = sample_table_scene(rng, cfg.scene, radii, K, w, h, texture, rng.uniform(*cfg.scene.table_texel))
+    else:
+        placements = sample_placements(rng, cfg.scene, radii, K, w, h)
     posed = []
-    for p in placements:
+    for i, p in enumerate(placements):
         if p.obj_id:
             m = meshes[p.obj_id]
             m = RenderMesh(m.vertices, m.faces, np.clip(m.colors * object_tint(rng, rcfg.light), 0, 1), m.normals)
+        elif cfg.scene.distractor_meshes > 0 and rng.uniform() < cfg.scene.distractor_meshes:
+            m = distractor_mesh(rng, p.radius, cfg.scene.distractor_split, rcfg.background)
         else:
             m = primitive(rng, p.radius)
+        if table is not None:
+            placements[i] = p = Placement(p.obj_id, p.R, rest_on(table, m, p.R, p.t), p.radius)
         posed.append((m, p.R, p.t))
     bg = background(rng, rcfg.background, w, h)
-    res = render(posed, K, w, h, light(rng, rcfg.light))
+    lit = light(rng, rcfg.light)
+    if table is not None:
+        lit = light_from_above(lit, table, rng)
+    shadows = rcfg.light.shadows > 0 and rng.uniform() < rcfg.light.shadows
+    res = render(posed, K, w, h, lit, shadows)
+    if table is not None:
+        points, table_depth = table_pixels(table, K, w, h)
+        bg = np.where(np.isfinite(table_depth)[..., None], shade_table(table, points, table_depth, lit, res.shadows), bg)
     image = np.where(res.instance[..., None] >= 0, res.rgb.astype(np.float32), bg)
     occluded = cutouts(rng, rcfg, image)
     image = camera_effects(rng, rcfg.sensor, image)
@@ -117,7 +138,7 @@ def render_image(cfg: SynthConfig, meshes: dict[int, RenderMesh], diameters: dic
         masks.append(full)
         masks_visib.append(visib)
     depth = np.where(occluded, 0.0, res.depth)
-    return SynthImage((image * 255 + 0.5).astype(np.uint8), quality, gt, info, masks, masks_visib, depth)
+    return SynthImage((image * 255 + 0.5).astype(np.uint8), quality, gt, info, masks, masks_visib, depth, table)
 
 
 def generate_scene(cfg: SynthConfig, meshes: dict[int, RenderMesh], diameters: dict[int, float], out: Path, scene_id: int) -> int:

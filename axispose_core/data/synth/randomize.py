@@ -15,7 +15,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from axispose_core.data.synth.config import PHOTOS, TEXTURES, BackgroundConfig, LightConfig, RandomizationConfig, SensorConfig
+from axispose_core.data.synth.config import PHOTOS, SURFACES, TEXTURES, BackgroundConfig, LightConfig, RandomizationConfig, SensorConfig
 from axispose_core.data.synth.raster import Light
 
 
@@ -76,17 +76,46 @@ def _clutter(rng: np.random.Generator, width: int, height: int) -> np.ndarray:
     return img
 
 
+def _smooth(rng: np.random.Generator, width: int, height: int, cells: int, channels: int = 3) -> np.ndarray:
+    """Uniform noise on a grid of `cells` across, interpolated up to width x height (H, W, channels)."""
+    small = rng.uniform(0, 1, (max(2, cells * height // width), cells, channels)).astype(np.float32)
+    return cv2.resize(small, (width, height), interpolation=cv2.INTER_CUBIC).reshape(height, width, channels)
+
+
+def _surface(rng: np.random.Generator, kind: str, width: int, height: int) -> np.ndarray:
+    """Materials of a table top: wood (warped grain, planks), cloth (a weave) and paper (fibres, faint shading)."""
+    ys, xs = np.mgrid[0:height, 0:width].astype(np.float32)
+    if kind == "wood":
+        base = rng.uniform(0.3, 0.8) * np.array([1.0, rng.uniform(0.55, 0.75), rng.uniform(0.3, 0.5)], np.float32)
+        plank = rng.uniform(0.15, 0.5) * width
+        warp = _smooth(rng, width, height, 6, 1)[..., 0] * rng.uniform(5, 30)
+        grain = 0.5 + 0.5 * np.sin(2 * np.pi * (xs + warp) / rng.uniform(3, 12))
+        seams = (np.mod(xs + warp * 0.1, plank) < 1.5).astype(np.float32)
+        tone = 0.8 + 0.25 * grain + 0.15 * (_smooth(rng, width, height, 3, 1)[..., 0] - 0.5) - 0.5 * seams
+        return np.clip(base[None, None] * tone[..., None], 0, 1)
+    if kind == "cloth":
+        base = rng.uniform(0.1, 0.9, 3).astype(np.float32)
+        p = rng.uniform(2.0, 6.0)
+        weave = 0.5 + 0.25 * (np.sin(2 * np.pi * xs / p) + np.sin(2 * np.pi * ys / p))
+        tone = 0.8 + 0.3 * weave + 0.1 * (_smooth(rng, width, height, 32, 1)[..., 0] - 0.5)
+        return np.clip(base[None, None] * tone[..., None], 0, 1)
+    white = rng.uniform(0.75, 1.0) * np.clip(1 + rng.normal(0, 0.03, 3), 0.9, 1.1).astype(np.float32)  # paper
+    tone = 1 + 0.06 * (_smooth(rng, width, height, 64, 1)[..., 0] - 0.5) - 0.1 * _smooth(rng, width, height, 2, 1)[..., 0]
+    return np.clip(white[None, None] * tone[..., None], 0, 1).astype(np.float32)
+
+
 def _procedural(rng: np.random.Generator, width: int, height: int, kinds: tuple[str, ...] = TEXTURES) -> np.ndarray:
     kind = kinds[int(rng.integers(len(kinds)))]
     if kind == "markers":
         return _markers(rng, width, height)
     if kind == "clutter":
         return _clutter(rng, width, height)
+    if kind in SURFACES:
+        return _surface(rng, kind, width, height)
     if kind == "noise":  # smooth multi-scale colour noise
         img = np.zeros((height, width, 3), np.float32)
         for cells in (4, 16, 64):
-            small = rng.uniform(0, 1, (max(2, cells * height // width), cells, 3)).astype(np.float32)
-            img += cv2.resize(small, (width, height), interpolation=cv2.INTER_CUBIC) / 3
+            img += _smooth(rng, width, height, cells) / 3
         return img
     ys, xs = np.mgrid[0:height, 0:width].astype(np.float32)
     a, b = rng.uniform(0, 1, 3), rng.uniform(0, 1, 3)

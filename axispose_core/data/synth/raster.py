@@ -57,6 +57,8 @@ class RenderResult:
     instance: np.ndarray
     full: np.ndarray
     points: np.ndarray
+    shadows: ShadowMap | None = None
+    """With `render(..., shadows=True)`: the light's shadow map, for surfaces drawn apart (a table)."""
 
 
 def decimate(mesh: RenderMesh, cell: float) -> RenderMesh:
@@ -208,17 +210,96 @@ def _highlight(light: Light, nor: np.ndarray, px: np.ndarray, K: np.ndarray, wid
     return light.specular * np.clip(cos, 0.0, 1.0) ** np.float32(light.shininess)
 
 
-def render(meshes: list[tuple[RenderMesh, np.ndarray, np.ndarray]], K: np.ndarray, width: int, height: int, light: Light) -> RenderResult:
-    """Render posed meshes [(mesh, R, t), ...] through K into a width x height image."""
+def _depth(samples: list[_Samples | None], n_pix: int) -> np.ndarray:
+    """The nearest sample's depth per pixel (flat, one slot more for the samples outside the image; inf: none)."""
+    depth = np.full(n_pix + 1, np.inf, dtype=np.float32)
+    for smp in samples:
+        if smp is not None:
+            np.minimum.at(depth, smp.pix, smp.depth)
+    depth[n_pix] = np.inf
+    return depth
+
+
+def backproject_pixels(K: np.ndarray, px: np.ndarray, depth: np.ndarray, width: int) -> np.ndarray:
+    """Camera-frame points (N,3) at the flat pixel indices `px` (centres at integers) and their depths (z)."""
+    v, u = np.divmod(px, width)
+    y = (v - K[1, 2]) / K[1, 1]
+    x = (u - K[0, 2] - K[0, 1] * y) / K[0, 0]
+    return np.column_stack([x * depth, y * depth, depth])
+
+
+SHADOW_DISTANCE = 100.0
+"""How far (m) the shadow map's viewpoint stands back along the light: far enough that its rays are parallel to
+within half a degree over a table top, so that it stands for a directional light."""
+SHADOW_SIZE = 768
+SHADOW_BIAS = 0.004
+"""Depth (m) a point may lie behind the nearest surface the light sees and still count as lit (plus two texels'
+worth), against self-shadowing from the samples' discretisation."""
+
+
+@dataclass(frozen=True)
+class ShadowMap:
+    """Depth of the scene seen along a directional light: which camera-frame points it reaches."""
+
+    R: np.ndarray
+    """Camera frame -> light view rotation (its z axis along the light's direction)."""
+    C: np.ndarray
+    """The light view's centre, camera frame."""
+    K: np.ndarray
+    depth: np.ndarray
+    """(SHADOW_SIZE, SHADOW_SIZE) nearest depth along the light (inf: nothing)."""
+    bias: float
+
+    @classmethod
+    def of(cls, meshes: list[tuple[RenderMesh, np.ndarray, np.ndarray]], direction: np.ndarray, size: int = SHADOW_SIZE) -> ShadowMap:
+        """The shadow map of posed meshes under a light travelling along `direction` (camera frame)."""
+        d = np.asarray(direction, np.float64) / np.linalg.norm(direction)
+        helper = np.array([1.0, 0.0, 0.0]) if abs(d[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
+        x = np.cross(helper, d)
+        x /= np.linalg.norm(x)
+        R = np.stack([x, np.cross(d, x), d])
+        radii = [float(np.linalg.norm(m.vertices, axis=1).max()) for m, _, _ in meshes]
+        centres = np.array([t for _, _, t in meshes], np.float64).reshape(-1, 3)
+        centre = centres.mean(axis=0) if len(centres) else np.zeros(3)
+        lateral = (centres - centre) @ R[:2].T
+        extent = max([float(np.linalg.norm(a)) + r for a, r in zip(lateral, radii, strict=True)] + [1e-3])
+        C = centre - SHADOW_DISTANCE * d
+        f = 0.5 * size * SHADOW_DISTANCE / (1.05 * extent)
+        K = np.array([[f, 0.0, 0.5 * (size - 1)], [0.0, f, 0.5 * (size - 1)], [0.0, 0.0, 1.0]])
+        samples = [_splat(m, R @ Rm, R @ (t - C), K, size, size) for m, Rm, t in meshes]
+        depth = _depth(samples, size * size)[:-1].reshape(size, size)
+        return cls(R, C, K, depth, SHADOW_BIAS + 2 * 1.05 * extent * 2 / size)
+
+    def lit(self, points: np.ndarray) -> np.ndarray:
+        """(N,) share in [0, 1] of the 3 x 3 texels about each camera-frame point from which the light reaches it
+        (0: in shadow); points outside the map are lit."""
+        p = (np.asarray(points, np.float64) - self.C) @ self.R.T
+        n = self.depth.shape[0]
+        u = np.floor(self.K[0, 0] * p[:, 0] / p[:, 2] + self.K[0, 2] + 0.5).astype(np.int64)
+        v = np.floor(self.K[1, 1] * p[:, 1] / p[:, 2] + self.K[1, 2] + 0.5).astype(np.int64)
+        padded = np.pad(self.depth, 1, constant_values=np.inf)
+        inside = (u >= 0) & (u < n) & (v >= 0) & (v < n)
+        uc, vc = np.clip(u, 0, n - 1) + 1, np.clip(v, 0, n - 1) + 1
+        reached = np.zeros(len(p))
+        for dv in (-1, 0, 1):
+            for du in (-1, 0, 1):
+                reached += p[:, 2] <= padded[vc + dv, uc + du] + self.bias
+        return np.where(inside, reached / 9.0, 1.0)
+
+
+def render(
+    meshes: list[tuple[RenderMesh, np.ndarray, np.ndarray]], K: np.ndarray, width: int, height: int, light: Light, shadows: bool = False
+) -> RenderResult:
+    """Render posed meshes [(mesh, R, t), ...] through K into a width x height image; with `shadows`, surfaces the
+    light does not reach (`ShadowMap`) get its ambient part only, and the map comes back for other receivers."""
     n_pix = height * width
     samples = [_splat(m, R, t, K, width, height) for m, R, t in meshes]
     full = np.zeros((len(meshes), n_pix + 1), dtype=bool)
-    depth = np.full(n_pix + 1, np.inf, dtype=np.float32)
     for i, smp in enumerate(samples):
         if smp is not None:
             full[i, smp.pix] = True
-            np.minimum.at(depth, smp.pix, smp.depth)
-    depth[n_pix] = np.inf
+    depth = _depth(samples, n_pix)
+    shadow_map = ShadowMap.of(meshes, light.direction) if shadows and meshes else None
     # The nearest sample owns each pixel; on exact depth ties the later instance, then the later sample, wins.
     owner_mesh = np.full(n_pix + 1, -1, dtype=np.int32)
     owner_idx = np.full(n_pix + 1, -1, dtype=np.int64)
@@ -242,6 +323,8 @@ def render(meshes: list[tuple[RenderMesh, np.ndarray, np.ndarray]], K: np.ndarra
         nor = np.einsum("nk,nkc->nc", w, mesh.normals[fv]) @ R.T
         nor /= np.maximum(np.linalg.norm(nor, axis=1, keepdims=True), 1e-12)
         lam = np.clip(-(nor @ light.direction), 0.0, 1.0)
+        if shadow_map is not None:
+            lam = lam * shadow_map.lit(backproject_pixels(K, px, depth[px], width))
         shade = (light.ambient + (1.0 - light.ambient) * lam)[:, None] * light.color[None, :]
         rgb[px] = np.clip(col * shade, 0.0, 1.0)
         lit.append((px, nor, lam))
@@ -255,4 +338,5 @@ def render(meshes: list[tuple[RenderMesh, np.ndarray, np.ndarray]], K: np.ndarra
         owner_mesh[:n_pix].reshape(height, width),
         full[:, :n_pix].reshape(-1, height, width),
         points[:n_pix].reshape(height, width, 3),
+        shadow_map,
     )

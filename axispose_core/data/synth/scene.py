@@ -1,4 +1,5 @@
-"""Scene sampling: which objects, where, and how they stand; plus the primitive distractor shapes."""
+"""Scene sampling: which objects, where, and how they stand (floating in front of a photograph, or resting on a
+table top); plus the primitive distractor shapes."""
 
 from __future__ import annotations
 
@@ -10,6 +11,7 @@ from scipy.spatial.transform import Rotation
 
 from axispose_core.data.synth.config import SceneConfig
 from axispose_core.data.synth.raster import RenderMesh, vertex_normals
+from axispose_core.data.synth.table import Table, table_frame
 
 
 @dataclass(frozen=True)
@@ -89,6 +91,62 @@ def sample_placements(
     # Rolling the camera about its axis turns every pose; it keeps objects near the principal point in view.
     rolled = [Placement(p.obj_id, roll @ p.R, roll @ p.t, p.radius) for p in placed]
     return [p for p in rolled if p.obj_id == 0 or in_view(p.t, 0.0, np.inf)]
+
+
+def sample_table_scene(
+    rng: np.random.Generator,
+    cfg: SceneConfig,
+    radii: dict[int, float],
+    K: np.ndarray,
+    width: int,
+    height: int,
+    texture: np.ndarray,
+    texel: float,
+) -> tuple[list[Placement], Table]:
+    """Target objects clustered on a table top seen from `cfg.table_elevation_deg` above it, spread more away
+    from the camera than across, without interpenetrating bounding spheres beyond 20 %; distractors anywhere on
+    the table in view. Each stands about its radius above the table: `table.rest_on` sets it down once its mesh
+    is known. The whole scene, table included, is finally rolled about the optical axis."""
+    ids = sorted(radii)
+    n = int(rng.integers(cfg.objects_per_image[0], cfg.objects_per_image[1] + 1))
+    chosen = list(rng.choice(ids, size=min(n, len(ids)), replace=False))
+    zc = rng.uniform(cfg.distance[0] + 0.1, cfg.distance[1] - 0.1)
+    centre = np.linalg.solve(K, [rng.uniform(0.3, 0.7) * width, rng.uniform(0.3, 0.7) * height, 1.0]) * zc
+    elevation = rng.uniform(*cfg.table_elevation_deg)
+    up, (across, away) = table_frame(elevation)
+    a = rng.uniform(0, 2 * np.pi)  # the texture's grain at any angle on the table
+    axes = np.stack([np.cos(a) * across + np.sin(a) * away, -np.sin(a) * across + np.cos(a) * away])
+    side = rng.uniform(*cfg.table_size, 2)
+    table = Table(centre, up, axes, (0.5 * float(side[0]), 0.5 * float(side[1])), texture, texel)
+    placed: list[Placement] = []
+
+    def in_view(t: np.ndarray) -> bool:
+        u, v, w = K @ t
+        return cfg.distance[0] <= t[2] <= cfg.distance[1] and 0 <= u / w < width and 0 <= v / w < height
+
+    def free(t: np.ndarray, r: float) -> bool:
+        return all(np.linalg.norm(t - p.t) >= 0.8 * (r + p.radius) for p in placed)
+
+    for obj_id in chosen:
+        r = radii[int(obj_id)]
+        for _ in range(50):
+            offset = rng.normal(0.0, 2 * r * cfg.cluster_spread, size=2) * [1.0, 2.0]
+            t = centre + offset[0] * across + offset[1] * away + r * up
+            if in_view(t) and free(t, r):
+                R = upright_rotation(rng, elevation) if rng.uniform() < cfg.upright_prob else Rotation.random(random_state=rng).as_matrix()
+                placed.append(Placement(int(obj_id), R, t, r))
+                break
+    n_dis = int(rng.integers(cfg.distractors_per_image[0], cfg.distractors_per_image[1] + 1))
+    for _ in range(n_dis):
+        r = 0.5 * rng.uniform(*cfg.distractor_size)
+        for _ in range(20):
+            local = rng.uniform(-1.0, 1.0, 2) * table.half_size
+            t = centre + local[0] * axes[0] + local[1] * axes[1] + r * up
+            if in_view(t) and free(t, r):
+                placed.append(Placement(0, Rotation.random(random_state=rng).as_matrix(), t, r))
+                break
+    roll = Rotation.from_euler("z", rng.uniform(*cfg.camera_roll_deg), degrees=True).as_matrix()
+    return [Placement(p.obj_id, roll @ p.R, roll @ p.t, p.radius) for p in placed], table.rolled(roll)
 
 
 def primitive(rng: np.random.Generator, radius: float) -> RenderMesh:
