@@ -37,10 +37,15 @@ def _train_reader(args: argparse.Namespace) -> int:
 
 def _synth(args: argparse.Namespace) -> int:
     from axispose_core.data.bop import BopFormatError, load_camera
-    from axispose_core.data.synth.config import SynthConfig
+    from axispose_core.data.synth.config import SynthConfig, recipe
     from axispose_core.data.synth.generate import generate
 
     K = SynthConfig().K
+    try:
+        scene, randomization = recipe(args.recipe)
+    except ValueError as err:
+        print(f"axispose synth: {err}", file=sys.stderr)
+        return 2
     width, height = args.width, args.height
     if args.camera:
         try:
@@ -56,6 +61,8 @@ def _synth(args: argparse.Namespace) -> int:
         seed=args.seed,
         scenes=args.scenes,
         images_per_scene=args.images_per_scene,
+        scene=scene,
+        randomization=randomization,
     )
     models = Path(args.models[0])
     if len(args.models) > 1 or not models.is_dir():
@@ -305,6 +312,9 @@ def build_parser() -> argparse.ArgumentParser:
     sy.add_argument("--scenes", type=int, required=True)
     sy.add_argument("--images-per-scene", type=int, default=25)
     sy.add_argument("--seed", type=int, default=0)
+    sy.add_argument("--recipe", default="plain", help="scenes and looks: plain (objects in front of a "
+                    "photograph; the shipped localiser's), desk (on a table among everyday meshes, shadows, a camera's "
+                    "lens and sensor), desk-held-out (the desk's held-out meshes and photographs: stress sets)")  # fmt: skip
     sy.add_argument("--objects", type=_ids, default=[], help="comma-separated object ids (default: all in models_info.json)")
     sy.add_argument("--width", type=int, default=640)
     sy.add_argument("--height", type=int, default=480)

@@ -147,3 +147,16 @@ def test_held_out_meshes_never_reach_the_training_split():
     assert len(held_out) == len(every) // clutter.HELD_OUT_EVERY and len(every) > 1000
     with pytest.raises(ValueError, match="distractor_split"):
         SceneConfig(distractor_split="test")
+
+
+def test_the_desk_recipes_train_and_stress_on_disjoint_meshes_and_photographs():
+    from axispose_core.data.synth.config import PHOTOS, recipe
+
+    assert recipe("plain") == (SceneConfig(), RandomizationConfig())
+    (desk, looks), (stress, stress_looks) = recipe("desk"), recipe("desk-held-out")
+    assert desk.table_prob > 0 and desk.distractor_meshes > 0 and looks.light.shadows > 0 and looks.sensor.vignetting[1] > 0
+    assert (desk.distractor_split, stress.distractor_split) == ("train", "held_out")
+    assert looks.background.photos == PHOTOS and not set(stress_looks.background.photos) & set(PHOTOS)
+    assert not set(stress_looks.table_top.photos) & set(looks.table_top.photos)
+    with pytest.raises(ValueError, match="unknown recipe"):
+        recipe("kitchen")

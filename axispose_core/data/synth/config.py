@@ -183,6 +183,34 @@ STREAM_RANDOMIZATION = RandomizationConfig(
 """The crop stream's appearance: every photograph and texture, highlights, and the whole camera model on."""
 
 
+HELD_OUT_PHOTOS = tuple(p for p in ALL_PHOTOS if p not in PHOTOS)
+"""The photographs the frame recipes leave out of training, for stress sets."""
+RECIPES = ("plain", "desk", "desk-held-out")
+
+
+def recipe(name: str) -> tuple[SceneConfig, RandomizationConfig]:
+    """A named frame recipe's scene and randomisation. "plain": the defaults, objects floating in front of a
+    photograph or pattern (the shipped localiser's data); "desk": objects on a table top among pybullet_data
+    meshes, shadows, highlights and the whole camera model, lens and sensor; "desk-held-out": the desk with only
+    the distractor meshes and photographs the desk leaves out, for stress sets."""
+    if name not in RECIPES:
+        raise ValueError(f"unknown recipe {name!r}; one of {RECIPES}")
+    if name == "plain":
+        return SceneConfig(), RandomizationConfig()
+    held_out = name == "desk-held-out"
+    photos = HELD_OUT_PHOTOS if held_out else PHOTOS
+    split = "held_out" if held_out else "train"
+    scene = SceneConfig(distractors_per_image=(2, 6), table_prob=0.8, distractor_meshes=0.7, distractor_split=split)
+    sensor = dataclasses.replace(STREAM_RANDOMIZATION.sensor, chromatic=0.002, vignetting=(0.0, 0.4), dynamic_range=(0.0, 0.15))
+    randomization = RandomizationConfig(
+        background=BackgroundConfig(photos=photos, textures=ALL_TEXTURES),
+        table_top=dataclasses.replace(TABLE_TOP, photos=photos),
+        light=LightConfig(specular=(0.0, 0.5), shadows=0.8),
+        sensor=sensor,
+    )
+    return scene, randomization
+
+
 @dataclass(frozen=True)
 class Framing:
     """Where the crop sits on the object: the estimator's square around the amodal box (`pad`), shifted and
