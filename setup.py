@@ -31,10 +31,11 @@ setup(
         "tqdm>=4.66",
         "matplotlib>=3.8",
         "scikit-image>=0.22",  # its bundled photographs are backgrounds of the synthetic data
+        "pybullet==3.2.7",  # its pybullet_data meshes: the desk recipe's distractors, and the own-object test's mug
     ],
     extras_require={
         "ros": ["ros-jazzy-rclpy[fastrtps]", "ros-jazzy-common-interfaces", "rosbags>=0.10"],
-        "dev": ["pytest>=8", "ruff>=0.6", "pybullet==3.2.7"],  # pybullet: its pybullet_data meshes test the own-object path
+        "dev": ["pytest>=8", "ruff>=0.6"],
     },
     entry_points={
         "console_scripts": [

@@ -220,3 +220,25 @@ def test_every_photograph_and_texture_loads(rng):
         img = _procedural(rng, 48, 40, (kind,))
         assert img.shape == (40, 48, 3) and img.dtype == np.float32
         assert 0.0 <= img.min() and img.max() <= 1.0 and img.std() > 0.01, kind
+
+
+def test_distractor_meshes_stand_in_for_primitives_when_asked_and_only_then(lmo_dir, tmp_path, monkeypatch):
+    from dataclasses import replace
+
+    from axispose_core.data.synth import stream as stream_module
+
+    calls = []
+    real = stream_module.distractor_mesh
+
+    def counted(rng, radius, split, backgrounds):
+        calls.append(split)
+        return real(rng, radius, split, backgrounds)
+
+    monkeypatch.setattr(stream_module, "distractor_mesh", counted)
+    cfg = StreamConfig(seed=9, object_prob=0.0, distractor_meshes=1.0)
+    meshes = [CropStream(cfg, lmo_dir / "models", tmp_path)[i] for i in range(12)]
+    assert calls and set(calls) == {"train"} and all(0 < s.visib <= 1 for s in meshes)
+    calls.clear()
+    plain = CropStream(replace(cfg, distractor_meshes=0.0), lmo_dir / "models", tmp_path)
+    [plain[i] for i in range(12)]
+    assert calls == []

@@ -1,7 +1,7 @@
 """Distractor meshes that look like things on a desk: pybullet_data's everyday objects (a mug, a duck, bricks,
 a teddy, ...) and its 1,000 procedurally generated shapes ("random_urdfs"), scaled to the distractor's size and
 coloured flat or with a texture projected onto them. One mesh in ten is held out of the "train" split for
-stress sets. pybullet (a registry wheel) ships the meshes; it is needed only when a recipe asks for them."""
+stress sets. The meshes come with pybullet (a registry wheel, a dependency of the package)."""
 
 from __future__ import annotations
 

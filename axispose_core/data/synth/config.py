@@ -256,6 +256,9 @@ class StreamConfig:
     """An occluder or neighbour is another object of the set with this probability, else a primitive."""
     primitive_size: tuple[float, float] = (0.03, 0.15)
     """Diameter range (m) of the primitive neighbours."""
+    distractor_meshes: float = 0.0
+    """Share of the primitives that are pybullet_data meshes instead (`clutter.py`, as the frame recipes' distractors)."""
+    distractor_split: str = "train"
     mesh_cell: float = 2.0
     """Meshes are decimated to about this many crop pixels per cell at each object's apparent size (three levels
     of detail, `stream.LODS`; 0: full meshes)."""
@@ -265,6 +268,8 @@ class StreamConfig:
     def __post_init__(self) -> None:
         if not (isinstance(self.size, int) and self.size % 16 == 0 and 32 <= self.size <= 512):
             raise ValueError(f"crop size must be a multiple of 16 from 32 to 512 (the networks halve it four times), got {self.size}")
+        if self.distractor_split not in SPLITS:
+            raise ValueError(f"distractor_split must be one of {SPLITS}, got {self.distractor_split!r}")
         lo, hi = self.visib
         if not 0.0 < lo <= hi <= 1.0:
             raise ValueError(f"visib range must satisfy 0 < lo <= hi <= 1, got {self.visib}")

@@ -37,6 +37,7 @@ from axispose_core.axis_image import axis_keypoints, render_axis_keypoints
 from axispose_core.camera import crop_intrinsics, square_around_box
 from axispose_core.data.bop import bbox_from_model, load_models_info, model_path, ply_vertex_properties
 from axispose_core.data.objects import ObjectSpec, objects_from_models
+from axispose_core.data.synth.clutter import distractor_mesh
 from axispose_core.data.synth.config import StreamConfig
 from axispose_core.data.synth.generate import load_render_mesh
 from axispose_core.data.synth.randomize import background, camera_effects, jpeg, light, object_tint
@@ -169,7 +170,11 @@ class CropStream:
         return RenderMesh(m.vertices, m.faces, np.clip(m.colors * object_tint(rng, self.cfg.randomization.light), 0, 1), m.normals)
 
     def _primitive(self, rng: np.random.Generator, radius: float) -> RenderMesh:
-        """A primitive of the pool scaled to `radius`, in a new colour (its own colour variation kept)."""
+        """A primitive of the pool scaled to `radius`, in a new colour (its own colour variation kept), or a
+        distractor mesh where `distractor_meshes` says so."""
+        cfg = self.cfg
+        if cfg.distractor_meshes > 0 and rng.uniform() < cfg.distractor_meshes:
+            return distractor_mesh(rng, radius, cfg.distractor_split, cfg.randomization.background)
         p = self.primitives[int(rng.integers(len(self.primitives)))]
         colors = np.clip(p.colors - p.colors.mean(axis=0) + rng.uniform(0.05, 1.0, 3), 0, 1)
         return RenderMesh(p.vertices * radius, p.faces, colors, p.normals)
