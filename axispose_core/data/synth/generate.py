@@ -37,7 +37,7 @@ from axispose_core.data.synth.clutter import distractor_mesh
 from axispose_core.data.synth.config import TABLE_TEXTURE, SynthConfig
 from axispose_core.data.synth.randomize import background, camera_effects, cutouts, light, object_tint
 from axispose_core.data.synth.raster import RenderMesh, render, vertex_normals
-from axispose_core.data.synth.scene import Placement, primitive, sample_placements, sample_table_scene
+from axispose_core.data.synth.scene import Placement, primitive, sample_scene
 from axispose_core.data.synth.table import Table, light_from_above, rest_on, shade_table, table_pixels
 
 
@@ -86,12 +86,10 @@ def render_image(cfg: SynthConfig, meshes: dict[int, RenderMesh], diameters: dic
     w, h = cfg.width, cfg.height
     rcfg = cfg.randomization
     radii = {i: 0.5 * diameters[i] for i in meshes}
-    table = None
+    table_top = None
     if cfg.scene.table_prob > 0 and rng.uniform() < cfg.scene.table_prob:
-        texture = background(rng, rcfg.table_top, TABLE_TEXTURE, TABLE_TEXTURE)
-        placements, table = sample_table_scene(rng, cfg.scene, radii, K, w, h, texture, rng.uniform(*cfg.scene.table_texel))
-    else:
-        placements = sample_placements(rng, cfg.scene, radii, K, w, h)
+        table_top = background(rng, rcfg.table_top, TABLE_TEXTURE, TABLE_TEXTURE), rng.uniform(*cfg.scene.table_texel)
+    placements, table = sample_scene(rng, cfg.scene, radii, K, w, h, table_top)
     posed = []
     for i, p in enumerate(placements):
         if p.obj_id:

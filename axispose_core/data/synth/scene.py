@@ -3,6 +3,7 @@ table top); plus the primitive distractor shapes."""
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -35,94 +36,32 @@ def upright_rotation(rng: np.random.Generator, elevation_deg: float) -> np.ndarr
     return table @ Rotation.from_euler("z", rng.uniform(0, 2 * np.pi)).as_matrix()
 
 
-def sample_placements(
-    rng: np.random.Generator,
-    cfg: SceneConfig,
-    radii: dict[int, float],
-    K: np.ndarray,
-    width: int,
-    height: int,
-) -> list[Placement]:
-    """Target objects clustered around a random scene centre (so they occlude each other), without
-    interpenetrating bounding spheres beyond 20 %, each origin in view and within the distance range;
-    then distractors anywhere in view. The whole scene is finally rolled about the optical axis."""
+def _targets_and_centre(
+    rng: np.random.Generator, cfg: SceneConfig, radii: dict[int, float], K: np.ndarray, width: int, height: int
+) -> tuple[list[int], np.ndarray]:
+    """Which objects (distinct ids), and the scene's centre: on the ray of a pixel near the middle of the image,
+    inside the distance range."""
     ids = sorted(radii)
     n = int(rng.integers(cfg.objects_per_image[0], cfg.objects_per_image[1] + 1))
     chosen = list(rng.choice(ids, size=min(n, len(ids)), replace=False))
     zc = rng.uniform(cfg.distance[0] + 0.1, cfg.distance[1] - 0.1)
     ray = np.linalg.solve(K, [rng.uniform(0.3, 0.7) * width, rng.uniform(0.3, 0.7) * height, 1.0])
-    centre = ray * zc
-    elevation = rng.uniform(*cfg.elevation_deg)
-    Kinv = np.linalg.inv(K)
-    placed: list[Placement] = []
-
-    def in_view(t: np.ndarray, lo: float, hi: float) -> bool:
-        if not lo <= t[2] <= hi:
-            return False
-        u, v, w = K @ t
-        return 0 <= u / w < width and 0 <= v / w < height
-
-    def free(t: np.ndarray, r: float) -> bool:
-        return all(np.linalg.norm(t - p.t) >= 0.8 * (r + p.radius) for p in placed)
-
-    for obj_id in chosen:
-        r = radii[int(obj_id)]
-        for _ in range(50):
-            # Spread more along the viewing ray than across it, so that objects stand behind each other.
-            offset = rng.normal(0.0, 2 * r, size=3) * [cfg.cluster_spread, cfg.cluster_spread, 2.0]
-            t = centre + offset
-            if in_view(t, *cfg.distance) and free(t, r):
-                if rng.uniform() < cfg.upright_prob:
-                    R = upright_rotation(rng, elevation)
-                else:
-                    R = Rotation.random(random_state=rng).as_matrix()
-                placed.append(Placement(int(obj_id), R, t, r))
-                break
-    n_dis = int(rng.integers(cfg.distractors_per_image[0], cfg.distractors_per_image[1] + 1))
-    for _ in range(n_dis):
-        r = 0.5 * rng.uniform(*cfg.distractor_size)
-        for _ in range(20):
-            px = np.array([rng.uniform(0, width), rng.uniform(0, height), 1.0])
-            t = Kinv @ px * rng.uniform(cfg.distance[0], cfg.distance[1] + 0.3)
-            if free(t, r):
-                placed.append(Placement(0, Rotation.random(random_state=rng).as_matrix(), t, r))
-                break
-    roll = Rotation.from_euler("z", rng.uniform(*cfg.camera_roll_deg), degrees=True).as_matrix()
-    # Rolling the camera about its axis turns every pose; it keeps objects near the principal point in view.
-    rolled = [Placement(p.obj_id, roll @ p.R, roll @ p.t, p.radius) for p in placed]
-    return [p for p in rolled if p.obj_id == 0 or in_view(p.t, 0.0, np.inf)]
+    return chosen, ray * zc
 
 
-def sample_table_scene(
+def _pack(
     rng: np.random.Generator,
     cfg: SceneConfig,
     radii: dict[int, float],
-    K: np.ndarray,
-    width: int,
-    height: int,
-    texture: np.ndarray,
-    texel: float,
-) -> tuple[list[Placement], Table]:
-    """Target objects clustered on a table top seen from `cfg.table_elevation_deg` above it, spread more away
-    from the camera than across, without interpenetrating bounding spheres beyond 20 %; distractors anywhere on
-    the table in view. Each stands about its radius above the table: `table.rest_on` sets it down once its mesh
-    is known. The whole scene, table included, is finally rolled about the optical axis."""
-    ids = sorted(radii)
-    n = int(rng.integers(cfg.objects_per_image[0], cfg.objects_per_image[1] + 1))
-    chosen = list(rng.choice(ids, size=min(n, len(ids)), replace=False))
-    zc = rng.uniform(cfg.distance[0] + 0.1, cfg.distance[1] - 0.1)
-    centre = np.linalg.solve(K, [rng.uniform(0.3, 0.7) * width, rng.uniform(0.3, 0.7) * height, 1.0]) * zc
-    elevation = rng.uniform(*cfg.table_elevation_deg)
-    up, (across, away) = table_frame(elevation)
-    a = rng.uniform(0, 2 * np.pi)  # the texture's grain at any angle on the table
-    axes = np.stack([np.cos(a) * across + np.sin(a) * away, -np.sin(a) * across + np.cos(a) * away])
-    side = rng.uniform(*cfg.table_size, 2)
-    table = Table(centre, up, axes, (0.5 * float(side[0]), 0.5 * float(side[1])), texture, texel)
+    chosen: list[int],
+    target_at: Callable[[float], np.ndarray | None],
+    distractor_at: Callable[[float], np.ndarray | None],
+    elevation: float,
+) -> list[Placement]:
+    """The chosen objects, then the distractors, each at the first of its tries (`*_at(radius)`: a position, or
+    None where the try is out of bounds) whose bounding sphere overlaps none placed before by more than 20 %;
+    objects upright (model +Z up, seen from `elevation`) or uniformly rotated, distractors uniformly rotated."""
     placed: list[Placement] = []
-
-    def in_view(t: np.ndarray) -> bool:
-        u, v, w = K @ t
-        return cfg.distance[0] <= t[2] <= cfg.distance[1] and 0 <= u / w < width and 0 <= v / w < height
 
     def free(t: np.ndarray, r: float) -> bool:
         return all(np.linalg.norm(t - p.t) >= 0.8 * (r + p.radius) for p in placed)
@@ -130,9 +69,8 @@ def sample_table_scene(
     for obj_id in chosen:
         r = radii[int(obj_id)]
         for _ in range(50):
-            offset = rng.normal(0.0, 2 * r * cfg.cluster_spread, size=2) * [1.0, 2.0]
-            t = centre + offset[0] * across + offset[1] * away + r * up
-            if in_view(t) and free(t, r):
+            t = target_at(r)
+            if t is not None and free(t, r):
                 R = upright_rotation(rng, elevation) if rng.uniform() < cfg.upright_prob else Rotation.random(random_state=rng).as_matrix()
                 placed.append(Placement(int(obj_id), R, t, r))
                 break
@@ -140,13 +78,79 @@ def sample_table_scene(
     for _ in range(n_dis):
         r = 0.5 * rng.uniform(*cfg.distractor_size)
         for _ in range(20):
-            local = rng.uniform(-1.0, 1.0, 2) * table.half_size
-            t = centre + local[0] * axes[0] + local[1] * axes[1] + r * up
-            if in_view(t) and free(t, r):
+            t = distractor_at(r)
+            if t is not None and free(t, r):
                 placed.append(Placement(0, Rotation.random(random_state=rng).as_matrix(), t, r))
                 break
+    return placed
+
+
+def _roll(rng: np.random.Generator, cfg: SceneConfig, placed: list[Placement]) -> tuple[np.ndarray, list[Placement]]:
+    """A random camera roll about the optical axis, and the placements it turns (every pose turns with it)."""
     roll = Rotation.from_euler("z", rng.uniform(*cfg.camera_roll_deg), degrees=True).as_matrix()
-    return [Placement(p.obj_id, roll @ p.R, roll @ p.t, p.radius) for p in placed], table.rolled(roll)
+    return roll, [Placement(p.obj_id, roll @ p.R, roll @ p.t, p.radius) for p in placed]
+
+
+def sample_scene(
+    rng: np.random.Generator,
+    cfg: SceneConfig,
+    radii: dict[int, float],
+    K: np.ndarray,
+    width: int,
+    height: int,
+    table_top: tuple[np.ndarray, float] | None = None,
+) -> tuple[list[Placement], Table | None]:
+    """Target objects clustered about a random scene centre, so that they occlude each other, without
+    interpenetrating bounding spheres beyond 20 %, each origin in view and within the distance range; then
+    distractors. The whole scene is finally rolled about the optical axis.
+
+    Without `table_top` they float in front of the background, spread more along the viewing ray than across
+    it, distractors anywhere in view. With it (a texture and its metres per texel) they stand on a table top
+    seen from `cfg.table_elevation_deg` above it, spread more away from the camera than across, distractors
+    anywhere on the table in view; each about its radius above it, until `table.rest_on` sets it down once its
+    mesh is known."""
+    chosen, centre = _targets_and_centre(rng, cfg, radii, K, width, height)
+
+    def in_view(t: np.ndarray, lo: float, hi: float) -> bool:
+        if not lo <= t[2] <= hi:
+            return False
+        u, v, w = K @ t
+        return 0 <= u / w < width and 0 <= v / w < height
+
+    if table_top is None:
+        elevation = rng.uniform(*cfg.elevation_deg)
+        Kinv = np.linalg.inv(K)
+
+        def target_at(r: float) -> np.ndarray | None:
+            t = centre + rng.normal(0.0, 2 * r, size=3) * [cfg.cluster_spread, cfg.cluster_spread, 2.0]
+            return t if in_view(t, *cfg.distance) else None
+
+        def distractor_at(r: float) -> np.ndarray | None:
+            px = np.array([rng.uniform(0, width), rng.uniform(0, height), 1.0])
+            return Kinv @ px * rng.uniform(cfg.distance[0], cfg.distance[1] + 0.3)
+
+        # Rolling the camera about its axis keeps objects near the principal point in view.
+        _, rolled = _roll(rng, cfg, _pack(rng, cfg, radii, chosen, target_at, distractor_at, elevation))
+        return [p for p in rolled if p.obj_id == 0 or in_view(p.t, 0.0, np.inf)], None
+    elevation = rng.uniform(*cfg.table_elevation_deg)
+    up, (across, away) = table_frame(elevation)
+    a = rng.uniform(0, 2 * np.pi)  # the texture's grain at any angle on the table
+    axes = np.stack([np.cos(a) * across + np.sin(a) * away, -np.sin(a) * across + np.cos(a) * away])
+    side = rng.uniform(*cfg.table_size, 2)
+    table = Table(centre, up, axes, (0.5 * float(side[0]), 0.5 * float(side[1])), *table_top)
+
+    def on_table(r: float) -> np.ndarray | None:
+        local = rng.uniform(-1.0, 1.0, 2) * table.half_size
+        t = centre + local[0] * axes[0] + local[1] * axes[1] + r * up
+        return t if in_view(t, *cfg.distance) else None
+
+    def clustered(r: float) -> np.ndarray | None:
+        offset = rng.normal(0.0, 2 * r * cfg.cluster_spread, size=2) * [1.0, 2.0]
+        t = centre + offset[0] * across + offset[1] * away + r * up
+        return t if in_view(t, *cfg.distance) else None
+
+    roll, rolled = _roll(rng, cfg, _pack(rng, cfg, radii, chosen, clustered, on_table, elevation))
+    return rolled, table.rolled(roll)
 
 
 def primitive(rng: np.random.Generator, radius: float) -> RenderMesh:
