@@ -236,9 +236,9 @@ def test_distractor_meshes_stand_in_for_primitives_when_asked_and_only_then(lmo_
 
     monkeypatch.setattr(stream_module, "distractor_mesh", counted)
     cfg = StreamConfig(seed=9, object_prob=0.0, distractor_meshes=1.0)
-    meshes = [CropStream(cfg, lmo_dir / "models", tmp_path)[i] for i in range(12)]
+    meshes = [CropStream(cfg, lmo_dir / "models", tmp_path)[i] for i in range(6)]
     assert calls and set(calls) == {"train"} and all(0 < s.visib <= 1 for s in meshes)
     calls.clear()
     plain = CropStream(replace(cfg, distractor_meshes=0.0), lmo_dir / "models", tmp_path)
-    [plain[i] for i in range(12)]
+    [plain[i] for i in range(6)]
     assert calls == []
