@@ -33,8 +33,8 @@ class Table:
 
 
 def table_frame(elevation_deg: float) -> tuple[np.ndarray, np.ndarray]:
-    """The table's up vector and in-plane axes (3, 3 rows: x, y, up) seen from a camera at this elevation above it:
-    the up vector of `scene.upright_rotation`, so that upright objects stand on it."""
+    """The table's up vector and its in-plane axes ((2, 3): across the view, away from the camera) seen from a
+    camera at this elevation above it; the up vector is `scene.upright_rotation`'s, so upright objects stand on it."""
     e = np.radians(elevation_deg)
     up = np.array([0.0, -np.cos(e), -np.sin(e)])
     x = np.array([1.0, 0.0, 0.0])
