@@ -47,17 +47,27 @@ def library(split: str) -> tuple[Path, ...]:
 
 
 @lru_cache(maxsize=256)
-def unit_mesh(path: Path) -> tuple[np.ndarray, np.ndarray]:
+def unit_mesh(path: Path) -> tuple[np.ndarray, np.ndarray] | None:
     """A library mesh centred on its bounding box and scaled to unit radius, its faces wound outward (vertices,
-    faces)."""
+    faces); faces on non-finite vertices dropped (one random shape has NaN vertices), None if none is left."""
     mesh = load_obj(path, units=1.0)
-    v = mesh.vertices - 0.5 * (mesh.vertices.min(axis=0) + mesh.vertices.max(axis=0))
+    finite = np.all(np.isfinite(mesh.vertices), axis=1)
+    f = mesh.faces[finite[mesh.faces].all(axis=1)]
+    if not len(f):
+        return None
+    used = np.unique(f)
+    v = mesh.vertices[used]
+    f = np.searchsorted(used, f)
+    v = v - 0.5 * (v.min(axis=0) + v.max(axis=0))
     v /= max(float(np.linalg.norm(v, axis=1).max()), 1e-9)
-    f = mesh.faces
     tri = v[f]
     if np.einsum("ij,ij->i", tri[:, 0], np.cross(tri[:, 1], tri[:, 2])).sum() < 0:  # negative volume: wound inward
         f = f[:, ::-1].copy()
     return v, f
+
+
+PICKS = 10
+"""Library draws before giving up on finding a usable mesh."""
 
 
 def distractor_mesh(rng: np.random.Generator, radius: float, split: str, backgrounds: BackgroundConfig) -> RenderMesh:
@@ -66,7 +76,13 @@ def distractor_mesh(rng: np.random.Generator, radius: float, split: str, backgro
     paths = library(split)
     if not paths:
         raise RuntimeError(f"no pybullet_data meshes in the {split!r} split")
-    v, f = unit_mesh(paths[int(rng.integers(len(paths)))])
+    for _ in range(PICKS):
+        unit = unit_mesh(paths[int(rng.integers(len(paths)))])
+        if unit is not None:
+            break
+    else:
+        raise RuntimeError(f"no usable pybullet_data mesh in {PICKS} draws from the {split!r} split")
+    v, f = unit
     v = v * rng.uniform(0.7, 1.3, 3)
     v = v * (radius / float(np.linalg.norm(v, axis=1).max()))
     normals = vertex_normals(v, f)
