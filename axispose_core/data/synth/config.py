@@ -31,6 +31,12 @@ TABLE_TEXTURE = 512
 SPLITS = ("train", "held_out", "all")
 
 
+def _check_split(split: str) -> None:
+    """A distractor-mesh split (`clutter.library`) by name, or a clear error."""
+    if split not in SPLITS:
+        raise ValueError(f"distractor_split must be one of {SPLITS}, got {split!r}")
+
+
 @dataclass(frozen=True)
 class SceneConfig:
     """What is in front of the camera."""
@@ -59,8 +65,7 @@ class SceneConfig:
     """Metres per pixel of its texture (`TABLE_TEXTURE` px, repeated mirrored)."""
 
     def __post_init__(self) -> None:
-        if self.distractor_split not in SPLITS:
-            raise ValueError(f"distractor_split must be one of {SPLITS}, got {self.distractor_split!r}")
+        _check_split(self.distractor_split)
 
 
 @dataclass(frozen=True)
@@ -268,8 +273,7 @@ class StreamConfig:
     def __post_init__(self) -> None:
         if not (isinstance(self.size, int) and self.size % 16 == 0 and 32 <= self.size <= 512):
             raise ValueError(f"crop size must be a multiple of 16 from 32 to 512 (the networks halve it four times), got {self.size}")
-        if self.distractor_split not in SPLITS:
-            raise ValueError(f"distractor_split must be one of {SPLITS}, got {self.distractor_split!r}")
+        _check_split(self.distractor_split)
         lo, hi = self.visib
         if not 0.0 < lo <= hi <= 1.0:
             raise ValueError(f"visib range must satisfy 0 < lo <= hi <= 1, got {self.visib}")

@@ -220,12 +220,17 @@ def _depth(samples: list[_Samples | None], n_pix: int) -> np.ndarray:
     return depth
 
 
-def backproject_pixels(K: np.ndarray, px: np.ndarray, depth: np.ndarray, width: int) -> np.ndarray:
-    """Camera-frame points (N,3) at the flat pixel indices `px` (centres at integers) and their depths (z)."""
-    v, u = np.divmod(px, width)
+def pixel_rays(K: np.ndarray, u: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """Rays (..., 3) with z = 1 through pixels (u, v) (centres at integers), skew included."""
     y = (v - K[1, 2]) / K[1, 1]
     x = (u - K[0, 2] - K[0, 1] * y) / K[0, 0]
-    return np.column_stack([x * depth, y * depth, depth])
+    return np.stack([x, y, np.ones_like(x)], axis=-1)
+
+
+def backproject_pixels(K: np.ndarray, px: np.ndarray, depth: np.ndarray, width: int) -> np.ndarray:
+    """Camera-frame points (N,3) at the flat pixel indices `px` and their depths (z)."""
+    v, u = np.divmod(px, width)
+    return pixel_rays(K, u, v) * depth[:, None]
 
 
 SHADOW_DISTANCE = 100.0
@@ -247,7 +252,8 @@ class ShadowMap:
     """The light view's centre, camera frame."""
     K: np.ndarray
     depth: np.ndarray
-    """(SHADOW_SIZE, SHADOW_SIZE) nearest depth along the light (inf: nothing)."""
+    """(SHADOW_SIZE + 2, SHADOW_SIZE + 2) nearest depth along the light (inf: nothing), a border of inf around it
+    so that `lit` reads 3 x 3 texels at the edges too."""
     bias: float
 
     @classmethod
@@ -267,23 +273,22 @@ class ShadowMap:
         f = 0.5 * size * SHADOW_DISTANCE / (1.05 * extent)
         K = np.array([[f, 0.0, 0.5 * (size - 1)], [0.0, f, 0.5 * (size - 1)], [0.0, 0.0, 1.0]])
         samples = [_splat(m, R @ Rm, R @ (t - C), K, size, size) for m, Rm, t in meshes]
-        depth = _depth(samples, size * size)[:-1].reshape(size, size)
+        depth = np.pad(_depth(samples, size * size)[:-1].reshape(size, size), 1, constant_values=np.inf)
         return cls(R, C, K, depth, SHADOW_BIAS + 2 * 1.05 * extent * 2 / size)
 
     def lit(self, points: np.ndarray) -> np.ndarray:
         """(N,) share in [0, 1] of the 3 x 3 texels about each camera-frame point from which the light reaches it
         (0: in shadow); points outside the map are lit."""
         p = (np.asarray(points, np.float64) - self.C) @ self.R.T
-        n = self.depth.shape[0]
+        n = self.depth.shape[0] - 2
         u = np.floor(self.K[0, 0] * p[:, 0] / p[:, 2] + self.K[0, 2] + 0.5).astype(np.int64)
         v = np.floor(self.K[1, 1] * p[:, 1] / p[:, 2] + self.K[1, 2] + 0.5).astype(np.int64)
-        padded = np.pad(self.depth, 1, constant_values=np.inf)
         inside = (u >= 0) & (u < n) & (v >= 0) & (v < n)
         uc, vc = np.clip(u, 0, n - 1) + 1, np.clip(v, 0, n - 1) + 1
         reached = np.zeros(len(p))
         for dv in (-1, 0, 1):
             for du in (-1, 0, 1):
-                reached += p[:, 2] <= padded[vc + dv, uc + du] + self.bias
+                reached += p[:, 2] <= self.depth[vc + dv, uc + du] + self.bias
         return np.where(inside, reached / 9.0, 1.0)
 
 

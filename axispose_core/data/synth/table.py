@@ -9,7 +9,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from axispose_core.data.synth.raster import Light, RenderMesh, ShadowMap
+from axispose_core.data.synth.raster import Light, RenderMesh, ShadowMap, pixel_rays
 
 
 @dataclass(frozen=True)
@@ -44,10 +44,7 @@ def table_frame(elevation_deg: float) -> tuple[np.ndarray, np.ndarray]:
 def table_pixels(table: Table, K: np.ndarray, width: int, height: int) -> tuple[np.ndarray, np.ndarray]:
     """Where each pixel's ray meets the table: camera-frame points (H, W, 3) and depth z (H, W; inf where it
     misses the rectangle or meets its plane behind the camera)."""
-    u, v = np.meshgrid(np.arange(width, dtype=np.float64), np.arange(height, dtype=np.float64))
-    y = (v - K[1, 2]) / K[1, 1]
-    x = (u - K[0, 2] - K[0, 1] * y) / K[0, 0]
-    rays = np.stack([x, y, np.ones_like(x)], axis=-1)
+    rays = pixel_rays(K, *np.meshgrid(np.arange(width, dtype=np.float64), np.arange(height, dtype=np.float64)))
     denom = rays @ table.normal
     with np.errstate(divide="ignore", invalid="ignore"):
         z = np.where(np.abs(denom) > 1e-9, (table.centre @ table.normal) / denom, np.inf)
