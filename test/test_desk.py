@@ -10,7 +10,7 @@ import pytest
 from axispose_core.camera import project
 from axispose_core.data.bop import load_models_info, load_ply, model_path
 from axispose_core.data.synth import clutter, generate
-from axispose_core.data.synth.config import LightConfig, RandomizationConfig, SceneConfig, SynthConfig
+from axispose_core.data.synth.config import BackgroundConfig, LightConfig, RandomizationConfig, SceneConfig, SynthConfig
 from axispose_core.data.synth.generate import load_render_mesh, render_image
 from axispose_core.data.synth.raster import Light, RenderMesh, ShadowMap, render, vertex_normals
 from axispose_core.data.synth.table import Table, shade_table, table_frame, table_pixels
@@ -127,9 +127,10 @@ def test_distractor_meshes_are_drawn_when_asked_and_only_then(models, monkeypatc
     calls = []
     real = generate.distractor_mesh
 
-    def counted(rng, radius, split, backgrounds):
+    def counted(rng, radius, split, backgrounds, exclude_faces):
         calls.append(split)
-        mesh = real(rng, radius, split, backgrounds)
+        assert exclude_faces == {len(m.faces) for m in models[0].values()}
+        mesh = real(rng, radius, split, backgrounds, exclude_faces)
         assert np.linalg.norm(mesh.vertices, axis=1).max() == pytest.approx(radius)
         return mesh
 
@@ -150,6 +151,22 @@ def test_held_out_meshes_never_reach_the_training_split():
     assert sum(u is None for u in units) <= 2  # random_urdfs/168 is all NaN
     with pytest.raises(ValueError, match="distractor_split"):
         SceneConfig(distractor_split="test")
+
+
+def test_an_own_object_taken_from_pybullet_data_is_never_its_own_distractor(tmp_path, monkeypatch):
+    from axispose_core.data.mesh_import import import_meshes
+
+    mug = clutter._data_path() / "objects" / "mug.obj"
+    models_dir = tmp_path / "models"
+    import_meshes([mug], models_dir, units=1.0)
+    own = len(load_render_mesh(models_dir, 1).faces)
+    library = (mug, clutter.library("train")[1])
+    monkeypatch.setattr(clutter, "library", lambda split: library)
+    rng = np.random.default_rng(0)
+    faces = {len(clutter.distractor_mesh(rng, 0.05, "train", BackgroundConfig()).faces) for _ in range(20)}
+    assert own in faces  # the library's mug, unless it is the scene's own object:
+    faces = {len(clutter.distractor_mesh(rng, 0.05, "train", BackgroundConfig(), frozenset({own})).faces) for _ in range(20)}
+    assert faces == {len(clutter.unit_mesh(library[1])[1])}
 
 
 def test_the_desk_recipes_train_and_stress_on_disjoint_meshes_and_photographs():

@@ -230,14 +230,16 @@ def test_distractor_meshes_stand_in_for_primitives_when_asked_and_only_then(lmo_
     calls = []
     real = stream_module.distractor_mesh
 
-    def counted(rng, radius, split, backgrounds):
-        calls.append(split)
-        return real(rng, radius, split, backgrounds)
+    def counted(rng, radius, split, backgrounds, exclude_faces):
+        calls.append((split, exclude_faces))
+        return real(rng, radius, split, backgrounds, exclude_faces)
 
     monkeypatch.setattr(stream_module, "distractor_mesh", counted)
     cfg = StreamConfig(seed=9, object_prob=0.0, distractor_meshes=1.0)
-    meshes = [CropStream(cfg, lmo_dir / "models", tmp_path)[i] for i in range(6)]
-    assert calls and set(calls) == {"train"} and all(0 < s.visib <= 1 for s in meshes)
+    stream = CropStream(cfg, lmo_dir / "models", tmp_path)
+    meshes = [stream[i] for i in range(6)]
+    own = frozenset(len(load_render_mesh(lmo_dir / "models", o.obj_id, tmp_path).faces) for o in stream.objects)
+    assert calls and set(calls) == {("train", own)} and all(0 < s.visib <= 1 for s in meshes)
     calls.clear()
     plain = CropStream(replace(cfg, distractor_meshes=0.0), lmo_dir / "models", tmp_path)
     [plain[i] for i in range(6)]

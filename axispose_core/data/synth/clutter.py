@@ -70,15 +70,19 @@ PICKS = 10
 """Library draws before giving up on finding a usable mesh."""
 
 
-def distractor_mesh(rng: np.random.Generator, radius: float, split: str, backgrounds: BackgroundConfig) -> RenderMesh:
+def distractor_mesh(
+    rng: np.random.Generator, radius: float, split: str, backgrounds: BackgroundConfig, exclude_faces: frozenset[int] = frozenset()
+) -> RenderMesh:
     """A random library mesh of bounding radius `radius` (m), stretched a little per axis, coloured flat with
-    a little noise (half of them) or with a background texture projected along its dominant axes."""
+    a little noise (half of them) or with a background texture projected along its dominant axes.
+    `exclude_faces`: the face counts of the scene's own objects. A library mesh with one of them is drawn again:
+    it may be one of those objects (an own object taken from pybullet_data), which would appear unannotated."""
     paths = library(split)
     if not paths:
         raise RuntimeError(f"no pybullet_data meshes in the {split!r} split")
     for _ in range(PICKS):
         unit = unit_mesh(paths[int(rng.integers(len(paths)))])
-        if unit is not None:
+        if unit is not None and len(unit[1]) not in exclude_faces:
             break
     else:
         raise RuntimeError(f"no usable pybullet_data mesh in {PICKS} draws from the {split!r} split")

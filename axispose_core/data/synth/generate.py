@@ -90,13 +90,14 @@ def render_image(cfg: SynthConfig, meshes: dict[int, RenderMesh], diameters: dic
     if cfg.scene.table_prob > 0 and rng.uniform() < cfg.scene.table_prob:
         table_top = background(rng, rcfg.table_top, TABLE_TEXTURE, TABLE_TEXTURE), rng.uniform(*cfg.scene.table_texel)
     placements, table = sample_scene(rng, cfg.scene, radii, K, w, h, table_top)
+    own_faces = frozenset(len(m.faces) for m in meshes.values())
     posed = []
     for i, p in enumerate(placements):
         if p.obj_id:
             m = meshes[p.obj_id]
             m = RenderMesh(m.vertices, m.faces, np.clip(m.colors * object_tint(rng, rcfg.light), 0, 1), m.normals)
         elif cfg.scene.distractor_meshes > 0 and rng.uniform() < cfg.scene.distractor_meshes:
-            m = distractor_mesh(rng, p.radius, cfg.scene.distractor_split, rcfg.background)
+            m = distractor_mesh(rng, p.radius, cfg.scene.distractor_split, rcfg.background, own_faces)
         else:
             m = primitive(rng, p.radius)
         if table is not None:

@@ -122,13 +122,17 @@ class CropStream:
         self.objects = objects_from_models(models_dir, list(ids))
         self.index = {o.obj_id: k for k, o in enumerate(self.objects)}
         self.models: dict[int, _Model] = {}
+        own_faces = set()
         for spec in self.objects:
             mesh = load_render_mesh(models_dir, spec.obj_id, mesh_cache)
+            own_faces.add(len(mesh.faces))
             _check_mesh(mesh, model_path(models_dir, spec.obj_id))
             hull = mesh.vertices[ConvexHull(mesh.vertices).vertices]
             cell = cfg.mesh_cell * spec.diameter * cfg.framing.pad / cfg.size  # metres per mesh_cell px at usual size
             lods = tuple(decimate(mesh, cell * 2**level) for level in range(LODS)) if cfg.mesh_cell > 0 else (mesh,)
             self.models[spec.obj_id] = _Model(spec, lods, hull)
+        self.own_faces = frozenset(own_faces)
+        """The objects' face counts: no distractor mesh with one of them (`clutter.distractor_mesh`)."""
         pool = np.random.default_rng([cfg.seed, 2**31])
         self.primitives = [primitive(pool, 1.0) for _ in range(PRIMITIVES)]
         # The t distribution's scale that gives the measured robust spread (1.4826 MAD).
@@ -174,7 +178,7 @@ class CropStream:
         distractor mesh where `distractor_meshes` says so."""
         cfg = self.cfg
         if cfg.distractor_meshes > 0 and rng.uniform() < cfg.distractor_meshes:
-            return distractor_mesh(rng, radius, cfg.distractor_split, cfg.randomization.background)
+            return distractor_mesh(rng, radius, cfg.distractor_split, cfg.randomization.background, self.own_faces)
         p = self.primitives[int(rng.integers(len(self.primitives)))]
         colors = np.clip(p.colors - p.colors.mean(axis=0) + rng.uniform(0.05, 1.0, 3), 0, 1)
         return RenderMesh(p.vertices * radius, p.faces, colors, p.normals)
