@@ -312,9 +312,9 @@ def build_parser() -> argparse.ArgumentParser:
     sy.add_argument("--scenes", type=int, required=True)
     sy.add_argument("--images-per-scene", type=int, default=25)
     sy.add_argument("--seed", type=int, default=0)
-    sy.add_argument("--recipe", default="plain", help="scenes and looks: plain (objects in front of a "
-                    "photograph; the shipped localiser's), desk (on a table among everyday meshes, shadows, a camera's "
-                    "lens and sensor), desk-held-out (the desk's held-out meshes and photographs: stress sets)")  # fmt: skip
+    sy.add_argument("--recipe", default="desk", help="scenes and looks: desk (default: on a table among everyday "
+                    "meshes, shadows, a camera's lens and sensor), plain (objects in front of a photograph: the data of "
+                    "earlier models), desk-held-out (the desk's held-out meshes and photographs: stress sets)")  # fmt: skip
     sy.add_argument("--objects", type=_ids, default=[], help="comma-separated object ids (default: all in models_info.json)")
     sy.add_argument("--width", type=int, default=640)
     sy.add_argument("--height", type=int, default=480)

@@ -4,6 +4,7 @@ import pytest
 from axispose_core.cli import main
 from axispose_core.data.bop import BopFormatError, BopScene, load_models_info, load_ply, model_path
 from axispose_core.data.mesh_import import import_meshes, load_obj
+from axispose_core.data.synth.config import SynthConfig, recipe
 
 CUBE_OBJ = """# a 4 cm cube in millimetres, wound counter-clockwise seen from outside, with vertex colours
 v -20 -20 -20 1 0 0
@@ -63,3 +64,5 @@ def test_synth_from_user_meshes(tmp_path):
     scene = BopScene(out / "000000")
     assert {g.obj_id for insts in scene.gt.values() for g in insts} == {1}
     assert any(i.visib_fract > 0 for infos in scene.gt_info.values() for i in infos)
+    saved = SynthConfig.load(out / "synth_config.json")  # the default recipe is the desk
+    assert (saved.scene, saved.randomization) == recipe("desk")
