@@ -131,6 +131,16 @@ def save_checkpoint(
     tmp.replace(path)
 
 
+def stored_half(path: str | Path) -> bool:
+    """Whether the checkpoint stores its floating-point tensors as float16 (`save_checkpoint(half=True)`), so a tool
+    that rewrites it in place keeps its size: the shipped file in float32 would be twice its 20 MB budget."""
+    try:
+        with safe_open(str(path), framework="pt") as f:
+            return any(f.get_slice(key).get_dtype() == "F16" for key in f.keys())
+    except (SafetensorError, OSError, ValueError) as err:
+        raise CheckpointError(f"{path}: not a readable safetensors file ({err})") from err
+
+
 def read_metadata(path: str | Path, kind: str | None) -> dict[str, str]:
     """The metadata of an AxisPose checkpoint of `kind` (None: any), or CheckpointError saying why the file is not one."""
     path = Path(path)

@@ -135,6 +135,7 @@ def _train_direct(args: argparse.Namespace) -> int:
 
 def _score_and_attach(args: argparse.Namespace) -> int:
     """After `train-detector`: the localiser in OUT scored on --val, then given to --attach."""
+    from axispose_core.checkpoint import stored_half
     from axispose_core.detect.scoring import detection_scores
     from axispose_core.detect.weights import load_localiser
     from axispose_core.estimator import Estimator
@@ -144,8 +145,8 @@ def _score_and_attach(args: argparse.Namespace) -> int:
         scores = detection_scores(localiser, args.val, progress=True)
         print(f"held-out recall {scores['recall']:.3f}, precision {scores['precision']:.3f} at IoU 0.5 (visib >= 0.3), "
               f"{scores['ms_per_frame']['median']:.1f} ms per frame")  # fmt: skip
-    if args.attach:
-        Estimator.load(args.attach).with_localiser(localiser).save(args.attach)
+    if args.attach:  # rewritten in the precision it is stored in (the shipped file: float16)
+        Estimator.load(args.attach).with_localiser(localiser).save(args.attach, half=stored_half(args.attach))
         print(f"attached to {args.attach}")
     return 0
 

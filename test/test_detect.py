@@ -1,5 +1,6 @@
 """The 2D localiser: decoding hand-made maps, targets round trip, matching, training, the estimator and eval."""
 
+import argparse
 import json
 from dataclasses import replace
 
@@ -10,8 +11,8 @@ from conftest import TINY_AGM
 
 from axispose_core.agm.model import AxisGenerator
 from axispose_core.camera import crop_transform, project
-from axispose_core.checkpoint import CheckpointError, read_checkpoint
-from axispose_core.cli import main
+from axispose_core.checkpoint import CheckpointError, read_checkpoint, stored_half
+from axispose_core.cli import _score_and_attach, main
 from axispose_core.data.bop import BopFormatError, BopScene
 from axispose_core.data.crops import instance_crop
 from axispose_core.data.objects import objects_from_models
@@ -218,6 +219,18 @@ def test_a_checkpoint_with_localiser_weights_but_no_config_is_refused(estimator_
     save_file(tensors, str(tmp_path / "bad.safetensors"), metadata=meta | {"config": json.dumps(cfg)})
     with pytest.raises(CheckpointError, match="no localiser config"):
         Estimator.load(tmp_path / "bad.safetensors")
+
+
+@pytest.mark.parametrize("half", [True, False])
+def test_attach_keeps_the_precision_the_checkpoint_is_stored_in(estimator_with_localiser, trained, tmp_path, half):
+    target = tmp_path / "est.safetensors"
+    Estimator.load(estimator_with_localiser).save(target, half=half)
+    assert stored_half(target) == half
+    assert _score_and_attach(argparse.Namespace(out=str(trained[1]), val=None, attach=str(target))) == 0
+    assert stored_half(target) == half  # the shipped file stays float16, within its size budget
+    attached, trained_weights = Estimator.load(target).localiser.state_dict(), load_localiser(trained[1]).state_dict()
+    for key, value in trained_weights.items():
+        torch.testing.assert_close(attached[key], value, atol=1e-2 if half else 0, rtol=1e-2 if half else 0)
 
 
 def test_eval_with_detected_crops_reports_detection_scores(estimator_with_localiser, frames, lmo_dir, tmp_path):
