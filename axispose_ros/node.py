@@ -33,6 +33,7 @@ import cv2
 import numpy as np
 import rclpy
 import rclpy.executors
+import torch
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from geometry_msgs.msg import Point, Pose, PoseArray, PoseStamped, PoseWithCovarianceStamped
 from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor, SetParametersResult
@@ -78,7 +79,17 @@ class AxisPoseNode(Node):
         checkpoint = self.get_parameter("checkpoint").value
         if not checkpoint:
             raise CheckpointError("parameter 'checkpoint' is empty: pass -p checkpoint:=/path/to/estimator.safetensors")
-        self.estimator = Estimator.load(checkpoint, self.get_parameter("device").value)
+        self.threads = int(self.get_parameter("num_threads").value)
+        # Inference runs on its own thread with `num_threads` OpenMP threads (set in `_work`). If this thread also
+        # formed a team of several, libgomp would count more threads than cores and stop spinning between
+        # parallel regions: every small op of the sampler then waits on a futex, 20-30 % per frame. So the
+        # loading runs single-threaded, and the caller's setting comes back afterwards.
+        caller_threads = torch.get_num_threads()
+        torch.set_num_threads(1)
+        try:
+            self.estimator = Estimator.load(checkpoint, self.get_parameter("device").value)
+        finally:
+            torch.set_num_threads(caller_threads)
         self.precision = self.estimator.set_precision(self.get_parameter("precision").value)
         self.names = {o.obj_id: o.name for o in self.estimator.config.objects}
         try:
@@ -91,9 +102,6 @@ class AxisPoseNode(Node):
         self.published = {i: n for i, n in self.names.items() if not wanted or n in wanted}
         for name in self.names.values():
             self.declare_parameter(f"object_scales.{name}", 0.0, ParameterDescriptor(description=f"λ_O of {name} in m (0: checkpoint's)"))
-        import torch
-
-        torch.set_num_threads(int(self.get_parameter("num_threads").value))
         self.add_on_set_parameters_callback(self._on_set_parameters)
         self.counts: Counter[str] = Counter()
         self.latency: list[float] = []
@@ -107,6 +115,10 @@ class AxisPoseNode(Node):
         self.health = Health(HealthConfig(latency_budget_s=float(self.get_parameter("latency_budget").value)), time.monotonic())
         self.sync = StampSynchronizer(float(self.get_parameter("sync_slop").value), self._on_pair, self._on_drop)
         self.gaps = GapCounter()
+        self._ready = threading.Event()
+        self._worker = threading.Thread(target=self._work, name="axispose_inference", daemon=True)
+        self._worker.start()
+        self._ready.wait()  # warmed up: frames are taken only from here on
         qos_opts = QoSOverridingOptions.with_default_policies()
         self.create_subscription(Image, "image", self._on_image, qos_profile_sensor_data, qos_overriding_options=qos_opts)
         self.create_subscription(CameraInfo, "camera_info", self._on_info, qos_profile_sensor_data, qos_overriding_options=qos_opts)
@@ -122,8 +134,6 @@ class AxisPoseNode(Node):
         self.pub_debug = self.create_publisher(Image, "~/debug/axis_image", 1)
         self.pub_diag = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
         self.create_timer(1.0, self._publish_diagnostics)
-        self._worker = threading.Thread(target=self._work, name="axispose_inference", daemon=True)
-        self._worker.start()
 
     # ------------------------------------------------------------------ parameters
     def _declare(self) -> None:
@@ -148,6 +158,11 @@ class AxisPoseNode(Node):
         self.declare_parameter("use_rectified", False, desc("use P instead of K (images already rectified)"))
         self.declare_parameter("sync_slop", 0.02, desc("largest Image/CameraInfo stamp difference in s", floats=(0.0, 1.0)))
         self.declare_parameter("num_threads", 2, desc("torch CPU threads for inference", ints=(1, 64)))
+        self.declare_parameter(
+            "warmup_boxes",
+            8,
+            desc("at start, one blank-frame pass per box count up to this, so first frames skip setup; 0: none", ints=(0, 64)),
+        )
         self.declare_parameter("roi_timeout", 1.0, desc("age in s after which an ROI is ignored", floats=(0.0, 3600.0)))
         self.declare_parameter("score_threshold", 0.3, desc("least localiser score of an instance", floats=(0.0, 1.0)))
         self.declare_parameter("marker_lifetime", 1.0, desc("lifetime of ~/markers in s (0: until replaced)", floats=(0.0, 3600.0)))
@@ -157,15 +172,23 @@ class AxisPoseNode(Node):
         dev = self.get_parameter("device").value
         if dev not in ("cpu", "cuda", "auto"):
             raise ValueError(f"parameter 'device' must be cpu, cuda or auto, got {dev!r}")
-        import torch
-
         if dev == "cuda" and not torch.cuda.is_available():
             raise ValueError(f"parameter 'device' is cuda, but this torch ({torch.__version__}) finds no CUDA device: use cpu or auto")
         if dev == "auto":
             self.set_parameters([Parameter("device", value="cuda" if torch.cuda.is_available() else "cpu")])
 
     def _on_set_parameters(self, params: list[Parameter]) -> SetParametersResult:
-        fixed = {"checkpoint", "device", "precision", "objects", "use_rectified", "sync_slop", "num_threads", "latency_budget"}
+        fixed = {
+            "checkpoint",
+            "device",
+            "precision",
+            "objects",
+            "use_rectified",
+            "sync_slop",
+            "num_threads",
+            "warmup_boxes",
+            "latency_budget",
+        }
         for p in params:
             if p.name in fixed:
                 return SetParametersResult(successful=False, reason=f"'{p.name}' is read at start only; restart the node to change it")
@@ -213,6 +236,11 @@ class AxisPoseNode(Node):
 
     # ------------------------------------------------------------------ inference
     def _work(self) -> None:
+        torch.set_num_threads(self.threads)  # this thread's OpenMP team; see __init__
+        try:
+            self._warm_up()
+        finally:
+            self._ready.set()
         while not self._stop.is_set():
             if not self._wake.wait(timeout=0.1):
                 continue
@@ -235,6 +263,30 @@ class AxisPoseNode(Node):
             finally:
                 with self._slot_lock:
                     self._busy = False
+
+    def _warm_up(self) -> None:
+        """One pass over a blank frame per box count up to `warmup_boxes` (1 DDIM step, the configured hypotheses):
+        the first use of each batch shape sets its kernels up, about 50 ms per shape on a CPU, which the first
+        frames with that many objects would otherwise pay."""
+        count = int(self.get_parameter("warmup_boxes").value)
+        if count == 0:
+            return
+        start = time.monotonic()
+        rgb, K = np.full((480, 640, 3), 127, np.uint8), np.array([[600.0, 0.0, 320.0], [0.0, 600.0, 240.0], [0.0, 0.0, 1.0]])
+        ids = list(self.published)
+        try:
+            if self.estimator.localiser is not None:
+                self.estimator.detect(rgb)
+            for k in range(1, count + 1):
+                boxes = [(ids[i % len(ids)], (280.0, 200.0, 80.0, 90.0)) for i in range(k)]
+                hypotheses = int(self.get_parameter("hypotheses").value)
+                self.estimator.estimate(rgb, K, boxes, steps=1, hypotheses=hypotheses, cancelled=self._stop.is_set)
+        except Cancelled:
+            return
+        except Exception as err:
+            self.get_logger().warning(f"warm-up failed ({err!r}); the first frames will be slower")
+            return
+        self.get_logger().info(f"warmed up for 1-{count} boxes in {time.monotonic() - start:.1f} s")
 
     def frames_done(self) -> int:
         """Frames that left the node: processed, or dropped for a reason."""

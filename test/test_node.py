@@ -3,6 +3,7 @@
 import os
 import subprocess
 import sys
+import threading
 import time
 
 import numpy as np
@@ -48,8 +49,8 @@ class Harness:
     def __init__(self, checkpoint, **params):
         self.ctx = rclpy.Context()
         rclpy.init(context=self.ctx)
-        overrides = [Parameter("checkpoint", value=str(checkpoint)), Parameter("num_threads", value=1)]
-        overrides += [Parameter(k, value=v) for k, v in params.items()]
+        overrides = [Parameter("checkpoint", value=str(checkpoint))]
+        overrides += [Parameter(k, value=v) for k, v in ({"num_threads": 1, "warmup_boxes": 0} | params).items()]
         self.node = AxisPoseNode(context=self.ctx, parameter_overrides=overrides)
         self.peer = rclpy.create_node("peer", context=self.ctx)
         self.exe = SingleThreadedExecutor(context=self.ctx)
@@ -124,6 +125,49 @@ def test_precision_auto_takes_bfloat16_only_where_the_device_has_it(harness):
     assert harness.node.precision == ("bfloat16" if bf16_native(torch.device("cpu")) else "float32")
     assert harness.node.estimator.bf16 == (harness.node.precision == "bfloat16")
     assert not harness.node.set_parameters([Parameter("precision", value="float32")])[0].successful  # at start only
+
+
+def test_inference_thread_has_num_threads_and_the_callers_setting_is_left_alone(checkpoint):
+    """The node loads on one thread and restores the caller's count; its inference thread sets `num_threads` for
+    itself (two OpenMP teams of several threads on two cores put libgomp in its slow, non-spinning mode)."""
+    before = torch.get_num_threads()
+    torch.set_num_threads(1)  # the caller's setting differs from the node's, so either leaking shows
+    h = Harness(checkpoint, num_threads=2)
+    try:
+        assert torch.get_num_threads() == 1
+        seen, real = [], h.node.estimator.estimate
+
+        def spy(*args, **kwargs):
+            seen.append((threading.current_thread().name, torch.get_num_threads()))
+            return real(*args, **kwargs)
+
+        h.node.estimator.estimate = spy
+        h.spin_until(lambda: h.pub_image.get_subscription_count() > 0, 5.0)
+        h.frame(sec=7)
+        assert h.spin_until(lambda: h.got["array"])
+        assert seen == [("axispose_inference", 2)]
+    finally:
+        h.close()
+        torch.set_num_threads(before)
+
+
+def test_warm_up_runs_each_box_count_once_on_the_inference_thread_before_frames_are_taken(checkpoint, monkeypatch):
+    calls, real = [], Estimator.estimate
+
+    def spy(self, image, K, boxes, **kwargs):
+        calls.append((threading.current_thread().name, len(boxes), kwargs["steps"], kwargs["hypotheses"]))
+        return real(self, image, K, boxes, **kwargs)
+
+    monkeypatch.setattr(Estimator, "estimate", spy)
+    h = Harness(checkpoint, warmup_boxes=3, hypotheses=2)
+    try:
+        assert calls == [("axispose_inference", k, 1, 2) for k in (1, 2, 3)]  # done before the constructor returned
+        h.spin_until(lambda: h.pub_image.get_subscription_count() > 0, 5.0)
+        h.frame(sec=9)
+        assert h.spin_until(lambda: h.got["array"])
+        assert len(calls) == 4 and h.node.counters().get("frames_processed") == 1
+    finally:
+        h.close()
 
 
 def test_pose_stamped_for_a_box_with_the_same_header(harness):
