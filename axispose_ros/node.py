@@ -273,13 +273,12 @@ class AxisPoseNode(Node):
             return
         start = time.monotonic()
         rgb, K = np.full((480, 640, 3), 127, np.uint8), np.array([[600.0, 0.0, 320.0], [0.0, 600.0, 240.0], [0.0, 0.0, 1.0]])
-        ids = list(self.published)
+        ids, hypotheses = list(self.published), int(self.get_parameter("hypotheses").value)
         try:
             if self.estimator.localiser is not None:
                 self.estimator.detect(rgb)
             for k in range(1, count + 1):
                 boxes = [(ids[i % len(ids)], (280.0, 200.0, 80.0, 90.0)) for i in range(k)]
-                hypotheses = int(self.get_parameter("hypotheses").value)
                 self.estimator.estimate(rgb, K, boxes, steps=1, hypotheses=hypotheses, cancelled=self._stop.is_set)
         except Cancelled:
             return
