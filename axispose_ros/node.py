@@ -51,6 +51,7 @@ from axispose_core.axis_image import draw_axes
 from axispose_core.camera import crop_transform
 from axispose_core.checkpoint import CheckpointError
 from axispose_core.estimator import Estimator
+from axispose_core.pose_sampling import LMO_K
 from axispose_msgs.msg import Detection, DetectionArray
 from axispose_ros.conversions import InputError, Undistorter, camera_for_image, camera_from_info, image_to_rgb, rgb_to_image
 from axispose_ros.health import Health, HealthConfig
@@ -272,14 +273,14 @@ class AxisPoseNode(Node):
         if count == 0:
             return
         start = time.monotonic()
-        rgb, K = np.full((480, 640, 3), 127, np.uint8), np.array([[600.0, 0.0, 320.0], [0.0, 600.0, 240.0], [0.0, 0.0, 1.0]])
+        rgb = np.full((480, 640, 3), 127, np.uint8)
         ids, hypotheses = list(self.published), int(self.get_parameter("hypotheses").value)
         try:
             if self.estimator.localiser is not None:
                 self.estimator.detect(rgb)
             for k in range(1, count + 1):
                 boxes = [(ids[i % len(ids)], (280.0, 200.0, 80.0, 90.0)) for i in range(k)]
-                self.estimator.estimate(rgb, K, boxes, steps=1, hypotheses=hypotheses, cancelled=self._stop.is_set)
+                self.estimator.estimate(rgb, LMO_K, boxes, steps=1, hypotheses=hypotheses, cancelled=self._stop.is_set)
         except Cancelled:
             return
         except Exception as err:
