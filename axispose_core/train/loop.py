@@ -1,10 +1,10 @@
 """The training loop every trainer (AGM, localiser, keypoint reader, direct baseline) runs, and its settings.
 
 AdamW, linear warm-up then cosine decay, gradient clipping, EMA weights (what checkpoints hold), bf16 autocast,
-a CSV log (OUT.csv: loss, learning rate, samples seen, wall time, periodic held-out metrics), atomic saves every
-`save_every` steps and at the end (OUT via the trainer's `save`, OUT.state.pt for `--resume`), and `max_minutes`
-for chains of short runs. Under `torchrun` (a process group initialised) the model is wrapped in
-DistributedDataParallel and rank 0 alone logs, validates and saves.
+a CSV log (OUT.csv: loss, learning rate, samples seen, training time summed over resumed calls, periodic held-out
+metrics), atomic saves every `save_every` steps and at the end (OUT via the trainer's `save`, OUT.state.pt for
+`--resume`), and `max_minutes` for chains of short runs. Under `torchrun` (a process group initialised) the model
+is wrapped in DistributedDataParallel and rank 0 alone logs, validates and saves.
 """
 
 from __future__ import annotations
@@ -155,9 +155,9 @@ def fit(
     ema = copy.deepcopy(model).eval()
     opt = torch.optim.AdamW(model.parameters(), lr=optim.lr, weight_decay=optim.weight_decay)
     sched = torch.optim.lr_scheduler.LambdaLR(opt, lambda s: warmup_cosine(s, optim.warmup, optim.steps))
-    step = 0
+    step, before = 0, 0.0
     if run.resume:
-        step, init = load_run_state(run.resume, cfg, model, ema, opt, sched, data_fields, same_data)
+        step, init, before = load_run_state(run.resume, cfg, model, ema, opt, sched, data_fields, same_data)
     net = torch.nn.parallel.DistributedDataParallel(model) if size > 1 else model
     gen = torch.Generator().manual_seed(optim.seed * 1000 + step + rank)
     log = open(out.with_suffix(".csv"), "a", newline="") if rank == 0 else None
@@ -167,10 +167,15 @@ def fit(
     start = time.time()
     device_type = torch.device(device).type
 
+    def seconds() -> float:
+        """The run's training time over all its calls: the checkpoint's record and the CSV's clock."""
+        return before + time.time() - start
+
     def checkpoint() -> None:
         if rank == 0:
-            save(ema, step, time.time() - start, init)
-            save_run_state(state_path(out), cfg, model, ema, opt, sched, step, init)
+            now = seconds()
+            save(ema, step, now, init)
+            save_run_state(state_path(out), cfg, model, ema, opt, sched, step, init, now)
 
     def done() -> bool:
         return step >= optim.steps or (run.max_minutes is not None and time.time() - start > 60 * run.max_minutes)
@@ -193,7 +198,7 @@ def fit(
             val = validate(ema) if validate is not None and rank == 0 and step % optim.val_every == 0 else {}
             if writer and (step % 10 == 0 or val):
                 writer.writerow([step, step * optim.batch * size, f"{loss.item():.5f}", f"{sched.get_last_lr()[0]:.2e}",
-                                 f"{time.time() - start:.1f}", *(val.get(c, "") for c in val_columns)])  # fmt: skip
+                                 f"{seconds():.1f}", *(val.get(c, "") for c in val_columns)])  # fmt: skip
                 log.flush()
             if step % optim.save_every == 0:
                 checkpoint()

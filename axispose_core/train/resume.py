@@ -19,10 +19,19 @@ def state_path(out: Path) -> Path:
 
 
 def save_run_state(
-    path: Path, cfg: Any, model: torch.nn.Module, ema: torch.nn.Module, opt, sched, step: int, init: str | None = None
+    path: Path,
+    cfg: Any,
+    model: torch.nn.Module,
+    ema: torch.nn.Module,
+    opt,
+    sched,
+    step: int,
+    init: str | None = None,
+    seconds: float = 0.0,
 ) -> None:
     """Model, EMA, optimiser, LR schedule, step and RNG with the run's config, written atomically; `init` names the
-    checkpoint a warm-started run began from, so that every later call of the run still records it."""
+    checkpoint a warm-started run began from and `seconds` the run's training time so far, so that every later call
+    of the run still records both."""
     tmp = path.with_suffix(".tmp")
     torch.save(
         {
@@ -34,6 +43,7 @@ def save_run_state(
             "step": step,
             "torch_rng": torch.get_rng_state(),
             "init": init,
+            "seconds": seconds,
         },
         tmp,
     )
@@ -70,12 +80,12 @@ def load_run_state(
     sched,
     data_fields: tuple[str, ...] = (),
     same_data: Callable[[dict[str, Any], int], bool] | None = None,
-) -> tuple[int, str | None]:
-    """Restore a saved run into the given objects and return its step and the checkpoint it was warm-started from
-    (None: from scratch); a run with another recipe is refused. `data_fields` say what the run trains on at each
-    step: they may change where `same_data(saved config, saved step)` finds that the new ones give the same data
-    before the saved step (e.g. a curriculum stage appended after it), since the weights are then the new
-    recipe's too."""
+) -> tuple[int, str | None, float]:
+    """Restore a saved run into the given objects and return its step, the checkpoint it was warm-started from
+    (None: from scratch) and its training time so far in seconds (0 for a state written before it was kept); a run
+    with another recipe is refused. `data_fields` say what the run trains on at each step: they may change where
+    `same_data(saved config, saved step)` finds that the new ones give the same data before the saved step (e.g. a
+    curriculum stage appended after it), since the weights are then the new recipe's too."""
     state = torch.load(path, map_location="cpu", weights_only=False)
     saved, now = copy.deepcopy(dict(state["config"])), dataclasses.asdict(cfg)
     saved = nest_moved_keys(type(cfg), saved)
@@ -94,4 +104,4 @@ def load_run_state(
     opt.load_state_dict(state["opt"])
     sched.load_state_dict(state["sched"])
     torch.set_rng_state(state["torch_rng"])
-    return state["step"], state.get("init")
+    return state["step"], state.get("init"), float(state.get("seconds", 0.0))
