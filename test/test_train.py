@@ -43,25 +43,26 @@ def test_short_run_then_resume(data, tmp_path):
     out = tmp_path / "agm.safetensors"
     cfg = _config(tmp_path)
     assert main(["train", "--data", str(data), "--val", str(data), "--out", str(out), "--config", cfg, "--threads", "1"]) == 0
+    state_file = str(out) + ".state.pt"
+    resume = ["--resume", state_file]
     est = Estimator.load(out)
     assert est.config.training["steps"] == 4 and {o.obj_id for o in est.config.objects} == {1, 5, 6}
-    state = torch.load(str(out) + ".state.pt", weights_only=False)
+    state = torch.load(state_file, weights_only=False)
     assert state["step"] == 4
     rows = (tmp_path / "agm.csv").read_text().splitlines()
     assert rows[0].startswith("step,samples,loss") and any(r.split(",")[5] for r in rows[1:])  # validation logged
     # Another recipe is refused; the same config continues from step 4 (already done).
     with pytest.raises(ValueError, match=r"another configuration \(optim\)"):
-        main(["train", "--data", str(data), "--out", str(out), "--config", _config(tmp_path, lr=5e-4), "--resume", str(out) + ".state.pt"])
-    assert main(["train", "--data", str(data), "--out", str(out), "--config", cfg, "--resume", str(out) + ".state.pt"]) == 0
-    assert torch.load(str(out) + ".state.pt", weights_only=False)["step"] == 4
+        main(["train", "--data", str(data), "--out", str(out), "--config", _config(tmp_path, lr=5e-4), *resume])
+    assert main(["train", "--data", str(data), "--out", str(out), "--config", cfg, *resume]) == 0
+    assert torch.load(state_file, weights_only=False)["step"] == 4
     # More steps extend the run; its training time carries over the calls (as if the first had trained 1,000 s).
-    state = torch.load(str(out) + ".state.pt", weights_only=False)
+    state = torch.load(state_file, weights_only=False)
     assert 0 < state["seconds"] < 1000
-    torch.save({**state, "seconds": 1000.0}, str(out) + ".state.pt")
+    torch.save({**state, "seconds": 1000.0}, state_file)
     longer = _config(tmp_path, steps=6)
-    resume = ["--resume", str(out) + ".state.pt"]
     assert main(["train", "--data", str(data), "--val", str(data), "--out", str(out), "--config", longer, *resume]) == 0
-    state, training = torch.load(str(out) + ".state.pt", weights_only=False), Estimator.load(out).config.training
+    state, training = torch.load(state_file, weights_only=False), Estimator.load(out).config.training
     assert state["step"] == 6 and training["steps"] == 6
     assert 1000 < training["seconds"] == state["seconds"] < 1000 + 600
     resumed = [float(r.split(",")[4]) for r in (tmp_path / "agm.csv").read_text().splitlines()[1:] if int(r.split(",")[0]) > 4]
