@@ -326,8 +326,9 @@ def build_parser() -> argparse.ArgumentParser:
     tn = sub.add_parser("train", help="train the AGM (axis generation) on the crop stream, or on BOP folders")
     _training_args(tn, "estimator checkpoint", "TrainConfig", "config/train_agm.yaml",
                    data_help="BOP folders to train on instead of the crop stream (e.g. a user's own frames)", stream=True)  # fmt: skip
-    tn.add_argument("--init", help="estimator checkpoint with the same AGM network to start from (its weights; a fresh "
-                    "optimiser and schedule), e.g. the shipped model")  # fmt: skip
+    tn.add_argument("--init", help="estimator checkpoint to start from (its weights; a fresh optimiser and schedule), e.g. the "
+                    "shipped model: the same AGM network, or one whose encoder has more blocks per stage "
+                    "(they start as the identity)")  # fmt: skip
     tn.set_defaults(func=_train)
 
     td = sub.add_parser("train-detector", help="train the 2D localiser (CenterNet) on synthetic BOP frames")

@@ -2,6 +2,7 @@
 
 import json
 import math
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -11,7 +12,7 @@ from safetensors import safe_open
 from safetensors.torch import load_file, save_file
 
 from axispose_core.agm.guidance import AxisGeometry, axis_geometry, geo_loss, guided_eps, inject
-from axispose_core.agm.model import AGMConfig, AxisGenerator, depth_from_log, log_depth_target
+from axispose_core.agm.model import AGMConfig, AxisGenerator, depth_from_log, grow_into, log_depth_target
 from axispose_core.agm.scheduler import DDIMScheduler, SchedulerConfig
 from axispose_core.axis_image import axis_keypoints, render_axis_keypoints
 from axispose_core.checkpoint import CheckpointError, save_checkpoint
@@ -272,3 +273,27 @@ def test_geo_loss_is_zero_on_target(rng):
     img, _ = _gt_axis_image(rng)
     g = axis_geometry(img)
     assert geo_loss(g, AxisGeometry(g.origin.clone(), g.directions.clone())).item() == 0.0
+
+
+def test_a_grown_encoder_starts_as_the_network_it_grew_from():
+    torch.manual_seed(0)
+    small = AxisGenerator(AGMConfig(denoiser=TINY))
+    for p in small.parameters():  # a non-trivial network: zero-initialised output layers would hide differences
+        p.data.normal_(0, 0.05)
+    blocks = TINY.encoder.blocks
+    deeper = replace(TINY, encoder=replace(TINY.encoder, blocks=tuple(b + 1 for b in blocks)))
+    big = AxisGenerator(AGMConfig(denoiser=deeper))
+    added = grow_into(big, small)
+    assert len(added) == len(blocks)
+    crops, objects = torch.rand(2, 3, 64, 64) * 2 - 1, torch.tensor([0, 1])
+    a, b = small.encode(crops, objects), big.encode(crops, objects)
+    torch.testing.assert_close(a.context, b.context)
+    torch.testing.assert_close(a.points, b.points)
+    x_t, t = torch.rand(2, 3, 64, 64) * 2 - 1, torch.tensor([10, 900])
+    torch.testing.assert_close(small.denoiser(x_t, t, a), big.denoiser(x_t, t, b))
+    # only blocks may be added: another width, or fewer blocks, is refused
+    wider = replace(TINY, encoder=replace(TINY.encoder, widths=tuple(2 * w for w in TINY.encoder.widths)))
+    fewer = replace(TINY, encoder=replace(TINY.encoder, blocks=tuple(max(b - 1, 0) for b in blocks)))
+    for other in (wider, fewer):
+        with pytest.raises(ValueError, match="only the encoder's blocks per stage may grow"):
+            grow_into(AxisGenerator(AGMConfig(denoiser=other)), small)

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 import torch
@@ -164,3 +164,23 @@ class AxisGenerator(nn.Module):
                 eps_override = guided_eps(eps, x, abar, guidance(x0), sigma, create_graph=False)
             x, x0 = sched.step(out, t, x, eta=eta, generator=generator, eps_override=eps_override)
         return x0
+
+
+def grow_into(model: AxisGenerator, start: AxisGenerator) -> list[str]:
+    """Load `start`'s weights into `model`, whose encoder may have more residual blocks per stage; returns the
+    names of the blocks added. The added blocks start as the identity (their last convolution zeroed), so the
+    grown network computes what `start` did and training goes on from its weights with more capacity."""
+    old, new = start.config, model.config
+    oe, ne = old.denoiser.encoder, new.denoiser.encoder
+    same = replace(new, denoiser=replace(new.denoiser, encoder=replace(ne, blocks=oe.blocks)))
+    if same != old or len(ne.blocks) != len(oe.blocks) or any(n < o for n, o in zip(ne.blocks, oe.blocks, strict=True)):
+        raise ValueError(f"cannot grow an AGM {old} into {new}: only the encoder's blocks per stage may grow")
+    added = [f"denoiser.encoder.stages.{s}.{b}" for s, (o, n) in enumerate(zip(oe.blocks, ne.blocks, strict=True)) for b in range(o, n)]
+    missing, unexpected = model.load_state_dict(start.state_dict(), strict=False)
+    if unexpected or any(not any(k.startswith(a + ".") for a in added) for k in missing):
+        raise ValueError(f"weights do not match the grown network: missing {missing}, unexpected {unexpected}")
+    for name in added:
+        conv = model.get_submodule(name).conv2
+        nn.init.zeros_(conv.weight)
+        nn.init.zeros_(conv.bias)
+    return added

@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import dataclasses
 import os
+import sys
 from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -26,7 +27,7 @@ import numpy as np
 import torch
 import torch.distributed as dist
 
-from axispose_core.agm.model import AGMConfig, AxisGenerator, depth_from_log, log_depth_target
+from axispose_core.agm.model import AGMConfig, AxisGenerator, depth_from_log, grow_into, log_depth_target
 from axispose_core.axis_image import axis_keypoints
 from axispose_core.data.synth.config import StreamConfig
 from axispose_core.data.synth.stream import CropStream, stream_loader
@@ -178,10 +179,10 @@ def train_agm(
     """Train (or continue) the AGM; returns the step reached.
 
     Without BOP folders in `sources` the samples come from the crop stream of `cfg.stream` over its models
-    folder; with them, from their annotated crops. `init`: an estimator checkpoint with the same AGM
-    network whose (EMA) weights a new run starts from, with a fresh optimiser and schedule, e.g. to train the
-    shipped model on; a resumed run restores its own weights and keeps recording the checkpoint its first call
-    started from.
+    folder; with them, from their annotated crops. `init`: an estimator checkpoint whose (EMA) weights a new
+    run starts from, with a fresh optimiser and schedule, e.g. to train the shipped model on: the same AGM network,
+    or one whose encoder the config gives more blocks per stage (`grow_into`: more capacity without starting over);
+    a resumed run restores its own weights and keeps recording the checkpoint its first call started from.
     """
     distributed = "RANK" in os.environ and "WORLD_SIZE" in os.environ
     if distributed and not dist.is_initialized():
@@ -216,9 +217,11 @@ def train_agm(
     model = AxisGenerator(cfg.agm)
     if init and not run.resume:
         start_from = Estimator.load(init)
-        if start_from.config.agm != cfg.agm:
-            raise ValueError(f"{init}: its AGM is {start_from.config.agm}, the config asks for {cfg.agm}")
-        model.denoiser.load_state_dict(start_from.agm.denoiser.state_dict())
+        if start_from.config.agm == cfg.agm:
+            model.denoiser.load_state_dict(start_from.agm.denoiser.state_dict())
+        else:
+            grown = grow_into(model, start_from.agm)
+            print(f"grew {init}'s AGM by {len(grown)} encoder block(s), each starting as the identity", file=sys.stderr)
     scales = torch.tensor([o.scale for o in objects], dtype=torch.float64)
     validate_ema = None
     items = sources.held_out(AxisCropDataset, objects, cfg.stream, cfg.val_seed, crop, cfg.val_samples, optim.seed) if rank == 0 else []
