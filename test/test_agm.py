@@ -291,6 +291,10 @@ def test_a_grown_encoder_starts_as_the_network_it_grew_from():
     torch.testing.assert_close(a.points, b.points)
     x_t, t = torch.rand(2, 3, 64, 64) * 2 - 1, torch.tensor([10, 900])
     torch.testing.assert_close(small.denoiser(x_t, t, a), big.denoiser(x_t, t, b))
+    # the same network is a plain copy
+    same = AxisGenerator(AGMConfig(denoiser=TINY))
+    assert grow_into(same, small) == []
+    assert all(torch.equal(v, small.state_dict()[k]) for k, v in same.state_dict().items())
     # only blocks may be added: another width, or fewer blocks, is refused
     wider = replace(TINY, encoder=replace(TINY.encoder, widths=tuple(2 * w for w in TINY.encoder.widths)))
     fewer = replace(TINY, encoder=replace(TINY.encoder, blocks=tuple(max(b - 1, 0) for b in blocks)))

@@ -18,7 +18,6 @@ from __future__ import annotations
 
 import dataclasses
 import os
-import sys
 from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -217,11 +216,8 @@ def train_agm(
     model = AxisGenerator(cfg.agm)
     if init and not run.resume:
         start_from = Estimator.load(init)
-        if start_from.config.agm == cfg.agm:
-            model.denoiser.load_state_dict(start_from.agm.denoiser.state_dict())
-        else:
-            grown = grow_into(model, start_from.agm)
-            print(f"grew {init}'s AGM by {len(grown)} encoder block(s), each starting as the identity", file=sys.stderr)
+        if grown := grow_into(model, start_from.agm):  # the same network: a plain copy, nothing grown
+            print(f"started from {init}, its encoder grown by {len(grown)} block(s), each starting as the identity")
     scales = torch.tensor([o.scale for o in objects], dtype=torch.float64)
     validate_ema = None
     items = sources.held_out(AxisCropDataset, objects, cfg.stream, cfg.val_seed, crop, cfg.val_samples, optim.seed) if rank == 0 else []
