@@ -197,7 +197,8 @@ def _eval(args: argparse.Namespace) -> int:
     objects = [o for o in est.config.objects if not args.objects or o.obj_id in args.objects]
 
     def predict(image, K, boxes):
-        poses = est.estimate(image, K, boxes, steps=args.steps, guidance_scale=args.guidance, hypotheses=args.hypotheses)
+        poses = est.estimate(image, K, boxes, steps=args.steps, guidance_scale=args.guidance, hypotheses=args.hypotheses,
+                             mode_sample=args.mode_sample)  # fmt: skip
         return [Prediction(p.R, p.t, p.ok, p.spread_deg) for p in poses]
 
     detector, counts = None, None
@@ -214,7 +215,7 @@ def _eval(args: argparse.Namespace) -> int:
     config = {"checkpoint": str(args.checkpoint), "data": str(args.data), "steps": args.steps or est.config.ddim_steps,
               "guidance": est.config.guidance_scale if args.guidance is None else args.guidance, "crops": args.crops,
               "hypotheses": args.hypotheses, "precision": precision, "visib": list(args.visib), "perturb": args.perturb,
-              **notes}  # fmt: skip
+              "mode_sample": est.config.mode_sample if args.mode_sample is None else args.mode_sample, **notes}  # fmt: skip
     return _report(args, records, objects, config, counts)
 
 
@@ -357,6 +358,8 @@ def build_parser() -> argparse.ArgumentParser:
         help="gt: square around the GT box (the paper's protocol); detect: the localiser's",
     )
     ev.add_argument("--hypotheses", type=int, default=1, help="AGM samples per instance; >= 2: consensus pose and spread")
+    ev.add_argument("--mode-sample", action=argparse.BooleanOptionalAction, default=None,
+                    help="start hypothesis 0 from the prior's mode, x_T = 0 (default: the checkpoint's setting)")  # fmt: skip
     ev.add_argument("--visib", type=float, nargs=2, default=[0.1, 1.0], metavar=("LO", "HI"),
                     help="visibility band of the instances scored (heavy occlusion: 0.1 0.5)")  # fmt: skip
     ev.add_argument("--perturb", choices=["low_light", "motion_blur"], default=None, help="degrade every frame (stress test)")

@@ -171,6 +171,12 @@ def test_sampler_is_deterministic_under_a_seed():
     # hypotheses share the crop's encoding
     assert torch.equal(enc.repeat(3).context[3:6], enc.context[1:2].expand(3, -1))
     assert a.min() >= -1 and a.max() <= 1
+    # a row started from the prior's mode (x_T = 0) is the same under every seed; the others still follow it
+    z = torch.tensor([0.0, 1.0])
+    m7 = agm.sample(enc, 4, generator=torch.Generator().manual_seed(7), noise_scale=z)
+    m8 = agm.sample(enc, 4, generator=torch.Generator().manual_seed(8), noise_scale=z)
+    assert torch.equal(m7[0], m8[0]) and not torch.equal(m7[0], a[0])
+    assert torch.equal(m7[1], a[1]) and not torch.equal(m8[1], m7[1])
 
 
 @pytest.mark.parametrize("guided", [False, True])

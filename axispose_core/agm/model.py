@@ -143,15 +143,19 @@ class AxisGenerator(nn.Module):
         guidance: Callable[[torch.Tensor], AxisGeometry] | None = None,
         guidance_scale: float = 0.0,
         cancelled: Callable[[], bool] | None = None,
+        noise_scale: torch.Tensor | None = None,
     ) -> torch.Tensor:
         """Generate one axis image per row of `enc` (`Encoding.repeat` for several per crop); `guidance(x̂0) -> g`
         supplies the measurement for run-time guidance. `cancelled()` is asked before every step; True raises
-        `Cancelled` (a node shutting down mid-frame)."""
+        `Cancelled` (a node shutting down mid-frame). `noise_scale` (one factor per row) scales the starting noise
+        x_T: 0 starts the deterministic (eta = 0) path from the mode of the prior N(0, I)."""
         sched = self.scheduler
         sched.set_timesteps(steps)
         S = self.config.denoiser.size
         ref = enc.context
         x = torch.randn((ref.shape[0], 3, S, S), generator=generator, dtype=ref.dtype).to(ref.device)
+        if noise_scale is not None:
+            x = x * noise_scale.to(x).view(-1, 1, 1, 1)
         for t in sched.timesteps.tolist():
             if cancelled is not None and cancelled():
                 raise Cancelled("sampling cancelled")
