@@ -10,6 +10,7 @@ from pathlib import Path
 from typing import TypeVar
 
 C = TypeVar("C")
+TARGETS_FILE = "test_targets_bop19.json"
 SHARED_LMO = Path(__file__).resolve().parents[2] / "shared" / "data" / "lmo"
 """The LM-O data beside a clone of the repository (as CI has it)."""
 
@@ -63,6 +64,7 @@ def _synth(args: argparse.Namespace) -> int:
         images_per_scene=args.images_per_scene,
         scene=scene,
         randomization=randomization,
+        depth=args.depth,
     )
     models = Path(args.models[0])
     if len(args.models) > 1 or not models.is_dir():
@@ -173,12 +175,19 @@ def _eval(args: argparse.Namespace) -> int:
     from axispose_core.baseline.direct import KIND as DIRECT_KIND
     from axispose_core.baseline.direct import DirectEstimator
     from axispose_core.checkpoint import read_metadata
+    from axispose_core.data.bop import BopFormatError
     from axispose_core.estimator import Estimator
     from axispose_core.evaluate import Prediction, evaluate
     from axispose_core.stress import PERTURBATIONS
 
     torch.set_num_threads(args.threads)
     perturb = PERTURBATIONS[args.perturb] if args.perturb else None
+    try:
+        targets, targets_path = _bop_targets(args)
+    except BopFormatError as err:
+        print(f"axispose eval: {err}", file=sys.stderr)
+        return 2
+    bop: list = []
     if read_metadata(args.checkpoint, None)["kind"] == DIRECT_KIND:  # the direct-regression baseline
         if args.crops == "detect":
             print("axispose eval: the direct-regression baseline has no localiser; use --crops gt", file=sys.stderr)
@@ -188,10 +197,10 @@ def _eval(args: argparse.Namespace) -> int:
         notes: dict = {}
         records = evaluate(lambda image, K, boxes: [Prediction(p.R, p.t, p.ok) for p in direct.estimate(image, K, boxes)],
                            args.data, args.models, objects, limit=args.limit, visib=tuple(args.visib), perturb=perturb,
-                           notes=notes)  # fmt: skip
+                           notes=notes, targets=targets, bop=bop)  # fmt: skip
         config = {"checkpoint": str(args.checkpoint), "data": str(args.data), "model": DIRECT_KIND, "crops": args.crops,
-                  "visib": list(args.visib), "perturb": args.perturb, **notes}  # fmt: skip
-        return _report(args, records, objects, config, None)
+                  "visib": list(args.visib), "perturb": args.perturb, "targets": targets_path, **notes}  # fmt: skip
+        return _report(args, records, objects, config, None, bop)
     est = Estimator.load(args.checkpoint)
     precision = est.set_precision(args.precision)
     objects = [o for o in est.config.objects if not args.objects or o.obj_id in args.objects]
@@ -211,21 +220,42 @@ def _eval(args: argparse.Namespace) -> int:
         detector, counts = est.detect, {}
     notes = {}
     records = evaluate(predict, args.data, args.models, objects, limit=args.limit, detector=detector, detection_counts=counts,
-                       visib=tuple(args.visib), perturb=perturb, notes=notes)  # fmt: skip
+                       visib=tuple(args.visib), perturb=perturb, notes=notes, targets=targets, bop=bop)  # fmt: skip
     config = {"checkpoint": str(args.checkpoint), "data": str(args.data), "steps": args.steps or est.config.ddim_steps,
               "guidance": est.config.guidance_scale if args.guidance is None else args.guidance, "crops": args.crops,
               "hypotheses": args.hypotheses, "precision": precision, "visib": list(args.visib), "perturb": args.perturb,
-              "mode_sample": est.config.mode_sample if args.mode_sample is None else args.mode_sample, **notes}  # fmt: skip
-    return _report(args, records, objects, config, counts)
+              "mode_sample": est.config.mode_sample if args.mode_sample is None else args.mode_sample, "targets": targets_path,
+              **notes}  # fmt: skip
+    return _report(args, records, objects, config, counts, bop)
 
 
-def _report(args: argparse.Namespace, records, objects, config: dict, counts: dict | None) -> int:
+def _bop_targets(args: argparse.Namespace) -> tuple[dict | None, str | None]:
+    """The BOP targets to evaluate: --targets, else a test_targets_bop19.json in --data or the folder above it
+    (where BOP keeps it beside the split), else none; with the file's path."""
+    from axispose_core.data.bop import load_test_targets
+
+    if args.targets:
+        path = Path(args.targets)
+    else:
+        data = Path(args.data)
+        path = next((d / TARGETS_FILE for d in (data, data.parent) if (d / TARGETS_FILE).exists()), None)
+    return (load_test_targets(path), str(path)) if path is not None else (None, None)
+
+
+def _report(args: argparse.Namespace, records, objects, config: dict, counts: dict | None, bop: list) -> int:
     """Write, print and plot an eval's results."""
-    from axispose_core.evaluate import format_table, plot_cdfs, plot_grid, plot_spread, summarize, write_report
+    from axispose_core.data.bop import write_bop_results
+    from axispose_core.evaluate import format_average_recall, format_table, plot_cdfs, plot_grid, plot_spread, summarize, write_report
 
-    report = summarize(records, objects, config, counts)
+    report = summarize(records, objects, config, counts, bop)
     write_report(report, args.report)
     print(format_table(report))
+    print(format_average_recall(report["bop19"]))
+    if config.get("targets"):
+        print(f"BOP targets: {config['targets']}")
+    if args.bop_results:
+        write_bop_results(args.bop_results, [e for image in bop for e in image.estimates])
+        print(f"BOP results: {args.bop_results}")
     if config.get("visibility_estimated_scenes"):
         print(
             f"visibility estimated from the models (no scene_gt_info.json) in scene(s) {', '.join(config['visibility_estimated_scenes'])}"
@@ -322,6 +352,7 @@ def build_parser() -> argparse.ArgumentParser:
     sy.add_argument("--height", type=int, default=480)
     sy.add_argument("--camera", help="BOP camera.json (fx, fy, cx, cy, width, height); default: the LM-O camera")
     sy.add_argument("--workers", type=int, default=1, help="worker processes")
+    sy.add_argument("--depth", action="store_true", help="also write depth images (BOP depth/, for the VSD error of `axispose eval`)")
     sy.set_defaults(func=_synth)
 
     tn = sub.add_parser("train", help="train the AGM (axis generation) on the crop stream, or on BOP folders")
@@ -366,6 +397,9 @@ def build_parser() -> argparse.ArgumentParser:
     ev.add_argument("--limit", type=int, default=None, help="stop after this many instances")
     ev.add_argument("--report", required=True, help="JSON to write")
     ev.add_argument("--plots", default=None, help="folder for error CDFs")
+    ev.add_argument("--bop-results", default=None, metavar="CSV", help="also write the poses as a BOP19 results file "
+                    "(name it METHOD_DATASET-SPLIT.csv, e.g. axispose_lmo-test.csv, for bop_toolkit's scripts)")  # fmt: skip
+    ev.add_argument("--targets", default=None, help=f"BOP targets file (default: {TARGETS_FILE} in --data or the folder above, if any)")
     ev.add_argument("--threads", type=int, default=2)
     ev.add_argument("--precision", choices=["auto", "float32", "bfloat16"], default="float32",
                     help="the AGM's arithmetic (auto: bfloat16 where the device has it natively, as the node does)")  # fmt: skip

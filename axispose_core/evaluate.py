@@ -23,8 +23,9 @@ import numpy as np
 from tqdm import tqdm
 
 from axispose_core.axis_image import draw_axes
+from axispose_core.bop19 import BopObject, ImageErrors, average_recall, image_errors
 from axispose_core.camera import crop_image, crop_intrinsics, square_around_box
-from axispose_core.data.bop import bop_frames, load_ply, model_path, read_bgr
+from axispose_core.data.bop import BopEstimate, BopScene, bop_frames, load_models_info, load_ply, model_path, read_bgr
 from axispose_core.data.objects import ObjectSpec
 from axispose_core.detect.decode import Detection, match
 from axispose_core.detect.scoring import false_alarms
@@ -86,6 +87,8 @@ def evaluate(
     visib: tuple[float, float] = (MIN_VISIB, 1.0),
     perturb: Callable[[np.ndarray, np.random.Generator], np.ndarray] | None = None,
     notes: dict | None = None,
+    targets: dict[tuple[int, int], dict[int, int]] | None = None,
+    bop: list[ImageErrors] | None = None,
 ) -> list[Record]:
     """Run `predict` on every frame's boxes (one batch per frame) and score each instance.
 
@@ -98,20 +101,35 @@ def evaluate(
 
     `notes` (filled in) says what the data needed: scenes whose visibility was estimated from the models (no
     scene_gt_info.json) and GT rotations projected to the nearest rotation (`bop.read_scene_gt`).
+
+    `targets` (test_targets_bop19.json, `bop.load_test_targets`) limits the instances to BOP's: only the images
+    it names, and per image and object the `inst_count` most visible instances (within `visib`). `bop` (filled
+    in) gets each image's BOP19 errors (`bop19.image_errors`): every estimate with its score (1 for a GT crop, the
+    localiser's otherwise; with the localiser, every detection of a known object is posed) against the image's
+    instances, VSD where the scene has depth images.
     """
     if not MIN_VISIB <= visib[0] <= visib[1]:
         raise ValueError(f"visib must be a band ({MIN_VISIB} <= low <= high), got {visib}")
     specs = {o.obj_id: o for o in objects}
-    points = {i: load_ply(model_path(models_dir, i)).vertices for i in specs}
+    if bop is not None:
+        infos = load_models_info(Path(models_dir) / "models_info.json")
+        bop_objects = {i: BopObject.load(models_dir, infos[i]) for i in specs}
+        points = {i: o.points for i, o in bop_objects.items()}
+    else:
+        points = {i: load_ply(model_path(models_dir, i)).vertices for i in specs}
     records: list[Record] = []
     frames = bop_frames([data], models_dir)
     if notes is not None:
         scenes = {scene.root: scene for scene, _ in frames}.values()
         notes["visibility_estimated_scenes"] = sorted(s.root.name for s in scenes if s.visibility_estimated)
         notes["gt_rotations_projected"] = sum(s.rotations_projected for s in scenes)
+    scene_ids = {scene.root: _scene_id(scene, k) for k, scene in enumerate({s.root: s for s, _ in frames}.values())}
     for scene, im_id in tqdm(frames, desc="eval", disable=not progress):
+        if targets is not None and (scene_ids[scene.root], im_id) not in targets:
+            continue
         pairs = scene.instances(im_id)
-        insts = [(g, info) for g, info in pairs if g.obj_id in specs and visib[0] <= info.visib_fract <= visib[1]]
+        wanted = _target_instances(pairs, targets[scene_ids[scene.root], im_id]) if targets is not None else range(len(pairs))
+        insts = [pairs[k] for k in wanted if pairs[k][0].obj_id in specs and visib[0] <= pairs[k][1].visib_fract <= visib[1]]
         if not insts:
             continue
         if limit is not None and len(records) >= limit:
@@ -122,23 +140,35 @@ def evaluate(
             rgb = perturb(rgb, np.random.default_rng([zlib.crc32(scene.root.name.encode()), im_id]))
         start = time.perf_counter()
         boxes = [(g.obj_id, info.bbox_obj) for g, info in insts]
+        scores = [1.0] * len(insts)
         if detector is not None:
-            dets = detector(rgb)
+            dets = [d for d in detector(rgb) if d.obj_id in specs]
             everyone = [(g.obj_id, info.bbox_obj) for g, info in pairs]
             hits = match(dets, everyone)  # detections of barely visible instances are neither hits nor false alarms
             found = dict(zip(map(id, scene.gt[im_id]), hits, strict=True))
-            boxes = [(g.obj_id, dets[found[id(g)]].box) for g, _ in insts if found[id(g)] is not None]
+            boxes, scores = [(d.obj_id, d.box) for d in dets], [d.score for d in dets]
             if detection_counts is not None:
                 for g, _ in insts:
                     c = detection_counts.setdefault(g.obj_id, {"tp": 0, "fp": 0, "n": 0})
                     c["n"] += 1
                     c["tp"] += found[id(g)] is not None
-                for d in (dets[k] for k in false_alarms(hits, len(dets)) if dets[k].obj_id in specs):
+                for d in (dets[k] for k in false_alarms(hits, len(dets))):
                     detection_counts.setdefault(d.obj_id, {"tp": 0, "fp": 0, "n": 0})["fp"] += 1
-        preds_found = iter(predict(rgb, K, boxes) if boxes else [])
-        per_object = (time.perf_counter() - start) / len(insts)
+        posed = predict(rgb, K, boxes) if boxes else []
+        frame_seconds = time.perf_counter() - start
+        per_object = frame_seconds / len(insts)
         missed = Prediction(np.eye(3), np.zeros(3), False)
-        preds = [next(preds_found) if detector is None or found[id(g)] is not None else missed for g, _ in insts]
+        if detector is None:
+            preds = posed
+        else:
+            preds = [posed[found[id(g)]] if found[id(g)] is not None else missed for g, _ in insts]
+        if bop is not None:
+            sid = scene_ids[scene.root]
+            made = [BopEstimate(sid, im_id, obj_id, score, p.R, p.t, frame_seconds)
+                    for (obj_id, _), score, p in zip(boxes, scores, posed, strict=True) if p.ok]  # fmt: skip
+            depth = scene.depth(im_id)
+            h, w = rgb.shape[:2]
+            bop.append(image_errors(sid, im_id, made, [(g.obj_id, g.R, g.t) for g, _ in insts], bop_objects, K, w, h, depth))
         for (g, info), p in zip(insts, preds, strict=True):
             scores = instance_scores(specs[g.obj_id], points[g.obj_id], K, g.R, g.t, (p.R, p.t) if p.ok else None)
             records.append(
@@ -162,10 +192,33 @@ def evaluate(
     return records
 
 
+def _scene_id(scene: BopScene, index: int) -> int:
+    """A scene's BOP id: its folder's number, else its place among the evaluated scenes."""
+    return int(scene.root.name) if scene.root.name.isdigit() else index
+
+
+def _target_instances(pairs: list, counts: dict[int, int]) -> list[int]:
+    """Indices of the instances a BOP target asks for: per object, its `inst_count` most visible (file order on
+    ties), in file order."""
+    by_visibility = sorted(range(len(pairs)), key=lambda k: -pairs[k][1].visib_fract)
+    left, keep = dict(counts), []
+    for k in by_visibility:
+        obj_id = pairs[k][0].obj_id
+        if left.get(obj_id, 0) > 0:
+            left[obj_id] -= 1
+            keep.append(k)
+    return sorted(keep)
+
+
 def summarize(
-    records: list[Record], objects: list[ObjectSpec], config: dict, detection_counts: dict[int, dict[str, int]] | None = None
+    records: list[Record],
+    objects: list[ObjectSpec],
+    config: dict,
+    detection_counts: dict[int, dict[str, int]] | None = None,
+    bop: list[ImageErrors] | None = None,
 ) -> dict:
-    """The report JSON: per object, mean over objects, latency, config; detection precision/recall when given."""
+    """The report JSON: per object, mean over objects, latency, config; detection precision/recall when given;
+    BOP19 average recall (`bop19`: overall and per object) from `bop`'s image errors."""
     per: dict[str, dict[str, float]] = {}
     for o in objects:
         rs = [r for r in records if r.obj_id == o.obj_id]
@@ -192,6 +245,11 @@ def summarize(
         "ms_per_object": {"median": float(np.median(ms)), "p90": float(np.percentile(ms, 90))},
         "config": config,
     }
+    if bop is not None:
+        ar = average_recall(bop)
+        names = {o.obj_id: o.name for o in objects}
+        ar["objects"] = {str(i): {"name": names.get(i, str(i))} | e for i, e in ar["objects"].items()}
+        report["bop19"] = ar
     quality = spread_quality(records)
     return report | ({"spread": quality} if quality else {})
 
@@ -260,6 +318,19 @@ def format_table(report: dict) -> str:
     for name, n, e in rows:
         cells = " ".join(f"{e[k]:8.3f}" for k in keys)
         lines.append(f"{name:<12} {n:>4} {cells} {e['rot_err_median_deg']:8.1f} {e['trans_err_median_mm']:9.1f}")
+    return "\n".join(lines)
+
+
+def format_average_recall(ar: dict) -> str:
+    """BOP19 average recall per object and overall, one row each; says when VSD is missing (no depth images)."""
+    kinds = ar["kinds"]
+    head = f"{'object':<12} {'targets':>7} " + " ".join(f"{'AR_' + k.upper():>8}" for k in kinds) + f" {'AR':>8}"
+    rows = [(e["name"], e["targets"], e) for e in ar["objects"].values()] + [("all", ar["targets"], ar)]
+    lines = [head]
+    for name, n, e in rows:
+        lines.append(f"{name:<12} {n:>7} " + " ".join(f"{e[f'ar_{k}']:8.3f}" for k in kinds) + f" {e.get('ar', 0.0):8.3f}")
+    if "vsd" not in kinds:
+        lines.append("AR is the mean of AR_MSSD and AR_MSPD: the scenes have no depth images, so no VSD")
     return "\n".join(lines)
 
 

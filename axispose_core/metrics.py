@@ -5,6 +5,8 @@ Poses are model-to-camera (R 3x3, t (3,) in metres); `pts` are model points (N,3
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+
 import numpy as np
 from scipy.spatial import cKDTree
 
@@ -73,3 +75,80 @@ def pose_scores(
     scores["rot_err_deg"] = re(R_est, R_gt)
     scores["trans_err_mm"] = 1000.0 * te(t_est, t_gt)
     return scores
+
+
+# ------------------------------------------------------------------------------------------ BOP19 errors
+
+Symmetry = tuple[np.ndarray, np.ndarray]
+"""(R, t): a model-frame transformation (t in metres) under which the object looks the same."""
+
+
+def symmetry_transformations(
+    discrete: tuple[np.ndarray, ...] | list[np.ndarray], continuous: tuple[dict, ...] | list[dict], max_sym_disc_step: float = 0.01
+) -> list[Symmetry]:
+    """An object's symmetry transformations [(R, t), ...] (t in metres), the identity first: the discrete ones of
+    models_info.json (4x4, translation in metres) and its continuous ones sampled as bop_toolkit's
+    `get_symmetry_transformations` does (ceil(pi / max_sym_disc_step) rotations about each axis, composed with
+    every discrete one); an axis offset is taken in metres."""
+    disc = [(np.eye(3), np.zeros(3))] + [(np.asarray(T, float)[:3, :3], np.asarray(T, float)[:3, 3]) for T in discrete]
+    cont = []
+    for sym in continuous:
+        axis = np.asarray(sym["axis"], float)
+        axis = axis / np.linalg.norm(axis)
+        offset = np.asarray(sym.get("offset", (0.0, 0.0, 0.0)), float)
+        steps = int(np.ceil(np.pi / max_sym_disc_step))
+        for i in range(steps):
+            R = _axis_angle(axis, i * 2.0 * np.pi / steps)
+            cont.append((R, offset - R @ offset))
+    if not cont:
+        return disc
+    return [(Rc @ Rd, Rc @ td + tc) for Rd, td in disc for Rc, tc in cont]
+
+
+def _axis_angle(axis: np.ndarray, angle: float) -> np.ndarray:
+    """The rotation by `angle` (rad) about the unit `axis` (Rodrigues)."""
+    x = np.array([[0.0, -axis[2], axis[1]], [axis[2], 0.0, -axis[0]], [-axis[1], axis[0], 0.0]])
+    return np.eye(3) + np.sin(angle) * x + (1.0 - np.cos(angle)) * (x @ x)
+
+
+def mssd(R_est: np.ndarray, t_est: np.ndarray, R_gt: np.ndarray, t_gt: np.ndarray, pts: np.ndarray, syms: list[Symmetry]) -> float:
+    """MSSD (BOP19): the largest distance (m) between model points under the estimate and under the GT pose,
+    minimised over the object's symmetries `syms` (`symmetry_transformations`)."""
+    est = transform(R_est, t_est, pts)
+    return min(float(np.linalg.norm(est - transform(R_gt @ Rs, R_gt @ ts + t_gt, pts), axis=1).max()) for Rs, ts in syms)
+
+
+def mspd(
+    R_est: np.ndarray, t_est: np.ndarray, R_gt: np.ndarray, t_gt: np.ndarray, K: np.ndarray, pts: np.ndarray, syms: list[Symmetry]
+) -> float:
+    """MSPD (BOP19): the largest distance (px) between model points projected under the estimate and under the GT
+    pose, minimised over the object's symmetries `syms`."""
+    est = project(K, transform(R_est, t_est, pts))
+    return min(float(np.linalg.norm(est - project(K, transform(R_gt @ Rs, R_gt @ ts + t_gt, pts)), axis=1).max()) for Rs, ts in syms)
+
+
+def distance_image(depth: np.ndarray, K: np.ndarray) -> np.ndarray:
+    """Distance from the camera centre (same unit as `depth`) per pixel of a depth (z) image; 0 stays 0
+    (bop_toolkit's `depth_im_to_dist_im`: skew ignored)."""
+    h, w = depth.shape
+    x = (np.arange(w) - K[0, 2]) / K[0, 0]
+    y = (np.arange(h) - K[1, 2]) / K[1, 1]
+    return np.asarray(depth, np.float64) * np.sqrt(x[None, :] ** 2 + y[:, None] ** 2 + 1.0)
+
+
+def vsd(
+    depth_est: np.ndarray, depth_gt: np.ndarray, depth_test: np.ndarray, K: np.ndarray, delta: float, taus: Sequence[float], diameter: float
+) -> list[float]:
+    """VSD (BOP19, step cost, taus relative to the diameter), one error per tau: the share of the object's visible
+    surface where the estimate's and the GT's rendered depths (`depth_est`, `depth_gt`; 0 where the model is
+    not) disagree. Visibility against the scene's depth `depth_test` with tolerance `delta` (m), a pixel without
+    a measurement (0) counting as visible (bop_toolkit's 'bop19' mode)."""
+    d_test, d_gt, d_est = (distance_image(d, K) for d in (depth_test, depth_gt, depth_est))
+    visib_gt = ((d_gt - d_test <= delta) | (d_test == 0)) & (d_gt > 0)
+    visib_est = (((d_est - d_test <= delta) | (d_test == 0)) & (d_est > 0)) | (visib_gt & (d_est > 0))
+    inter, union = visib_gt & visib_est, int((visib_gt | visib_est).sum())
+    if union == 0:
+        return [1.0] * len(taus)
+    dists = np.abs(d_gt[inter] - d_est[inter]) / diameter
+    outside = union - int(inter.sum())
+    return [float((np.count_nonzero(dists >= tau) + outside) / union) for tau in taus]

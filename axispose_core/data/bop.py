@@ -108,6 +108,7 @@ class ObjectInfo:
     bbox_size: np.ndarray
     symmetries_discrete: tuple[np.ndarray, ...] = ()
     symmetries_continuous: tuple[dict[str, Any], ...] = ()
+    """{"axis": 3 numbers, "offset": 3 numbers in metres} each: rotation about the axis through the offset."""
 
     @property
     def symmetric(self) -> bool:
@@ -186,8 +187,15 @@ def load_models_info(path: str | Path) -> dict[int, ObjectInfo]:
             T = _numbers(path, where, f"symmetries_discrete[{k}]", s, 16).reshape(4, 4)
             T[:3, 3] *= MM
             syms.append(T)
-        cont = tuple(entry.get("symmetries_continuous", []))
-        infos[obj_id] = ObjectInfo(obj_id, diameter, bbox_min, bbox_size, tuple(syms), cont)
+        cont = []
+        for k, s in enumerate(entry.get("symmetries_continuous", [])):
+            where_k = f"{where} symmetries_continuous[{k}]"
+            axis = _numbers(path, where_k, "axis", _field(path, where_k, s, "axis"), 3)
+            if not np.linalg.norm(axis) > 0:
+                raise BopFormatError(f"{path}: {where_k}: field 'axis' must not be zero")
+            offset = _numbers(path, where_k, "offset", s.get("offset", [0.0, 0.0, 0.0]), 3) * MM
+            cont.append({"axis": axis.tolist(), "offset": offset.tolist()})
+        infos[obj_id] = ObjectInfo(obj_id, diameter, bbox_min, bbox_size, tuple(syms), tuple(cont))
     return infos
 
 
@@ -207,7 +215,9 @@ def write_models_info(path: str | Path, infos: dict[int, ObjectInfo]) -> None:
                 syms.append(T.ravel().tolist())
             entry["symmetries_discrete"] = syms
         if info.symmetries_continuous:
-            entry["symmetries_continuous"] = list(info.symmetries_continuous)
+            entry["symmetries_continuous"] = [
+                {"axis": list(s["axis"]), "offset": (np.asarray(s["offset"], np.float64) / MM).tolist()} for s in info.symmetries_continuous
+            ]
         out[str(obj_id)] = entry
     _write_json(Path(path), out)
 
@@ -311,6 +321,35 @@ def load_scene_camera(path: str | Path) -> dict[int, np.ndarray]:
     return cams
 
 
+def load_depth_scales(path: str | Path) -> dict[int, float]:
+    """scene_camera.json's depth_scale per image id (mm per depth-image unit; 1.0 where absent)."""
+    path = Path(path)
+    scales = {}
+    for im_id, e in _keyed(path, "image"):
+        scale = float(_numbers(path, f"image {im_id}", "depth_scale", e.get("depth_scale", 1.0) if isinstance(e, dict) else None, 1)[0])
+        if scale <= 0:
+            raise BopFormatError(f"{path}: image {im_id}: field 'depth_scale' must be positive, got {scale}")
+        scales[im_id] = scale
+    return scales
+
+
+def read_depth(path: str | Path, depth_scale: float) -> np.ndarray:
+    """A BOP depth image (16-bit PNG, mm / depth_scale per unit) as float64 metres (0: no measurement)."""
+    depth = cv2.imread(str(path), cv2.IMREAD_ANYDEPTH)
+    if depth is None or depth.ndim != 2:
+        raise BopFormatError(f"{path}: unreadable depth image")
+    return depth.astype(np.float64) * (depth_scale * MM)
+
+
+def write_depth(path: str | Path, depth: np.ndarray, depth_scale: float) -> None:
+    """Write metres (0, inf or NaN: no measurement) as a BOP 16-bit depth PNG in units of depth_scale mm."""
+    units = np.where(np.isfinite(depth), np.asarray(depth, np.float64) / (depth_scale * MM), 0.0)
+    if units.max(initial=0.0) > 65535:
+        raise ValueError(f"{path}: depth up to {units.max() * depth_scale * MM:.1f} m does not fit 16 bits at depth_scale {depth_scale}")
+    Path(path).parent.mkdir(parents=True, exist_ok=True)
+    cv2.imwrite(str(path), np.round(units).astype(np.uint16))
+
+
 def load_camera(path: str | Path) -> tuple[np.ndarray, int | None, int | None]:
     """A dataset's camera.json: K (3x3, validated) and the image width and height where it gives them."""
     path = Path(path)
@@ -372,6 +411,77 @@ def write_scene_gt_info(path: str | Path, infos: dict[int, list[GTInfo]]) -> Non
     _write_json(Path(path), out)
 
 
+def load_test_targets(path: str | Path) -> dict[tuple[int, int], dict[int, int]]:
+    """test_targets_bop19.json: per (scene_id, im_id), the instance count to find of each object id."""
+    path = Path(path)
+    data = _read_json(path)
+    if not isinstance(data, list):
+        raise BopFormatError(f"{path}: expected a list of targets")
+    targets: dict[tuple[int, int], dict[int, int]] = {}
+    for k, e in enumerate(data):
+        where = f"target {k}"
+        scene_id, im_id, obj_id, count = (
+            int(_numbers(path, where, name, _field(path, where, e, name), 1)[0]) for name in ("scene_id", "im_id", "obj_id", "inst_count")
+        )
+        if count < 1:
+            raise BopFormatError(f"{path}: {where}: field 'inst_count' must be at least 1, got {count}")
+        targets.setdefault((scene_id, im_id), {})[obj_id] = count
+    return targets
+
+
+@dataclass(frozen=True)
+class BopEstimate:
+    """One line of a BOP19 results file: a pose (metres here, mm in the file) with its score and the time its
+    image took (s; -1 unknown)."""
+
+    scene_id: int
+    im_id: int
+    obj_id: int
+    score: float
+    R: np.ndarray
+    t: np.ndarray
+    time: float = -1.0
+
+
+RESULTS_HEADER = "scene_id,im_id,obj_id,score,R,t,time"
+
+
+def write_bop_results(path: str | Path, estimates: list[BopEstimate]) -> None:
+    """A BOP19 results CSV, as the official toolkit reads it (name it METHOD_DATASET-SPLIT.csv for its scripts)."""
+    lines = [RESULTS_HEADER]
+    for e in estimates:
+        R = " ".join(repr(float(v)) for v in np.asarray(e.R, np.float64).ravel())
+        t = " ".join(repr(float(v)) for v in np.asarray(e.t, np.float64).ravel() / MM)
+        lines.append(f"{e.scene_id},{e.im_id},{e.obj_id},{float(e.score)!r},{R},{t},{float(e.time)!r}")
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text("\n".join(lines) + "\n")
+
+
+def read_bop_results(path: str | Path) -> list[BopEstimate]:
+    """A BOP19 results CSV (header optional, as the official toolkit allows)."""
+    path = Path(path)
+    try:
+        text = path.read_text()
+    except OSError as err:
+        raise BopFormatError(f"{path}: cannot read ({err})") from err
+    out = []
+    for n, line in enumerate(text.splitlines(), 1):
+        if not line.strip() or (n == 1 and RESULTS_HEADER in line):
+            continue
+        cells = line.split(",")
+        if len(cells) != 7:
+            raise BopFormatError(f"{path}: line {n}: expected 7 comma-separated fields, got {len(cells)}")
+        try:
+            ids = [int(c) for c in cells[:3]]
+            R = np.array(cells[4].split(), np.float64).reshape(3, 3)
+            t = np.array(cells[5].split(), np.float64).reshape(3) * MM
+            out.append(BopEstimate(*ids, float(cells[3]), R, t, float(cells[6])))
+        except ValueError as err:
+            raise BopFormatError(f"{path}: line {n}: {err}") from err
+    return out
+
+
 def bbox_from_model(K: np.ndarray, R: np.ndarray, t: np.ndarray, pts: np.ndarray) -> tuple[int, int, int, int]:
     """(x, y, w, h) of the projected model points, not clipped to the image (BOP's bbox_obj)."""
     uv = project_model(K, R, t, pts)
@@ -423,6 +533,7 @@ class BopScene:
         info_path = self.root / "scene_gt_info.json"
         self.gt_info = load_scene_gt_info(info_path) if info_path.exists() else None
         self._estimated: dict[int, list[GTInfo]] = {}
+        self._depth_scales: dict[int, float] | None = None
         for im_id in self.gt:
             if im_id not in self.cameras:
                 raise BopFormatError(f"{self.root / 'scene_camera.json'}: image {im_id} of scene_gt.json has no camera")
@@ -449,6 +560,15 @@ class BopScene:
     def rgb(self, im_id: int) -> np.ndarray:
         """The image as HxWx3 uint8 RGB; an unreadable file is a BopFormatError, not a None further on."""
         return cv2.cvtColor(read_bgr(self.rgb_path(im_id)), cv2.COLOR_BGR2RGB)
+
+    def depth(self, im_id: int) -> np.ndarray | None:
+        """The image's depth in metres (0: no measurement), None where the scene has no depth image."""
+        path = self.root / "depth" / f"{im_id:06d}.png"
+        if not path.exists():
+            return None
+        if self._depth_scales is None:
+            self._depth_scales = load_depth_scales(self.root / "scene_camera.json")
+        return read_depth(path, self._depth_scales[im_id])
 
     def instances(self, im_id: int) -> list[tuple[GTInstance, GTInfo]]:
         """Each GT instance of the image with its boxes and visibility, in file order: scene_gt_info.json's, else

@@ -160,6 +160,8 @@ class SynthConfig:
     images_per_scene: int = 1
     scene: SceneConfig = field(default_factory=SceneConfig)
     randomization: RandomizationConfig = field(default_factory=RandomizationConfig)
+    depth: bool = False
+    """Also write BOP depth images of the objects (depth/, DEPTH_SCALE), for BOP's VSD error."""
 
     def save(self, path: str | Path) -> None:
         Path(path).write_text(json.dumps(dataclasses.asdict(self), indent=1))

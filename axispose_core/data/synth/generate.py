@@ -28,6 +28,7 @@ from axispose_core.data.bop import (
     load_models_info,
     load_ply,
     model_path,
+    write_depth,
     write_scene_camera,
     write_scene_gt,
     write_scene_gt_info,
@@ -39,6 +40,9 @@ from axispose_core.data.synth.randomize import background, camera_effects, cutou
 from axispose_core.data.synth.raster import RenderMesh, render, vertex_normals
 from axispose_core.data.synth.scene import Placement, primitive, sample_scene
 from axispose_core.data.synth.table import Table, light_from_above, rest_on, shade_table, table_pixels
+
+DEPTH_SCALE = 0.1
+"""mm per unit of the depth images (BOP's PBR scenes use the same): 0.1 mm steps up to 6.5 m."""
 
 
 def load_render_mesh(models_dir: str | Path, obj_id: int, cache_dir: str | Path | None = None) -> RenderMesh:
@@ -154,8 +158,10 @@ def generate_scene(cfg: SynthConfig, meshes: dict[int, RenderMesh], diameters: d
             cv2.imwrite(str(folder / "mask" / f"{im_id:06d}_{k:06d}.png"), full.astype(np.uint8) * 255)
             cv2.imwrite(str(folder / "mask_visib" / f"{im_id:06d}_{k:06d}.png"), vis.astype(np.uint8) * 255)
         gts[im_id], infos[im_id], cams[im_id] = frame.gt, frame.info, K
+        if cfg.depth:
+            write_depth(folder / "depth" / f"{im_id:06d}.png", frame.depth, DEPTH_SCALE)
     write_scene_gt(folder / "scene_gt.json", gts)
-    write_scene_camera(folder / "scene_camera.json", cams)
+    write_scene_camera(folder / "scene_camera.json", cams, DEPTH_SCALE)
     write_scene_gt_info(folder / "scene_gt_info.json", infos)  # last: marks the scene complete
     return cfg.images_per_scene
 

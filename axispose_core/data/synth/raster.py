@@ -220,6 +220,12 @@ def _depth(samples: list[_Samples | None], n_pix: int) -> np.ndarray:
     return depth
 
 
+def render_depth(mesh: RenderMesh, R: np.ndarray, t: np.ndarray, K: np.ndarray, width: int, height: int) -> np.ndarray:
+    """The depth (z, m) of one posed mesh per pixel, 0 where it is not (the BOP convention), without shading."""
+    depth = _depth([_splat(mesh, R, t, K, width, height)], height * width)[:-1].reshape(height, width)
+    return np.where(np.isfinite(depth), depth, 0.0).astype(np.float64)
+
+
 def pixel_rays(K: np.ndarray, u: np.ndarray, v: np.ndarray) -> np.ndarray:
     """Rays (..., 3) with z = 1 through pixels (u, v) (centres at integers), skew included."""
     y = (v - K[1, 2]) / K[1, 1]
