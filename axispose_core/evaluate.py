@@ -64,6 +64,7 @@ class Record:
     rgb_path: Path | None
     box: tuple[int, int, int, int]
     spread_deg: float = float("nan")
+    visib_fract: float = float("nan")
 
 
 def instance_scores(
@@ -187,6 +188,7 @@ def evaluate(
                     scene.rgb_path(im_id),
                     info.bbox_obj,
                     p.spread_deg,
+                    info.visib_fract,
                 )
             )
     return records

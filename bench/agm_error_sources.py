@@ -32,6 +32,9 @@ from axispose_core.estimator import Estimator, fuse_depth
 from axispose_core.evaluate import Prediction, evaluate
 from axispose_core.metrics import add_or_adi
 
+BANDS = ((0.1, 0.5), (0.5, 0.8), (0.8, 1.0))
+"""Visible-fraction bands the depth errors are split by."""
+
 
 def box_side(R: np.ndarray, t: np.ndarray, K: np.ndarray, pts: np.ndarray) -> float:
     """sqrt(width * height) of the model's projected bounding box."""
@@ -91,6 +94,7 @@ def main() -> None:
             "add_ok_box_depth": add_or_adi(r.R, depth_from_box(r.R, r.t, r.K, pts, r.box), r.R_gt, r.t_gt, pts, spec.symmetric) < thr,
             "log_depth_err_tbm": float(np.log(r.t[2] / r.t_gt[2])),
             "log_depth_err_head": float(np.log(z_head / r.t_gt[2])),
+            "visib_fract": r.visib_fract,
         })  # fmt: skip
         for w in weights:
             t_w = fuse_depth(r.t, z_head, w)
@@ -130,16 +134,27 @@ def main() -> None:
           f"with depth from the box {a['add_ok_box_depth']:.3f}")  # fmt: skip
     e_tbm = np.array([s["log_depth_err_tbm"] for s in rows])
     e_head = np.array([s["log_depth_err_head"] for s in rows])
+    visib = np.array([s["visib_fract"] for s in rows])
     out["depth_sources"] = []
-    print(f"\ndepth sources on the {len(rows)} posed instances (|relative depth error| quartiles, ADD(-S)@0.1d of all {n}):")
-    print(f"{'head_depth_weight':<20}{'q25':>8}{'median':>8}{'q75':>8}{'ADD0.1d':>9}")
+    print(f"\ndepth sources on the {len(rows)} posed instances (|relative depth error| quartiles; bias: the median ratio of "
+          f"estimated to true depth; ADD(-S)@0.1d of all {n}; median |error| by visible fraction):")  # fmt: skip
+    print(
+        f"{'head_depth_weight':<20}{'q25':>8}{'median':>8}{'q75':>8}{'bias':>8}{'ADD0.1d':>9}"
+        + "".join(f"{f'{a:g}-{b:g}':>9}" for a, b in BANDS)
+    )
     for w in weights:
-        e = np.abs(np.expm1((1 - w) * e_tbm + w * e_head))  # fused log depth = (1-w) log z_tbm + w log z_head
+        log_err = (1 - w) * e_tbm + w * e_head  # fused log depth = (1-w) log z_tbm + w log z_head
+        e = np.abs(np.expm1(log_err))
         q = [float(v) for v in np.percentile(e, [25, 50, 75])]
+        bias = float(np.exp(np.median(log_err)))
         add = sum(s[f"add_ok_w{w:g}"] for s in rows) / n
-        out["depth_sources"].append({"head_depth_weight": w, "rel_depth_err_quartiles": q, "add_0.1d_of_all": add})
+        bands = {f"{a:g}-{b:g}": float(np.median(e[(visib >= a) & (visib <= b)])) if np.any((visib >= a) & (visib <= b)) else None
+                 for a, b in BANDS}  # fmt: skip
+        out["depth_sources"].append({"head_depth_weight": w, "rel_depth_err_quartiles": q, "bias": bias, "add_0.1d_of_all": add,
+                                     "median_rel_depth_err_by_visib": bands})  # fmt: skip
         label = {0.0: "0 (TBM alone)", 1.0: "1 (encoder alone)"}.get(w, f"{w:g}")
-        print(f"{label:<20}{q[0]:>8.3f}{q[1]:>8.3f}{q[2]:>8.3f}{add:>9.3f}")
+        cells = "".join(f"{v:>9.3f}" if v is not None else f"{'-':>9}" for v in bands.values())
+        print(f"{label:<20}{q[0]:>8.3f}{q[1]:>8.3f}{q[2]:>8.3f}{bias:>8.3f}{add:>9.3f}{cells}")
     out["log_depth_err_std"] = {"tbm": float(np.std(e_tbm)), "head": float(np.std(e_head)),
                                 "correlation": float(np.corrcoef(e_tbm, e_head)[0, 1])}  # fmt: skip
     print("log depth error std: TBM {tbm:.3f}, encoder {head:.3f}, correlation {correlation:.2f}".format(**out["log_depth_err_std"]))
