@@ -25,7 +25,17 @@ from tqdm import tqdm
 from axispose_core.axis_image import draw_axes
 from axispose_core.bop19 import BopObject, ImageErrors, average_recall, image_errors
 from axispose_core.camera import crop_image, crop_intrinsics, square_around_box
-from axispose_core.data.bop import BopEstimate, BopScene, bop_frames, load_models_info, load_ply, model_path, read_bgr
+from axispose_core.data.bop import (
+    BopEstimate,
+    BopScene,
+    GTInfo,
+    GTInstance,
+    bop_frames,
+    load_models_info,
+    load_ply,
+    model_path,
+    read_bgr,
+)
 from axispose_core.data.objects import ObjectSpec
 from axispose_core.detect.decode import Detection, match
 from axispose_core.detect.scoring import false_alarms
@@ -120,11 +130,11 @@ def evaluate(
         points = {i: load_ply(model_path(models_dir, i)).vertices for i in specs}
     records: list[Record] = []
     frames = bop_frames([data], models_dir)
+    scenes = list({scene.root: scene for scene, _ in frames}.values())
     if notes is not None:
-        scenes = {scene.root: scene for scene, _ in frames}.values()
         notes["visibility_estimated_scenes"] = sorted(s.root.name for s in scenes if s.visibility_estimated)
         notes["gt_rotations_projected"] = sum(s.rotations_projected for s in scenes)
-    scene_ids = {scene.root: _scene_id(scene, k) for k, scene in enumerate({s.root: s for s, _ in frames}.values())}
+    scene_ids = {scene.root: _scene_id(scene, k) for k, scene in enumerate(scenes)}
     for scene, im_id in tqdm(frames, desc="eval", disable=not progress):
         if targets is not None and (scene_ids[scene.root], im_id) not in targets:
             continue
@@ -141,13 +151,13 @@ def evaluate(
             rgb = perturb(rgb, np.random.default_rng([zlib.crc32(scene.root.name.encode()), im_id]))
         start = time.perf_counter()
         boxes = [(g.obj_id, info.bbox_obj) for g, info in insts]
-        scores = [1.0] * len(insts)
+        box_scores = [1.0] * len(insts)
         if detector is not None:
             dets = [d for d in detector(rgb) if d.obj_id in specs]
             everyone = [(g.obj_id, info.bbox_obj) for g, info in pairs]
             hits = match(dets, everyone)  # detections of barely visible instances are neither hits nor false alarms
             found = dict(zip(map(id, scene.gt[im_id]), hits, strict=True))
-            boxes, scores = [(d.obj_id, d.box) for d in dets], [d.score for d in dets]
+            boxes, box_scores = [(d.obj_id, d.box) for d in dets], [d.score for d in dets]
             if detection_counts is not None:
                 for g, _ in insts:
                     c = detection_counts.setdefault(g.obj_id, {"tp": 0, "fp": 0, "n": 0})
@@ -166,7 +176,7 @@ def evaluate(
         if bop is not None:
             sid = scene_ids[scene.root]
             made = [BopEstimate(sid, im_id, obj_id, score, p.R, p.t, frame_seconds)
-                    for (obj_id, _), score, p in zip(boxes, scores, posed, strict=True) if p.ok]  # fmt: skip
+                    for (obj_id, _), score, p in zip(boxes, box_scores, posed, strict=True) if p.ok]  # fmt: skip
             depth = scene.depth(im_id)
             h, w = rgb.shape[:2]
             bop.append(image_errors(sid, im_id, made, [(g.obj_id, g.R, g.t) for g, _ in insts], bop_objects, K, w, h, depth))
@@ -199,7 +209,7 @@ def _scene_id(scene: BopScene, index: int) -> int:
     return int(scene.root.name) if scene.root.name.isdigit() else index
 
 
-def _target_instances(pairs: list, counts: dict[int, int]) -> list[int]:
+def _target_instances(pairs: list[tuple[GTInstance, GTInfo]], counts: dict[int, int]) -> list[int]:
     """Indices of the instances a BOP target asks for: per object, its `inst_count` most visible (file order on
     ties), in file order."""
     by_visibility = sorted(range(len(pairs)), key=lambda k: -pairs[k][1].visib_fract)
@@ -326,6 +336,8 @@ def format_table(report: dict) -> str:
 def format_average_recall(ar: dict) -> str:
     """BOP19 average recall per object and overall, one row each; says when VSD is missing (no depth images)."""
     kinds = ar["kinds"]
+    if not kinds:
+        return "BOP19 average recall: no instances to find"
     head = f"{'object':<12} {'targets':>7} " + " ".join(f"{'AR_' + k.upper():>8}" for k in kinds) + f" {'AR':>8}"
     rows = [(e["name"], e["targets"], e) for e in ar["objects"].values()] + [("all", ar["targets"], ar)]
     lines = [head]
