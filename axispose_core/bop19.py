@@ -98,12 +98,12 @@ def image_errors(
     errors = {"mssd": np.full((*shape, 1), np.inf), "mspd": np.full((*shape, 1), np.inf)}
     if depth is not None:
         errors["vsd"] = np.full((*shape, len(FRACTIONS)), np.inf)
-        renders: dict[tuple[str, int], np.ndarray] = {}
+    renders: dict[tuple[str, int], np.ndarray] = {}  # each estimate and each target rendered once
 
-        def rendered(which: str, k: int, obj: BopObject, R: np.ndarray, t: np.ndarray) -> np.ndarray:
-            if (which, k) not in renders:
-                renders[which, k] = obj.depth(R, t, K, width, height)
-            return renders[which, k]
+    def rendered(which: str, k: int, obj: BopObject, R: np.ndarray, t: np.ndarray) -> np.ndarray:
+        if (which, k) not in renders:
+            renders[which, k] = obj.depth(R, t, K, width, height)
+        return renders[which, k]
 
     for a, i in enumerate(kept):
         e = estimates[i]
