@@ -9,6 +9,7 @@ from collections.abc import Sequence
 
 import numpy as np
 from scipy.spatial import cKDTree
+from scipy.spatial.transform import Rotation
 
 from axispose_core.camera import project, transform
 
@@ -97,18 +98,11 @@ def symmetry_transformations(
         axis = axis / np.linalg.norm(axis)
         offset = np.asarray(sym.get("offset", (0.0, 0.0, 0.0)), float)
         steps = int(np.ceil(np.pi / max_sym_disc_step))
-        for i in range(steps):
-            R = _axis_angle(axis, i * 2.0 * np.pi / steps)
+        for R in Rotation.from_rotvec(np.outer(np.arange(steps) * 2.0 * np.pi / steps, axis)).as_matrix():
             cont.append((R, offset - R @ offset))
     if not cont:
         return disc
     return [(Rc @ Rd, Rc @ td + tc) for Rd, td in disc for Rc, tc in cont]
-
-
-def _axis_angle(axis: np.ndarray, angle: float) -> np.ndarray:
-    """The rotation by `angle` (rad) about the unit `axis` (Rodrigues)."""
-    x = np.array([[0.0, -axis[2], axis[1]], [axis[2], 0.0, -axis[0]], [-axis[1], axis[0], 0.0]])
-    return np.eye(3) + np.sin(angle) * x + (1.0 - np.cos(angle)) * (x @ x)
 
 
 def mssd(R_est: np.ndarray, t_est: np.ndarray, R_gt: np.ndarray, t_gt: np.ndarray, pts: np.ndarray, syms: list[Symmetry]) -> float:
