@@ -12,7 +12,7 @@ from safetensors import safe_open
 from safetensors.torch import load_file, save_file
 
 from axispose_core.agm.guidance import AxisGeometry, axis_geometry, geo_loss, guided_eps, inject
-from axispose_core.agm.model import AGMConfig, AxisGenerator, depth_from_log, grow_into, log_depth_target
+from axispose_core.agm.model import AGMConfig, AxisGenerator, EncoderLossConfig, depth_from_log, grow_into, log_depth_target
 from axispose_core.agm.scheduler import DDIMScheduler, SchedulerConfig
 from axispose_core.axis_image import axis_keypoints, render_axis_keypoints
 from axispose_core.checkpoint import CheckpointError, save_checkpoint
@@ -297,8 +297,8 @@ def test_a_grown_encoder_starts_as_the_network_it_grew_from():
     torch.testing.assert_close(a.points, b.points)
     x_t, t = torch.rand(2, 3, 64, 64) * 2 - 1, torch.tensor([10, 900])
     torch.testing.assert_close(small.denoiser(x_t, t, a), big.denoiser(x_t, t, b))
-    # the same network is a plain copy
-    same = AxisGenerator(AGMConfig(denoiser=TINY))
+    # the same network is a plain copy, also under other training settings (loss weights are not the network)
+    same = AxisGenerator(AGMConfig(denoiser=TINY, encoder_loss=EncoderLossConfig(depth_weight=2.0), train_guidance=False))
     assert grow_into(same, small) == []
     assert all(torch.equal(v, small.state_dict()[k]) for k, v in same.state_dict().items())
     # only blocks may be added: another width, or fewer blocks, is refused
