@@ -106,9 +106,13 @@ def _config(cls: type[C], path: str | None) -> C:
         return cls()
     import yaml
 
-    from axispose_core.checkpoint import config_from_dict
+    from axispose_core.checkpoint import CheckpointError, config_from_dict
 
-    return config_from_dict(cls, yaml.safe_load(Path(path).read_text()) or {}, path)
+    try:
+        return config_from_dict(cls, yaml.safe_load(Path(path).read_text()) or {}, path)
+    except (OSError, yaml.YAMLError, CheckpointError) as err:
+        print(f"axispose: {path}: not a readable {cls.__name__} ({err})", file=sys.stderr)
+        raise SystemExit(2) from err
 
 
 def _train(args: argparse.Namespace) -> int:
@@ -117,9 +121,33 @@ def _train(args: argparse.Namespace) -> int:
     from axispose_core.train.agm import TrainConfig, train_agm
 
     torch.set_num_threads(args.threads)
+    if args.recipe:
+        return _train_recipe(args)
     cfg = _config(TrainConfig, args.config)
     step = train_agm(cfg, _crop_sources(args), args.out, _run_options(args), init=args.init)
     print(f"stopped at step {step} of {cfg.optim.steps}; checkpoint {args.out}")
+    return 0
+
+
+def _train_recipe(args: argparse.Namespace) -> int:
+    """`axispose train --recipe FILE --out DIR`: every stage the recipe's checkpoint needs, then the checkpoint."""
+    from axispose_core.checkpoint import CheckpointError
+    from axispose_core.train.recipe import RecipeError, RecipeRunner, load_recipe
+
+    if args.config or args.init or args.resume or args.data:
+        print("axispose train: --recipe runs the recipe's own configs and data; drop --config, --init, --resume, --data", file=sys.stderr)
+        return 2
+    adopt = dict(a.split("=", 1) for a in args.adopt if "=" in a)
+    try:
+        if len(adopt) != len(args.adopt):
+            raise RecipeError(f"--adopt takes STAGE=CHECKPOINT, got {' '.join(args.adopt)}")
+        recipe = load_recipe(args.recipe)
+        runner = RecipeRunner(recipe, args.out, _run_options(args), adopt, render_workers=args.threads, name=Path(args.recipe).stem)
+        path = runner.run_all()
+    except (RecipeError, CheckpointError) as err:
+        print(f"axispose train: {err}", file=sys.stderr)
+        return 2
+    print(f"checkpoint {path} (recipe {recipe.sha256[:12]})" if path else "stopped at the time cap; run the same command to go on")
     return 0
 
 
@@ -361,6 +389,10 @@ def build_parser() -> argparse.ArgumentParser:
     tn.add_argument("--init", help="estimator checkpoint to start from (its weights; a fresh optimiser and schedule), e.g. the "
                     "shipped model: the same AGM network, or one whose encoder has more blocks per stage "
                     "(they start as the identity)")  # fmt: skip
+    tn.add_argument("--recipe", help="a recipe (e.g. config/recipes/axispose_lmo.yaml): run all its stages into the folder "
+                    "--out (resuming where a call stopped) and assemble its estimator checkpoint there")  # fmt: skip
+    tn.add_argument("--adopt", nargs="*", default=[], metavar="STAGE=CHECKPOINT",
+                    help="with --recipe: an existing checkpoint stands in for a stage (recorded as adopted)")  # fmt: skip
     tn.set_defaults(func=_train)
 
     td = sub.add_parser("train-detector", help="train the 2D localiser (CenterNet) on synthetic BOP frames")

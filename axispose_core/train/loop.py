@@ -68,11 +68,13 @@ def ema_update(ema: torch.nn.Module, model: torch.nn.Module, decay: float) -> No
 @dataclass(frozen=True)
 class RunOptions:
     """How one call of a trainer runs, as against what it trains (its config): the state to resume, the device
-    ("auto": CUDA when there is one), a wall-time cap after which it saves and stops, and a progress bar."""
+    ("auto": CUDA when there is one), a wall-time cap after which it saves and stops, a step at which it saves and
+    stops (a recipe stage whose schedule changes its length part-way: `train/recipe.py`), and a progress bar."""
 
     resume: str | Path | None = None
     device: str = "auto"
     max_minutes: float | None = None
+    stop_at: int | None = None
     progress: bool = True
 
 
@@ -178,7 +180,9 @@ def fit(
             save_run_state(state_path(out), cfg, model, ema, opt, sched, step, init, now)
 
     def done() -> bool:
-        return step >= optim.steps or (run.max_minutes is not None and time.time() - start > 60 * run.max_minutes)
+        if step >= optim.steps or (run.stop_at is not None and step >= run.stop_at):
+            return True
+        return run.max_minutes is not None and time.time() - start > 60 * run.max_minutes
 
     bar = tqdm(total=optim.steps, initial=step, desc=desc, disable=not run.progress or rank != 0)
     try:

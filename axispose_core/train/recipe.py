@@ -1,0 +1,372 @@
+"""`axispose train --recipe`: a model's whole training as data, run stage by stage, resumable, and assembled into
+one estimator checkpoint (AGM, keypoint reader, localiser).
+
+A recipe (YAML; the shipped model's: config/recipes/axispose_lmo.yaml) holds
+- `models`: the BOP models folder that the crop stream and the synthetic frames render;
+- `data`: synthetic BOP folders by name (`axispose synth` settings), rendered under OUT/data/NAME when a stage
+  needs them;
+- `stages`: each a trainer (reader, agm, localiser); its config, a YAML file or a mapping, or without one the
+  config of the same trainer's stage before, with `changes` merged into it; the stage whose weights it starts
+  from (`init`); the data a localiser stage trains and validates on; and its `schedule` where the cosine's length
+  changes part-way (segments of `steps`, each but the last stopping at `until`);
+- `estimator`: the stages that make the checkpoint and the estimator settings it ships with.
+
+The runner builds, in the recipe's order, the stages the checkpoint needs. A stage with OUT/NAME.done.json is done
+and must have been built from the same config; one with a resume state goes on from it; others start. An existing
+checkpoint may stand in for a stage (`adopt`); the record says so. The checkpoint's `training` record holds the
+resolved recipe (configs, not file names), its hash and each stage's steps, time and hardware.
+"""
+
+from __future__ import annotations
+
+import copy
+import dataclasses
+import hashlib
+import json
+import shutil
+import time
+from dataclasses import dataclass
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import torch
+import yaml
+
+from axispose_core.checkpoint import CheckpointError, config_from_dict, read_metadata
+from axispose_core.data.objects import dataset_objects
+from axispose_core.data.synth.config import SynthConfig, recipe as synth_recipe
+from axispose_core.data.synth.generate import generate
+from axispose_core.detect.weights import load_localiser
+from axispose_core.estimator import KIND as ESTIMATOR, Estimator, EstimatorConfig
+from axispose_core.tbm.reader import load_reader
+from axispose_core.train.agm import TrainConfig, train_agm
+from axispose_core.train.detector import DetectorTrainConfig, train_detector
+from axispose_core.train.loop import DEFAULT_RUN, RunOptions
+from axispose_core.train.reader import ReaderTrainConfig, train_reader
+from axispose_core.train.resume import state_path
+from axispose_core.train.sources import CropSources
+
+CONFIGS: dict[str, type] = {"reader": ReaderTrainConfig, "agm": TrainConfig, "localiser": DetectorTrainConfig}
+"""Each trainer's config class, by the name a stage gives as its `trainer`."""
+
+SYNTH_KEYS = {"scenes", "images_per_scene", "seed", "recipe", "depth", "objects"}
+STAGE_KEYS = {"name", "trainer", "config", "changes", "init", "data", "val", "schedule"}
+ESTIMATOR_KEYS = {"agm", "reader", "localiser", "config", "half"}
+ESTIMATOR_SETTINGS = {f.name for f in dataclasses.fields(EstimatorConfig)} - {"agm", "reader", "objects", "training", "localiser"}
+
+
+class RecipeError(ValueError):
+    """A recipe that cannot be run, or an output folder built by another recipe: one line saying which and why."""
+
+
+@dataclass(frozen=True)
+class Segment:
+    """A stretch of a stage's run with one schedule length."""
+
+    steps: int
+    """optim.steps while this segment trains: the step the cosine schedule decays to 0 at."""
+    until: int | None = None
+    """The step the segment stops at (None: the schedule's end, `steps`)."""
+    data: tuple[str, ...] = ()
+    """A localiser segment's frames where they differ from the stage's (a run given new frames on resume)."""
+
+
+@dataclass(frozen=True)
+class Stage:
+    name: str
+    trainer: str
+    config: dict[str, Any]
+    """The trainer's whole config, resolved (its optim.steps: the last segment's)."""
+    init: str | None = None
+    data: tuple[str, ...] = ()
+    val: tuple[str, ...] = ()
+    schedule: tuple[Segment, ...] = ()
+
+    def segment_config(self, segment: Segment) -> Any:
+        """The trainer's config dataclass as this segment runs it."""
+        cfg = config_from_dict(CONFIGS[self.trainer], self.config, f"stage {self.name}")
+        return dataclasses.replace(cfg, optim=dataclasses.replace(cfg.optim, steps=segment.steps))
+
+    @property
+    def sha256(self) -> str:
+        return _sha256(_stage_dict(self))
+
+
+@dataclass(frozen=True)
+class Recipe:
+    models: str
+    data: dict[str, dict[str, Any]]
+    stages: tuple[Stage, ...]
+    estimator: dict[str, Any]
+
+    def stage(self, name: str) -> Stage:
+        return next(s for s in self.stages if s.name == name)
+
+    def as_dict(self) -> dict[str, Any]:
+        """The resolved recipe: what the checkpoint records and the hash covers."""
+        return {"models": self.models, "data": self.data, "stages": [_stage_dict(s) for s in self.stages], "estimator": self.estimator}
+
+    @property
+    def sha256(self) -> str:
+        return _sha256(self.as_dict())
+
+    def needed(self, built: Callable[[str], bool] = lambda name: False) -> list[Stage]:
+        """The stages the checkpoint needs, in the recipe's order: the estimator's three and what they start from
+        (an AGM stage also needs the reader, which validates it and goes into its checkpoint), except what a stage
+        already `built` (done or adopted) started from."""
+        want: set[str] = set()
+        todo = [self.estimator[k] for k in ("agm", "reader", "localiser")]
+        while todo:
+            name = todo.pop()
+            if name in want:
+                continue
+            want.add(name)
+            stage = self.stage(name)
+            if built(name):
+                continue
+            todo += [stage.init] if stage.init else []
+            todo += [self.estimator["reader"]] if stage.trainer == "agm" else []
+        return [s for s in self.stages if s.name in want]
+
+
+def _stage_dict(stage: Stage) -> dict[str, Any]:
+    d = dataclasses.asdict(stage)
+    d["schedule"] = [{k: v for k, v in dataclasses.asdict(s).items() if k != "data" or v} for s in stage.schedule]
+    return d
+
+
+def _sha256(data: Any) -> str:
+    return hashlib.sha256(json.dumps(data, sort_keys=True, default=list).encode()).hexdigest()
+
+
+def _merge(base: dict[str, Any], changes: dict[str, Any]) -> dict[str, Any]:
+    """`base` with `changes` merged in at every depth (a mapping merges into a mapping; anything else replaces)."""
+    out = copy.deepcopy(base)
+    for k, v in changes.items():
+        out[k] = _merge(out[k], v) if isinstance(v, dict) and isinstance(out.get(k), dict) else copy.deepcopy(v)
+    return out
+
+
+def _yaml_file(path: str, near: Path) -> dict[str, Any]:
+    """A YAML mapping from `path`: relative to the current folder, else to the recipe's folder and those above it
+    (a recipe in config/recipes/ names config/train_agm.yaml as from the repository's root)."""
+    candidates = [Path(path)] + [d / path for d in (near, *near.parents)]
+    found = next((p for p in candidates if p.is_file()), None)
+    if found is None:
+        raise RecipeError(f"config file {path} not found")
+    data = yaml.safe_load(found.read_text()) or {}
+    if not isinstance(data, dict):
+        raise RecipeError(f"{found}: expected a mapping")
+    return data
+
+
+def _unknown(what: str, keys: set[str], allowed: set[str]) -> None:
+    if extra := keys - allowed:
+        raise RecipeError(f"{what}: unknown key(s) {', '.join(sorted(extra))} (allowed: {', '.join(sorted(allowed))})")
+
+
+def _schedule(name: str, raw: Any, steps: int) -> tuple[Segment, ...]:
+    if raw is None:
+        return (Segment(steps),)
+    if not isinstance(raw, list) or not raw:
+        raise RecipeError(f"stage {name}: schedule must be a list of segments {{steps, until}}")
+    segments = []
+    for seg in raw:
+        _unknown(f"stage {name}: schedule segment", set(seg), {"steps", "until", "data"})
+        until = seg.get("until")
+        segments.append(Segment(int(seg["steps"]), None if until is None else int(until), tuple(seg.get("data") or ())))
+    untils = [s.until for s in segments[:-1]]
+    if None in untils or untils != sorted(untils) or (segments[-1].until is not None and untils and segments[-1].until <= untils[-1]):
+        raise RecipeError(f"stage {name}: every segment but the last stops at `until`, at increasing steps")
+    if any(s.until is not None and s.until > s.steps for s in segments):
+        raise RecipeError(f"stage {name}: a segment cannot stop after its schedule's end (until > steps)")
+    return tuple(segments)
+
+
+def load_recipe(path: str | Path) -> Recipe:
+    """Read and resolve a recipe, checking every stage's config against its trainer's config class and every name
+    a stage or the estimator refers to, so that a mistake shows before hours of training."""
+    path = Path(path)
+    try:
+        raw = yaml.safe_load(path.read_text()) or {}
+    except (OSError, yaml.YAMLError) as err:
+        raise RecipeError(f"{path}: cannot read the recipe ({err})") from err
+    if not isinstance(raw, dict):
+        raise RecipeError(f"{path}: expected a mapping")
+    _unknown(str(path), set(raw), {"models", "data", "stages", "estimator"})
+    data = {str(k): dict(v or {}) for k, v in (raw.get("data") or {}).items()}
+    for name, spec in data.items():
+        _unknown(f"data {name}", set(spec), SYNTH_KEYS)
+        if "scenes" not in spec or "seed" not in spec:
+            raise RecipeError(f"data {name}: needs scenes and seed")
+        synth_recipe(spec.get("recipe", "plain"))  # a ValueError names the recipes there are
+    stages: list[Stage] = []
+    last: dict[str, dict[str, Any]] = {}
+    for i, s in enumerate(raw.get("stages") or []):
+        name = str(s.get("name", f"#{i}"))
+        _unknown(f"stage {name}", set(s), STAGE_KEYS)
+        trainer = s.get("trainer")
+        if trainer not in CONFIGS:
+            raise RecipeError(f"stage {name}: trainer must be one of {', '.join(CONFIGS)}, got {trainer!r}")
+        if any(st.name == name for st in stages):
+            raise RecipeError(f"stage {name}: the name is taken by an earlier stage")
+        base = s.get("config")
+        base = _yaml_file(base, path.parent) if isinstance(base, str) else dict(base) if base else last.get(trainer, {})
+        config = _merge(base, s.get("changes") or {})
+        try:
+            cfg = config_from_dict(CONFIGS[trainer], config, f"stage {name}")
+        except (CheckpointError, TypeError, ValueError) as err:
+            raise RecipeError(str(err)) from err
+        schedule = _schedule(name, s.get("schedule"), cfg.optim.steps)
+        config = _merge(config, {"optim": {"steps": schedule[-1].steps}})
+        last[trainer] = config
+        init = s.get("init")
+        if init is not None and not any(st.name == init and st.trainer == trainer for st in stages):
+            raise RecipeError(f"stage {name}: init {init!r} is not an earlier {trainer} stage")
+        refs = (tuple(s.get("data") or ()), tuple(s.get("val") or ()))
+        if trainer == "localiser" and not refs[0]:
+            raise RecipeError(f"stage {name}: a localiser stage needs data")
+        if missing := [d for d in (*refs[0], *refs[1], *(d for seg in schedule for d in seg.data)) if d not in data]:
+            raise RecipeError(f"stage {name}: data {', '.join(missing)} not in the recipe's data")
+        stages.append(Stage(name, trainer, config, init, *refs, schedule))
+    est = dict(raw.get("estimator") or {})
+    _unknown("estimator", set(est), ESTIMATOR_KEYS)
+    for part in ("agm", "reader", "localiser"):
+        if not any(st.name == est.get(part) and st.trainer == part for st in stages):
+            raise RecipeError(f"estimator: {part} must name a {part} stage, got {est.get(part)!r}")
+    _unknown("estimator: config", set(est.get("config") or {}), ESTIMATOR_SETTINGS)
+    est = {"config": {}, "half": False} | est
+    return Recipe(str(raw.get("models", "")), data, tuple(stages), est)
+
+
+def _training_record(path: Path) -> dict[str, Any]:
+    """The `training` record a trainer wrote into its checkpoint (an estimator's config holds it, other kinds their
+    extra metadata)."""
+    meta = read_metadata(path, None)
+    if meta.get("kind") == ESTIMATOR:
+        return dict(json.loads(meta.get("config", "{}")).get("training", {}))
+    return dict(json.loads(meta.get("extra", "{}")).get("training", {}))
+
+
+def _saved_step(state: Path) -> int:
+    return int(torch.load(state, map_location="cpu", weights_only=False)["step"]) if state.is_file() else 0
+
+
+def _synth_config(spec: dict[str, Any]) -> SynthConfig:
+    scene, randomization = synth_recipe(spec.get("recipe", "plain"))
+    return SynthConfig(
+        seed=int(spec["seed"]), scenes=int(spec["scenes"]), images_per_scene=int(spec.get("images_per_scene", 20)),
+        objects=tuple(spec.get("objects", ())), scene=scene, randomization=randomization, depth=bool(spec.get("depth", False)),
+    )  # fmt: skip
+
+
+class RecipeRunner:
+    """Builds a recipe's stages into OUT and assembles its checkpoint (OUT/NAME.safetensors)."""
+
+    def __init__(self, recipe: Recipe, out: str | Path, run: RunOptions = DEFAULT_RUN, adopt: dict[str, str] | None = None,
+                 render_workers: int = 1, name: str = "estimator") -> None:  # fmt: skip
+        self.recipe, self.out, self.run = recipe, Path(out), run
+        self.adopt = {k: Path(v) for k, v in (adopt or {}).items()}
+        if unknown := set(self.adopt) - {s.name for s in recipe.stages}:
+            raise RecipeError(f"adopt: no stage named {', '.join(sorted(unknown))}")
+        self.render_workers, self.name = render_workers, name
+        self.deadline = None if run.max_minutes is None else time.time() + 60 * run.max_minutes
+
+    def checkpoint(self, stage: str) -> Path:
+        return self.out / f"{stage}.safetensors"
+
+    def done_file(self, stage: str) -> Path:
+        return self.out / f"{stage}.done.json"
+
+    def built(self, stage: str) -> bool:
+        """Done in OUT, or to be adopted: what it started from is not needed."""
+        return self.done_file(stage).is_file() or stage in self.adopt
+
+    def run_all(self) -> Path | None:
+        """Build what is missing and assemble; returns the checkpoint, or None when the time cap stopped a stage
+        (the same call again goes on where it stopped)."""
+        self.out.mkdir(parents=True, exist_ok=True)
+        (self.out / "recipe.json").write_text(json.dumps(self.recipe.as_dict(), indent=1, default=list))
+        for stage in self.recipe.needed(self.built):
+            if not self.build(stage):
+                return None
+        return self.assemble()
+
+    def build(self, stage: Stage) -> bool:
+        """Make sure `stage` is done; False when the time cap stopped it first."""
+        done, ckpt = self.done_file(stage.name), self.checkpoint(stage.name)
+        if done.is_file():
+            if json.loads(done.read_text()).get("config_sha256") != stage.sha256:
+                raise RecipeError(f"{ckpt} was built by another config of stage {stage.name}; "
+                                  f"remove {self.out}/{stage.name}.* to build it again")  # fmt: skip
+            return True
+        if stage.name in self.adopt:
+            source = self.adopt[stage.name]
+            read_metadata(source, None)  # a readable checkpoint, or CheckpointError
+            shutil.copyfile(source, ckpt)
+            digest = hashlib.sha256(ckpt.read_bytes()).hexdigest()
+            self._finish(stage, {"adopted": str(source), "file_sha256": digest})
+            print(f"stage {stage.name}: adopted {source}")
+            return True
+        state = state_path(ckpt)
+        for segment in stage.schedule:
+            step = _saved_step(state)
+            end = segment.until if segment.until is not None else segment.steps
+            if step >= end:
+                continue
+            left = None if self.deadline is None else (self.deadline - time.time()) / 60
+            if left is not None and left <= 0:
+                return False
+            print(f"stage {stage.name}: {stage.trainer} from step {step} to {end} (schedule {segment.steps} steps)")
+            run = dataclasses.replace(self.run, resume=state if state.is_file() else None, stop_at=segment.until, max_minutes=left)
+            init = self.checkpoint(stage.init) if stage.init and not state.is_file() else None
+            if self._train(stage, segment, run, init) < end:
+                print(f"stage {stage.name}: stopped at the time cap; the same command goes on from {state}")
+                return False
+        self._finish(stage, {})
+        return True
+
+    def _finish(self, stage: Stage, extra: dict[str, Any]) -> None:
+        record = {k: v for k, v in _training_record(self.checkpoint(stage.name)).items() if k != "data"}
+        record = {"name": stage.name, "config_sha256": stage.sha256, **record, **extra}
+        tmp = self.done_file(stage.name).with_suffix(".tmp")
+        tmp.write_text(json.dumps(record, indent=1))
+        tmp.replace(self.done_file(stage.name))
+
+    def _data(self, names: tuple[str, ...]) -> list[Path]:
+        """The named synthetic folders, rendered where missing (a rerun renders only the scenes a folder lacks)."""
+        folders = []
+        for name in names:
+            folder = self.out / "data" / name
+            generate(_synth_config(self.recipe.data[name]), self.recipe.models, folder, workers=self.render_workers, progress=self.run.progress)
+            folders.append(folder)
+        return folders
+
+    def _train(self, stage: Stage, segment: Segment, run: RunOptions, init: Path | None) -> int:
+        cfg = stage.segment_config(segment)
+        if stage.trainer == "reader":
+            return train_reader(cfg, self.checkpoint(stage.name), run)
+        if stage.trainer == "agm":
+            reader = self.checkpoint(self.recipe.estimator["reader"])
+            return train_agm(cfg, CropSources((), (), self.recipe.models), self.checkpoint(stage.name), run, reader, init)
+        data, val = self._data(segment.data or stage.data), self._data(stage.val)
+        if not cfg.localiser.obj_ids:  # as `axispose train-detector`: the objects the training data shows
+            ids = tuple(o.obj_id for o in dataset_objects(data))
+            cfg = dataclasses.replace(cfg, localiser=dataclasses.replace(cfg.localiser, obj_ids=ids))
+        return train_detector(cfg, data, self.checkpoint(stage.name), val or None, run, init)
+
+    def assemble(self) -> Path:
+        """One estimator checkpoint from the estimator's stages, with the recipe and every stage's record."""
+        est = self.recipe.estimator
+        agm = Estimator.load(self.checkpoint(est["agm"]))
+        reader = load_reader(self.checkpoint(est["reader"]))
+        localiser = load_localiser(self.checkpoint(est["localiser"]))
+        done = {s.name: json.loads(self.done_file(s.name).read_text()) for s in self.recipe.stages if self.done_file(s.name).is_file()}
+        stages = [done[s.name] for s in self.recipe.needed(lambda name: "adopted" in done[name])]  # the whole chain
+        training = {"recipe": self.recipe.as_dict(), "recipe_sha256": self.recipe.sha256, "stages": stages,
+                    "seconds": sum(float(s.get("seconds", 0.0)) for s in stages)}  # fmt: skip
+        config = dataclasses.replace(agm.config, reader=reader.config, localiser=localiser.config, training=training, **est["config"])
+        path = self.checkpoint(self.name)
+        Estimator(config, agm.agm, reader, "cpu", localiser).save(path, half=bool(est["half"]))
+        return path

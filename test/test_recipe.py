@@ -1,0 +1,111 @@
+"""`axispose train --recipe`: a short recipe of every trainer runs end to end, resumes where a call stopped, rebuilds
+nothing that is done, refuses a stage changed after it was built, and records the recipe in the checkpoint."""
+
+import json
+from pathlib import Path
+
+import pytest
+import yaml
+from conftest import TINY_AGM_YAML
+
+from axispose_core.cli import main
+from axispose_core.estimator import Estimator
+from axispose_core.tbm.reader import SHIPPED_READER
+from axispose_core.train.loop import RunOptions
+from axispose_core.train.reader import train_reader
+from axispose_core.train.recipe import RecipeError, RecipeRunner, load_recipe
+
+OPTIM = {"steps": 2, "batch": 2, "warmup": 1, "workers": 0, "save_every": 1, "val_every": 2}
+SHIPPED_RECIPE = Path(__file__).resolve().parents[1] / "config" / "recipes" / "axispose_lmo.yaml"
+
+
+def _recipe(models: Path) -> dict:
+    return {
+        "models": str(models),
+        "data": {"frames": {"scenes": 1, "images_per_scene": 2, "seed": 3, "objects": [1, 5]}},
+        "stages": [
+            {"name": "reader", "trainer": "reader",
+             "config": {"reader": {"channels": 8, "blocks": [1, 1, 1, 1, 1]}, "optim": dict(OPTIM), "val_samples": 4}},
+            {"name": "agm", "trainer": "agm",
+             "config": {"agm": TINY_AGM_YAML, "optim": dict(OPTIM), "val_samples": 2, "val_steps": 1, "stream": {"objects": [1, 5]}},
+             "schedule": [{"steps": 6, "until": 2}, {"steps": 3}]},
+            {"name": "agm_more", "trainer": "agm", "init": "agm", "changes": {"optim": {"seed": 1, "steps": 2}}},
+            {"name": "unused", "trainer": "agm", "changes": {"optim": {"steps": 1}}},
+            {"name": "localiser", "trainer": "localiser", "data": ["frames"],
+             "config": {"localiser": {"input_size": [160, 128], "channels": [8, 16, 24, 32]}, "optim": dict(OPTIM), "val_frames": 2}},
+        ],
+        "estimator": {"agm": "agm_more", "reader": "reader", "localiser": "localiser", "config": {"ddim_steps": 2}},
+    }  # fmt: skip
+
+
+def _write(tmp_path: Path, recipe: dict, name: str = "tiny.yaml") -> Path:
+    path = tmp_path / name
+    path.write_text(yaml.safe_dump(recipe))
+    return path
+
+
+def test_a_short_recipe_builds_resumes_and_records_itself(lmo_dir, tmp_path):
+    path, out = _write(tmp_path, _recipe(lmo_dir / "models")), tmp_path / "run"
+    recipe = load_recipe(path)
+    assert [s.name for s in recipe.needed()] == ["reader", "agm", "agm_more", "localiser"]  # not "unused"
+    assert recipe.stage("agm_more").config["optim"] == {**OPTIM, "seed": 1}  # the stage before, changed
+    # A call whose time is up trains nothing; a stage stopped part-way (here after 1 of its 2 steps) goes on from
+    # its resume state: its log has one header, not a restart's second.
+    assert RecipeRunner(recipe, out, RunOptions(max_minutes=1e-6, progress=False)).run_all() is None
+    assert not list(out.glob("*.safetensors"))
+    reader = recipe.stage("reader")
+    train_reader(reader.segment_config(reader.schedule[0]), out / "reader.safetensors", RunOptions(stop_at=1, progress=False))
+    assert main(["train", "--recipe", str(path), "--out", str(out), "--threads", "1"]) == 0
+    assert (out / "reader.csv").read_text().count("step,") == 1
+    done = {s: json.loads((out / f"{s}.done.json").read_text()) for s in ("reader", "agm", "agm_more", "localiser")}
+    assert done["reader"]["steps"] == 2 and done["agm"]["steps"] == 3 and done["agm_more"]["init"] == str(out / "agm.safetensors")
+    assert not (out / "unused.safetensors").exists()
+    est = Estimator.load(out / "tiny.safetensors")
+    assert est.config.ddim_steps == 2 and est.localiser is not None and {o.obj_id for o in est.config.objects} == {1, 5}
+    training = est.config.training
+    assert training["recipe_sha256"] == recipe.sha256 and training["recipe"]["stages"][1]["schedule"][0] == {"steps": 6, "until": 2}
+    assert [s["name"] for s in training["stages"]] == ["reader", "agm", "agm_more", "localiser"]
+    # Done stages are not trained again.
+    mtimes = {p.name: p.stat().st_mtime_ns for p in out.glob("*.safetensors") if p.name != "tiny.safetensors"}
+    assert main(["train", "--recipe", str(path), "--out", str(out), "--threads", "1"]) == 0
+    assert mtimes == {p.name: p.stat().st_mtime_ns for p in out.glob("*.safetensors") if p.name != "tiny.safetensors"}
+    # A stage changed after it was built is refused, not silently mixed with the old weights.
+    changed = _recipe(lmo_dir / "models")
+    changed["stages"][2]["changes"]["optim"]["seed"] = 2
+    with pytest.raises(RecipeError, match="agm_more.safetensors was built by another config"):
+        RecipeRunner(load_recipe(_write(tmp_path, changed, "changed.yaml")), out, RunOptions(progress=False)).run_all()
+    # Existing checkpoints may stand in for stages: nothing trains, and the record says which were adopted.
+    adopted = {"reader": str(SHIPPED_READER), "agm_more": str(out / "agm_more.safetensors"), "localiser": str(out / "localiser.safetensors")}
+    again = RecipeRunner(recipe, tmp_path / "adopted", RunOptions(progress=False), adopted).run_all()
+    stages = Estimator.load(again).config.training["stages"]
+    assert [s.get("adopted") for s in stages] == [adopted["reader"], adopted["agm_more"], adopted["localiser"]]
+    assert not (tmp_path / "adopted" / "agm.safetensors").exists()
+
+
+@pytest.mark.parametrize(
+    ("edit", "message"),
+    [
+        (lambda r: r["stages"][0].update(colour="red"), "stage reader: unknown key"),
+        (lambda r: r["stages"][2].update(init="nowhere"), "init 'nowhere' is not an earlier agm stage"),
+        (lambda r: r["stages"][1]["config"]["optim"].update(stpes=3), "stpes"),
+        (lambda r: r["stages"][4].update(data=["elsewhere"]), "data elsewhere not in the recipe's data"),
+        (lambda r: r["stages"][1].update(schedule=[{"steps": 6}, {"steps": 3}]), "every segment but the last stops"),
+        (lambda r: r["estimator"].update(localiser="agm"), "localiser must name a localiser stage"),
+        (lambda r: r["estimator"]["config"].update(ddim_stpes=2), "ddim_stpes"),
+    ],
+)
+def test_a_recipe_with_a_mistake_is_refused_before_training(lmo_dir, tmp_path, capsys, edit, message):
+    recipe = _recipe(lmo_dir / "models")
+    edit(recipe)
+    path = _write(tmp_path, recipe)
+    with pytest.raises(RecipeError, match=message):
+        load_recipe(path)
+    assert main(["train", "--recipe", str(path), "--out", str(tmp_path / "run")]) == 2  # one line, exit 2
+    assert message.split("'")[0] in capsys.readouterr().err and not (tmp_path / "run").exists()
+
+
+def test_the_shipped_recipe_resolves():
+    recipe = load_recipe(SHIPPED_RECIPE)
+    needed = {s.name for s in recipe.needed()}
+    assert {recipe.estimator[k] for k in ("agm", "reader", "localiser")} <= needed
+    assert all(s.trainer != "agm" or s.config["agm"]["denoiser"]["size"] == 64 for s in recipe.stages)
