@@ -172,9 +172,9 @@ class AxisGenerator(nn.Module):
 
 def grow_into(model: AxisGenerator, start: AxisGenerator) -> list[str]:
     """Load `start`'s weights into `model`: the same network (its training settings, e.g. loss weights, may
-    differ), or one whose encoder has more residual blocks per stage; returns the names of the blocks added (none for the same network). The added blocks start as the
-    identity (their last convolution zeroed), so the grown network computes what `start` did and training goes
-    on from its weights with more capacity."""
+    differ), or one whose encoder has more residual blocks per stage; returns the names of the blocks added (none
+    for the same network). The added blocks start as the identity (their last convolution zeroed), so the grown
+    network computes what `start` did and training goes on from its weights with more capacity."""
     old, new = start.config, model.config
     oe, ne = old.denoiser.encoder, new.denoiser.encoder
     same = replace(new.denoiser, encoder=replace(ne, blocks=oe.blocks))

@@ -25,8 +25,8 @@ import hashlib
 import json
 import shutil
 import time
-from dataclasses import dataclass
 from collections.abc import Callable
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -35,10 +35,12 @@ import yaml
 
 from axispose_core.checkpoint import CheckpointError, config_from_dict, read_metadata
 from axispose_core.data.objects import dataset_objects
-from axispose_core.data.synth.config import SynthConfig, recipe as synth_recipe
+from axispose_core.data.synth.config import SynthConfig
+from axispose_core.data.synth.config import recipe as synth_recipe
 from axispose_core.data.synth.generate import generate
 from axispose_core.detect.weights import load_localiser
-from axispose_core.estimator import KIND as ESTIMATOR, Estimator, EstimatorConfig
+from axispose_core.estimator import KIND as ESTIMATOR
+from axispose_core.estimator import Estimator, EstimatorConfig
 from axispose_core.tbm.reader import load_reader
 from axispose_core.train.agm import TrainConfig, train_agm
 from axispose_core.train.detector import DetectorTrainConfig, train_detector
@@ -339,7 +341,8 @@ class RecipeRunner:
         folders = []
         for name in names:
             folder = self.out / "data" / name
-            generate(_synth_config(self.recipe.data[name]), self.recipe.models, folder, workers=self.render_workers, progress=self.run.progress)
+            spec = _synth_config(self.recipe.data[name])
+            generate(spec, self.recipe.models, folder, workers=self.render_workers, progress=self.run.progress)
             folders.append(folder)
         return folders
 
