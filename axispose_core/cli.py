@@ -78,6 +78,21 @@ def _synth(args: argparse.Namespace) -> int:
     return 0
 
 
+def _gt_info(args: argparse.Namespace) -> int:
+    """`axispose gt-info`: scene_gt_info.json (boxes, visibility) for BOP scenes that lack it, from the models."""
+    from axispose_core.data.bop import BopFormatError, scene_dirs
+    from axispose_core.data.visibility import write_gt_info
+
+    try:
+        scenes = [sd for root in args.scenes for sd in scene_dirs(root)]
+        written = [sd for sd in scenes if write_gt_info(sd, args.models, overwrite=args.overwrite)]
+    except BopFormatError as err:
+        print(f"axispose gt-info: {err}", file=sys.stderr)
+        return 2
+    print(f"wrote scene_gt_info.json in {len(written)} of {len(scenes)} scene(s)" + ("" if args.overwrite else " (the rest had one)"))
+    return 0
+
+
 def _synth_preview(args: argparse.Namespace) -> int:
     from axispose_core.data.synth.preview import contact_sheet
 
@@ -436,6 +451,12 @@ def build_parser() -> argparse.ArgumentParser:
     ev.add_argument("--precision", choices=["auto", "float32", "bfloat16"], default="float32",
                     help="the AGM's arithmetic (auto: bfloat16 where the device has it natively, as the node does)")  # fmt: skip
     ev.set_defaults(func=_eval)
+
+    gi = sub.add_parser("gt-info", help="write scene_gt_info.json (boxes, visible fractions) of BOP scenes that lack it, from the models")
+    gi.add_argument("scenes", nargs="+", help="BOP scene folders, or folders of scenes")
+    gi.add_argument("--models", required=True, help="the objects' BOP models folder")
+    gi.add_argument("--overwrite", action="store_true", help="also replace existing scene_gt_info.json files")
+    gi.set_defaults(func=_gt_info)
 
     sp = sub.add_parser("synth-preview", help="contact sheet of synthetic frames with their GT axes")
     sp.add_argument("data", help="dataset folder written by `axispose synth`")

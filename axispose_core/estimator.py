@@ -56,12 +56,12 @@ class EstimatorConfig:
     guidance_scale: float = 0.0
     head_depth_weight: float = 0.9
     """Weight of the encoder's depth in the fused log depth (0: the TBM's from the drawn axis lengths alone, 1: the
-    encoder's alone); the translation keeps the TBM's ray. 0.9: the best weight on the validation frames for the
-    shipped model (bench/agm_error_sources.py: ADD(-S)@0.1d 0.272 against 0.258 at 0.75 and 0.95)."""
+    encoder's alone); the translation keeps the TBM's ray. The encoder's depth is the more precise of the two
+    (bench/agm_error_sources.py measures the weights on held-out frames)."""
     mode_sample: bool = True
     """Start each crop's first hypothesis from x_T = 0, the mode of the prior, and the others from N(0, I): one
-    sample is then the network's most likely axis image instead of a random draw (phase 8, lmo_val2, GT crops:
-    Reproj@15px 0.824 -> 0.844, rotation median 12.1 -> 10.3 deg; with 4 hypotheses 0.849 -> 0.853)."""
+    sample is then the network's most likely axis image instead of a random draw, and the others still give the
+    consensus its spread."""
     training: dict = field(default_factory=dict)
     """Provenance: data recipe, steps, wall time, hardware."""
     localiser: LocaliserConfig | None = None

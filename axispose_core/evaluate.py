@@ -25,18 +25,10 @@ from tqdm import tqdm
 from axispose_core.axis_image import draw_axes
 from axispose_core.bop19 import BopObject, ImageErrors, average_recall, image_errors
 from axispose_core.camera import crop_image, crop_intrinsics, square_around_box
-from axispose_core.data.bop import (
-    BopEstimate,
-    BopScene,
-    GTInfo,
-    GTInstance,
-    bop_frames,
-    load_models_info,
-    load_ply,
-    model_path,
-    read_bgr,
-)
+from axispose_core.data.bop import BopEstimate, BopScene, GTInfo, GTInstance, bop_frames, load_models_info, model_path, read_bgr
+from axispose_core.data.meshes import load_ply
 from axispose_core.data.objects import ObjectSpec
+from axispose_core.data.visibility import gt_info_from_models
 from axispose_core.detect.decode import Detection, match
 from axispose_core.detect.scoring import false_alarms
 from axispose_core.metrics import ADD_THRESHOLDS, REPROJ_THRESHOLDS, pose_scores
@@ -129,7 +121,7 @@ def evaluate(
     else:
         points = {i: load_ply(model_path(models_dir, i)).vertices for i in specs}
     records: list[Record] = []
-    frames = bop_frames([data], models_dir)
+    frames = bop_frames([data], gt_info_from_models(models_dir))
     scenes = list({scene.root: scene for scene, _ in frames}.values())
     if notes is not None:
         notes["visibility_estimated_scenes"] = sorted(s.root.name for s in scenes if s.visibility_estimated)

@@ -24,8 +24,10 @@ from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 from scipy.spatial.transform import Rotation
 from tqdm import tqdm
 
-from axispose_core.data.bop import BopFormatError, BopScene, load_ply, model_path
+from axispose_core.data.bop import BopFormatError, BopScene, model_path
+from axispose_core.data.meshes import load_ply
 from axispose_core.data.objects import ObjectSpec
+from axispose_core.data.visibility import gt_info_from_models
 
 TYPESTORE = get_typestore(Stores.ROS2_JAZZY)
 FORMATS = {"sqlite3": StoragePlugin.SQLITE3, "mcap": StoragePlugin.MCAP}
@@ -138,7 +140,7 @@ def make_bag(
     out = Path(out)
     if out.exists():
         raise FileExistsError(f"{out} exists; rosbag2 writers refuse to overwrite a bag")
-    scene = BopScene(Path(scene_dir), models_dir)  # boxes and visibility from the models if the scene has no gt_info
+    scene = BopScene(Path(scene_dir), gt_info_from_models(models_dir))  # boxes, visibility: the models' if no gt_info
     specs = {o.obj_id: o for o in objects}
     im_ids = scene.image_ids[:limit] if limit else scene.image_ids
     frames = instances = 0

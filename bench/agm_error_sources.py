@@ -27,7 +27,8 @@ import torch
 from write_results import write_results
 
 from axispose_core.camera import project_model
-from axispose_core.data.bop import load_ply, model_path
+from axispose_core.data.bop import model_path
+from axispose_core.data.meshes import load_ply
 from axispose_core.estimator import Estimator, fuse_depth
 from axispose_core.evaluate import Prediction, evaluate
 from axispose_core.metrics import add_or_adi

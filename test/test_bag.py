@@ -13,7 +13,8 @@ from conftest import TINY_AGM
 from scipy.spatial.transform import Rotation
 
 from axispose_core.agm.model import AxisGenerator
-from axispose_core.data.bop import BopScene, load_ply, model_path
+from axispose_core.data.bop import BopScene, model_path
+from axispose_core.data.meshes import load_ply
 from axispose_core.data.objects import objects_from_models
 from axispose_core.data.synth.config import SynthConfig
 from axispose_core.data.synth.generate import generate

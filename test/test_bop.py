@@ -5,6 +5,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
+from axispose_core.cli import main
 from axispose_core.data.bop import (
     MM,
     ROTATION_TOL,
@@ -14,7 +15,6 @@ from axispose_core.data.bop import (
     GTInstance,
     bbox_from_model,
     load_models_info,
-    load_ply,
     load_scene_camera,
     load_scene_gt,
     model_path,
@@ -24,7 +24,9 @@ from axispose_core.data.bop import (
     write_scene_gt,
     write_scene_gt_info,
 )
+from axispose_core.data.meshes import load_ply
 from axispose_core.data.objects import LMO_DIAMETERS, LMO_SYMMETRIC, objects_from_models
+from axispose_core.data.visibility import gt_info_from_models, write_gt_info
 from axispose_core.pose_sampling import LMO_K
 
 
@@ -93,11 +95,17 @@ def test_boxes_and_visibility_from_models_when_gt_info_is_absent(tmp_path, lmo_d
     write_scene_camera(tmp_path / "scene_camera.json", {0: LMO_K})
     (tmp_path / "rgb").mkdir()
     cv2.imwrite(str(tmp_path / "rgb" / "000000.png"), np.zeros((480, 640, 3), np.uint8))
-    with pytest.raises(BopFormatError, match=r"no scene_gt_info\.json; give the object models"):
+    with pytest.raises(BopFormatError, match=r"no scene_gt_info\.json; write it with `axispose gt-info"):
         BopScene(tmp_path).instances(0)
-    scene = BopScene(tmp_path, lmo_dir / "models_eval")
+    scene = BopScene(tmp_path, gt_info_from_models(lmo_dir / "models_eval"))
     assert scene.visibility_estimated
     (_, i1), (g5, i5) = scene.instances(0)
+    # `axispose gt-info` writes the same values into the scene, once; the reader then reads them without models.
+    assert main(["gt-info", str(tmp_path), "--models", str(lmo_dir / "models_eval")]) == 0
+    read = BopScene(tmp_path)
+    assert not read.visibility_estimated and read.instances(0)[1][1].bbox_obj == i5.bbox_obj
+    assert read.instances(0)[1][1].px_count_visib == i5.px_count_visib
+    assert not write_gt_info(tmp_path, lmo_dir / "models_eval")  # kept unless asked to overwrite
     pts = load_ply(model_path(lmo_dir / "models_eval", 5)).vertices
     assert i5.bbox_obj == bbox_from_model(LMO_K, g5.R, g5.t, pts)
     assert i1.visib_fract == 1.0 and 0.3 < i5.visib_fract < 0.95, (i1.visib_fract, i5.visib_fract)

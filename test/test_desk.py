@@ -9,10 +9,11 @@ import pytest
 from conftest import within_a_pixel
 
 from axispose_core.camera import project
-from axispose_core.data.bop import load_models_info, load_ply, model_path
+from axispose_core.data.bop import load_models_info, model_path
+from axispose_core.data.meshes import load_ply, load_render_mesh
 from axispose_core.data.synth import clutter, generate
 from axispose_core.data.synth.config import BackgroundConfig, LightConfig, RandomizationConfig, SceneConfig, SynthConfig
-from axispose_core.data.synth.generate import load_render_mesh, render_image
+from axispose_core.data.synth.generate import render_image
 from axispose_core.data.synth.raster import Light, RenderMesh, ShadowMap, render, vertex_normals
 from axispose_core.data.synth.table import Table, shade_table, table_frame, table_pixels
 

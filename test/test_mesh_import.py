@@ -2,8 +2,9 @@ import numpy as np
 import pytest
 
 from axispose_core.cli import main
-from axispose_core.data.bop import BopFormatError, BopScene, load_models_info, load_ply, model_path
-from axispose_core.data.mesh_import import import_meshes, load_obj
+from axispose_core.data.bop import BopFormatError, BopScene, load_models_info, model_path
+from axispose_core.data.mesh_import import import_meshes
+from axispose_core.data.meshes import load_obj, load_ply
 from axispose_core.data.synth.config import SynthConfig, recipe
 
 CUBE_OBJ = """# a 4 cm cube in millimetres, wound counter-clockwise seen from outside, with vertex colours

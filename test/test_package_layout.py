@@ -139,3 +139,57 @@ def test_node_refuses_a_missing_checkpoint(install_prefix, tmp_path):
     proc = subprocess.run([exe, "--ros-args", "-p", f"checkpoint:={missing}"], env=env, capture_output=True, text=True, timeout=60)
     assert proc.returncode == 2
     assert "checkpoint file not found" in proc.stderr
+
+
+def _core_import_graph() -> dict[str, set[str]]:
+    """axispose_core's modules and the core modules each imports, at any depth of the file (an import inside a
+    function is a dependency too: deferring it hides a circle, it does not remove it)."""
+    root = REPO / "axispose_core"
+    names = {".".join(p.relative_to(REPO).with_suffix("").parts).removesuffix(".__init__"): p for p in root.rglob("*.py")}
+    graph = {}
+    for name, path in names.items():
+        deps = set()
+        for node in ast.walk(ast.parse(path.read_text(), str(path))):
+            if isinstance(node, ast.ImportFrom) and node.level == 0 and (node.module or "").startswith("axispose_core"):
+                deps |= {f"{node.module}.{a.name}" if f"{node.module}.{a.name}" in names else node.module for a in node.names}
+            elif isinstance(node, ast.Import):
+                deps |= {a.name for a in node.names if a.name.startswith("axispose_core")}
+        graph[name] = {d for d in deps if d in names and d != name}
+    return graph
+
+
+def _cycle(graph: dict[str, set[str]]) -> list[str] | None:
+    """One import circle of the graph, or None (depth-first search, grey/black marking)."""
+    state: dict[str, int] = {}
+    stack: list[str] = []
+
+    def visit(node: str) -> list[str] | None:
+        state[node] = 1
+        stack.append(node)
+        for dep in sorted(graph[node]):
+            if state.get(dep) == 1:
+                return stack[stack.index(dep) :] + [dep]
+            if dep not in state and (found := visit(dep)):
+                return found
+        stack.pop()
+        state[node] = 2
+        return None
+
+    return next((c for n in sorted(graph) if n not in state and (c := visit(n))), None)
+
+
+def test_axispose_core_has_no_import_circle_and_never_imports_ros():
+    graph = _core_import_graph()
+    assert len(graph) > 50 and "axispose_core.data.bop" in graph["axispose_core.data.meshes"]  # the graph is read
+    assert _cycle({"a": {"b"}, "b": {"c"}, "c": {"a"}}) == ["a", "b", "c", "a"]  # the search finds a circle
+    cycle = _cycle(graph)
+    assert cycle is None, "import circle: " + " -> ".join(cycle)
+    ros = ("rclpy", "axispose_ros", "axispose_msgs", "sensor_msgs", "std_msgs", "geometry_msgs")
+    for path in (REPO / "axispose_core").rglob("*.py"):
+        for node in ast.walk(ast.parse(path.read_text(), str(path))):
+            if not isinstance(node, ast.Import | ast.ImportFrom):
+                continue
+            mods = [a.name for a in node.names] if isinstance(node, ast.Import) else [node.module or ""]
+            assert not [m for m in mods if m.split(".")[0] in ros], f"{path} imports ROS ({mods})"
+    # the BOP reader never renders
+    assert not {d for d in graph["axispose_core.data.bop"] if ".synth." in d or d.endswith(("visibility", "meshes"))}

@@ -8,7 +8,8 @@ from matplotlib.path import Path as PolyPath
 from scipy.spatial import ConvexHull
 from scipy.spatial.transform import Rotation
 
-from axispose_core.data.bop import load_ply, model_path
+from axispose_core.data.bop import model_path
+from axispose_core.data.meshes import load_ply
 from axispose_core.data.synth.raster import Light, RenderMesh, _rasterize, render, render_depth, vertex_normals
 
 LIGHT = Light(np.array([0.0, 0.0, 1.0]), np.ones(3), 0.5)

@@ -81,8 +81,9 @@ class AGMConfig:
     version: int = VERSION
     denoiser: DenoiserConfig = field(default_factory=DenoiserConfig)
     scheduler: SchedulerConfig = field(default_factory=lambda: SchedulerConfig(prediction_type="sample"))
-    train_guidance: bool = True
-    """Inject the L_geo gradient into the noise estimate during training (the paper's method; see `loss`)."""
+    train_guidance: bool = False
+    """Inject the L_geo gradient into the noise estimate during training (the paper's method; see `losses`). Off
+    by default, as the shipped model was trained (config/recipes/axispose_lmo.yaml)."""
     guidance_sigma: float = 1.0
     """σ of the measurement model g = H(x0) + n: the injection's step size is 1/σ²."""
     line_weight: float = 10.0

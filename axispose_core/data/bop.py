@@ -8,14 +8,13 @@ from __future__ import annotations
 
 import json
 import logging
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 import cv2
 import numpy as np
-import plyfile
 
 from axispose_core.camera import IntrinsicsError, project_model, validate_intrinsics
 
@@ -34,63 +33,6 @@ class BopFormatError(ValueError):
 
 
 # ----------------------------------------------------------------------------------------------- models
-
-
-@dataclass(frozen=True)
-class Mesh:
-    """A triangle mesh in metres; colours are per-vertex RGB uint8 when the file has them."""
-
-    vertices: np.ndarray
-    faces: np.ndarray
-    colors: np.ndarray | None = None
-    normals: np.ndarray | None = None
-
-
-def load_ply(path: str | Path, units: float = MM) -> Mesh:
-    """Read an ASCII or binary PLY; `units` is metres per file unit (BOP models are in mm)."""
-    path = Path(path)
-    try:
-        ply = plyfile.PlyData.read(str(path))
-    except (OSError, plyfile.PlyParseError, ValueError) as err:
-        raise BopFormatError(f"{path}: cannot read PLY ({err})") from err
-    try:
-        v = ply["vertex"].data
-        vertices = np.column_stack([v["x"], v["y"], v["z"]]).astype(np.float64) * units
-    except (KeyError, ValueError) as err:
-        raise BopFormatError(f"{path}: PLY needs a 'vertex' element with x, y, z ({err})") from err
-    names = v.dtype.names or ()
-    colors = np.column_stack([v["red"], v["green"], v["blue"]]).astype(np.uint8) if "red" in names else None
-    normals = np.column_stack([v["nx"], v["ny"], v["nz"]]).astype(np.float64) if "nx" in names else None
-    faces = np.zeros((0, 3), dtype=np.int64)
-    if "face" in ply:
-        idx = ply["face"].data.dtype.names[0]
-        polys = ply["face"].data[idx]
-        if len(polys) and any(len(p) != 3 for p in polys):
-            raise BopFormatError(f"{path}: only triangle faces are supported")
-        faces = np.asarray(np.stack(polys) if len(polys) else faces, dtype=np.int64)
-    if not np.all(np.isfinite(vertices)) or (faces.size and (faces.min() < 0 or faces.max() >= len(vertices))):
-        raise BopFormatError(f"{path}: non-finite vertices or face indices out of range")
-    return Mesh(vertices, faces, colors, normals)
-
-
-def ply_vertex_properties(path: str | Path) -> tuple[str, ...]:
-    """The vertex properties a PLY header declares (x, y, z, red, ...), read without parsing the body."""
-    names, in_vertex = [], False
-    try:
-        with open(path, "rb") as f:
-            for raw in f:
-                words = raw.decode("ascii", "replace").split()
-                if not words or words[0] == "end_header":
-                    if words:
-                        break
-                    continue
-                if words[0] == "element":
-                    in_vertex = len(words) > 1 and words[1] == "vertex"
-                elif words[0] == "property" and in_vertex:
-                    names.append(words[-1])
-    except OSError as err:
-        raise BopFormatError(f"{path}: cannot read PLY ({err})") from err
-    return tuple(names)
 
 
 def model_path(models_dir: str | Path, obj_id: int) -> Path:
@@ -507,17 +449,24 @@ def read_bgr(path: str | Path) -> np.ndarray:
     return bgr
 
 
+_NO_GT_INFO = (
+    "{root}: no scene_gt_info.json; write it with `axispose gt-info {root} --models MODELS`, or give the "
+    "object models to estimate the instances' boxes and visibility"
+)
+
+
 @dataclass
 class BopScene:
     """One scene folder (``rgb/``, ``scene_gt.json``, ``scene_camera.json``, optional ``scene_gt_info.json``).
 
-    Real recordings and many published scenes have no scene_gt_info.json: given `models_dir` (object meshes),
-    the instances' boxes are then projected from the models at the GT pose and their visibility estimated from a
-    z-buffer of the frame's annotated instances (`data/visibility.py`; `visibility_estimated` says so).
+    Real recordings and many published scenes have no scene_gt_info.json. This reader never renders: such a scene
+    gets its boxes and visibility from `estimate_info(scene, im_id)`, which the caller passes in (e.g.
+    `data/visibility.py`'s `gt_info_from_models`; `visibility_estimated` says so), or `axispose gt-info` writes
+    the file once.
     """
 
     root: Path
-    models_dir: Path | None = None
+    estimate_info: Callable[[BopScene, int], list[GTInfo]] | None = None
     gt: dict[int, list[GTInstance]] = field(init=False)
     cameras: dict[int, np.ndarray] = field(init=False)
     gt_info: dict[int, list[GTInfo]] | None = field(init=False)
@@ -526,7 +475,6 @@ class BopScene:
 
     def __post_init__(self) -> None:
         self.root = Path(self.root)
-        self.models_dir = Path(self.models_dir) if self.models_dir is not None else None
         gt = read_scene_gt(self.root / "scene_gt.json")
         self.gt, self.rotations_projected = gt.instances, gt.projected
         self.cameras = load_scene_camera(self.root / "scene_camera.json")
@@ -572,18 +520,13 @@ class BopScene:
 
     def instances(self, im_id: int) -> list[tuple[GTInstance, GTInfo]]:
         """Each GT instance of the image with its boxes and visibility, in file order: scene_gt_info.json's, else
-        estimated from the models (which the scene must then have been given)."""
+        estimated by `estimate_info` (which the scene must then have been given)."""
         if self.gt_info is not None:
             return list(zip(self.gt[im_id], self.gt_info[im_id], strict=True))
-        if self.models_dir is None:
-            raise BopFormatError(
-                f"{self.root}: no scene_gt_info.json; give the object models to estimate the instances' boxes and visibility"
-            )
+        if self.estimate_info is None:
+            raise BopFormatError(_NO_GT_INFO.format(root=self.root))
         if im_id not in self._estimated:
-            from axispose_core.data.visibility import estimate_gt_info  # renders: kept out of the file-format module
-
-            h, w = read_bgr(self.rgb_path(im_id)).shape[:2]
-            self._estimated[im_id] = estimate_gt_info(self.cameras[im_id], self.gt[im_id], self.models_dir, w, h)
+            self._estimated[im_id] = self.estimate_info(self, im_id)
         return list(zip(self.gt[im_id], self._estimated[im_id], strict=True))
 
 
@@ -598,14 +541,12 @@ def scene_dirs(root: str | Path) -> list[Path]:
     return scenes
 
 
-def bop_frames(roots: list[str | Path], models_dir: str | Path | None = None) -> list[tuple[BopScene, int]]:
+def bop_frames(roots: list[str | Path], estimate_info: Callable[[BopScene, int], list[GTInfo]] | None = None) -> list[tuple[BopScene, int]]:
     """Every (scene, image id) of the BOP folders (each a scene or a folder of scenes), in folder and image order.
-    Its users read the instances' boxes and visibility: a scene without scene_gt_info.json has them estimated
-    from the models in `models_dir`, and without models it is a BopFormatError here, before any frame is read."""
-    scenes = [BopScene(sd, models_dir) for root in roots for sd in scene_dirs(root)]
+    Its users read the instances' boxes and visibility: a scene without scene_gt_info.json has them from
+    `estimate_info` (`BopScene`), and without it is a BopFormatError here, before any frame is read."""
+    scenes = [BopScene(sd, estimate_info) for root in roots for sd in scene_dirs(root)]
     for scene in scenes:
-        if scene.gt_info is None and models_dir is None:
-            raise BopFormatError(
-                f"{scene.root}: no scene_gt_info.json; give the object models to estimate the instances' boxes and visibility"
-            )
+        if scene.gt_info is None and estimate_info is None:
+            raise BopFormatError(_NO_GT_INFO.format(root=scene.root))
     return [(scene, im_id) for scene in scenes for im_id in scene.image_ids]

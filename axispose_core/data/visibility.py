@@ -1,17 +1,29 @@
 """Boxes and visibility of annotated instances where a scene has no scene_gt_info.json (real recordings, many
-published scenes): bbox_obj from the model at the GT pose, the visible mask from a z-buffer of the frame's
-annotated instances. Objects that were not annotated cannot hide anything here, so the visible fraction is an
-upper bound of the true one."""
+published scenes), as bop_toolkit's calc_gt_info makes them: bbox_obj from the model at the GT pose, the visible
+mask from a z-buffer of the frame's annotated instances. Objects that were not annotated cannot hide anything
+here, so the visible fraction is an upper bound of the true one. `axispose gt-info` writes the file
+(`write_gt_info`); readers that need the values now take `gt_info_from_models` (the BOP reader never renders)."""
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from functools import lru_cache
 from pathlib import Path
 
 import numpy as np
 
-from axispose_core.data.bop import BopFormatError, GTInfo, GTInstance, bbox_from_mask, bbox_from_model, model_path
-from axispose_core.data.synth.generate import load_render_mesh
+from axispose_core.data.bop import (
+    BopFormatError,
+    BopScene,
+    GTInfo,
+    GTInstance,
+    bbox_from_mask,
+    bbox_from_model,
+    model_path,
+    read_bgr,
+    write_scene_gt_info,
+)
+from axispose_core.data.meshes import load_render_mesh
 from axispose_core.data.synth.raster import Light, RenderMesh, render
 
 _LIGHT = Light(np.array([0.0, 0.0, 1.0]), np.ones(3), 1.0)  # shading is not looked at
@@ -44,3 +56,27 @@ def estimate_gt_info(K: np.ndarray, gts: list[GTInstance], models_dir: str | Pat
             )
         )
     return infos
+
+
+def gt_info_from_models(models_dir: str | Path | None) -> Callable[[BopScene, int], list[GTInfo]] | None:
+    """`BopScene.estimate_info` from the object models in `models_dir` (None: no estimate, a scene without
+    scene_gt_info.json is then an error that says how to write it)."""
+    if models_dir is None:
+        return None
+
+    def estimate(scene: BopScene, im_id: int) -> list[GTInfo]:
+        h, w = read_bgr(scene.rgb_path(im_id)).shape[:2]
+        return estimate_gt_info(scene.cameras[im_id], scene.gt[im_id], models_dir, w, h)
+
+    return estimate
+
+
+def write_gt_info(scene_dir: str | Path, models_dir: str | Path, overwrite: bool = False) -> bool:
+    """Write the scene's scene_gt_info.json from the models; False where it has one already (and not `overwrite`)."""
+    scene = BopScene(Path(scene_dir), gt_info_from_models(models_dir))
+    if scene.gt_info is not None and not overwrite:
+        return False
+    scene.gt_info = None  # estimate even over an existing file
+    infos = {im_id: [info for _, info in scene.instances(im_id)] for im_id in scene.image_ids}
+    write_scene_gt_info(scene.root / "scene_gt_info.json", infos)
+    return True

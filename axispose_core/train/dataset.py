@@ -12,6 +12,7 @@ from torch.utils.data import Dataset
 from axispose_core.data.bop import BopScene, bop_frames
 from axispose_core.data.crops import CropJitter, axis_target, instance_crop
 from axispose_core.data.objects import ObjectSpec
+from axispose_core.data.visibility import gt_info_from_models
 
 DEFAULT_JITTER = CropJitter()
 
@@ -51,7 +52,7 @@ class AxisCropDataset(Dataset):
         self.epoch = 0
         self.items: list[InstanceRef] = []
         self.scenes: dict[Path, BopScene] = {}
-        for scene, im_id in bop_frames(roots, models_dir):
+        for scene, im_id in bop_frames(roots, gt_info_from_models(models_dir)):
             self.scenes[scene.root] = scene
             for k, (g, info) in enumerate(scene.instances(im_id)):
                 if g.obj_id in self.objects and info.visib_fract >= min_visib:

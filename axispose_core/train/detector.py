@@ -21,6 +21,7 @@ from torch.utils.data import Dataset
 
 from axispose_core.checkpoint import save_checkpoint
 from axispose_core.data.bop import bop_frames
+from axispose_core.data.visibility import gt_info_from_models
 from axispose_core.detect.decode import draw_targets, focal_loss
 from axispose_core.detect.model import STRIDE, Localiser, LocaliserConfig, build_localiser
 from axispose_core.detect.scoring import detection_scores, frame_instances
@@ -57,7 +58,7 @@ class DetectionDataset(Dataset):
         self.config, self.augment, self.seed, self.epoch = config, augment, seed, 0
         self.occluded_weight = occluded_weight
         self.classes = {o: k for k, o in enumerate(config.obj_ids)}
-        self.frames = bop_frames(roots, models_dir)
+        self.frames = bop_frames(roots, gt_info_from_models(models_dir))
         self.min_visib = min_visib
 
     def __len__(self) -> int:

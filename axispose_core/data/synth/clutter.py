@@ -11,7 +11,7 @@ from pathlib import Path
 
 import numpy as np
 
-from axispose_core.data.mesh_import import load_obj
+from axispose_core.data.meshes import load_obj
 from axispose_core.data.synth.config import BackgroundConfig
 from axispose_core.data.synth.randomize import background
 from axispose_core.data.synth.raster import RenderMesh, vertex_normals

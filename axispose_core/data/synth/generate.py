@@ -26,45 +26,22 @@ from axispose_core.data.bop import (
     bbox_from_mask,
     bbox_from_model,
     load_models_info,
-    load_ply,
-    model_path,
     write_depth,
     write_scene_camera,
     write_scene_gt,
     write_scene_gt_info,
 )
+from axispose_core.data.meshes import load_render_mesh
 from axispose_core.data.objects import NAMES_FILE
 from axispose_core.data.synth.clutter import distractor_mesh
 from axispose_core.data.synth.config import TABLE_TEXTURE, SynthConfig
 from axispose_core.data.synth.randomize import background, camera_effects, cutouts, light, object_tint
-from axispose_core.data.synth.raster import RenderMesh, render, vertex_normals
+from axispose_core.data.synth.raster import RenderMesh, render
 from axispose_core.data.synth.scene import Placement, primitive, sample_scene
 from axispose_core.data.synth.table import Table, light_from_above, rest_on, shade_table, table_pixels
 
 DEPTH_SCALE = 0.1
 """mm per unit of the depth images (BOP's PBR scenes use the same): 0.1 mm steps up to 6.5 m."""
-
-
-def load_render_mesh(models_dir: str | Path, obj_id: int, cache_dir: str | Path | None = None) -> RenderMesh:
-    """A BOP model as a RenderMesh (metres, colours in [0,1]); cached as .npz because ASCII PLY parsing is slow."""
-    src = model_path(models_dir, obj_id)
-    cache = Path(cache_dir) / f"{src.stem}.npz" if cache_dir else None
-    stamp = np.array([src.stat().st_size, src.stat().st_mtime_ns], dtype=np.int64)
-    if cache is not None and cache.exists():
-        data = np.load(cache)
-        if np.array_equal(data["stamp"], stamp):
-            return RenderMesh(data["vertices"], data["faces"], data["colors"], data["normals"])
-    mesh = load_ply(src)
-    colors = mesh.colors / 255.0 if mesh.colors is not None else np.full((len(mesh.vertices), 3), 0.6)
-    normals = mesh.normals if mesh.normals is not None else vertex_normals(mesh.vertices, mesh.faces)
-    normals = normals / np.maximum(np.linalg.norm(normals, axis=1, keepdims=True), 1e-12)
-    rm = RenderMesh(mesh.vertices, mesh.faces, colors, normals)
-    if cache is not None:
-        cache.parent.mkdir(parents=True, exist_ok=True)
-        tmp = cache.with_suffix(".tmp.npz")
-        np.savez(tmp, vertices=rm.vertices, faces=rm.faces, colors=rm.colors, normals=rm.normals, stamp=stamp)
-        tmp.replace(cache)
-    return rm
 
 
 @dataclass
