@@ -14,6 +14,8 @@ from safetensors import SafetensorError, safe_open
 from safetensors.torch import load_file, save_file
 
 FORMAT = "axispose/1"
+ESTIMATOR = "estimator"
+"""The kind of an estimator checkpoint (`estimator.py`): AGM, reader and localiser in one file, as the node runs it."""
 C = TypeVar("C")
 
 

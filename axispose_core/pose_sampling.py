@@ -11,12 +11,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from axispose_core.camera import crop_intrinsics
-
-LMO_K = np.array([[572.4114, 0.0, 325.2611], [0.0, 573.57043, 242.04899], [0.0, 0.0, 1.0]])
-"""The LM-O camera (640x480), embedded so that demos run without the dataset."""
-LMO_SIZE = (640, 480)
-LMO_DISTANCE = (0.35, 1.5)
-"""Range of object distances (m) in the LM-O test images."""
+from axispose_core.lmo import LMO_DISTANCE, LMO_K, LMO_SIZE
 
 
 @dataclass(frozen=True)

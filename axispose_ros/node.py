@@ -51,7 +51,7 @@ from axispose_core.axis_image import draw_axes
 from axispose_core.camera import crop_transform
 from axispose_core.checkpoint import CheckpointError
 from axispose_core.estimator import Estimator
-from axispose_core.pose_sampling import LMO_K
+from axispose_core.lmo import LMO_K
 from axispose_msgs.msg import Detection, DetectionArray
 from axispose_ros.conversions import InputError, Undistorter, camera_for_image, camera_from_info, image_to_rgb, rgb_to_image
 from axispose_ros.health import Health, HealthConfig

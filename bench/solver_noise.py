@@ -17,9 +17,9 @@ from tqdm import tqdm
 from write_results import write_results
 
 from axispose_core.axis_image import AxisSpec, axis_keypoints
-from axispose_core.data.objects import LMO_DIAMETERS
+from axispose_core.lmo import LMO_DIAMETERS, LMO_K
 from axispose_core.metrics import re, te
-from axispose_core.pose_sampling import LMO_K, sample_pose
+from axispose_core.pose_sampling import sample_pose
 from axispose_core.tbm.backproject import backproject, backproject_many
 
 

@@ -2,8 +2,9 @@ import numpy as np
 import pytest
 
 from axispose_core.axis_image import axis_keypoints
+from axispose_core.lmo import LMO_K
 from axispose_core.metrics import re, te
-from axispose_core.pose_sampling import LMO_K, sample_pose
+from axispose_core.pose_sampling import sample_pose
 from axispose_core.tbm.backproject import backproject, backproject_many, nearest_rotation, refine_poses, rotation_from_slopes
 
 

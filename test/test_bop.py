@@ -25,9 +25,9 @@ from axispose_core.data.bop import (
     write_scene_gt_info,
 )
 from axispose_core.data.meshes import load_ply
-from axispose_core.data.objects import LMO_DIAMETERS, LMO_SYMMETRIC, objects_from_models
+from axispose_core.data.objects import objects_from_models
 from axispose_core.data.visibility import gt_info_from_models, write_gt_info
-from axispose_core.pose_sampling import LMO_K
+from axispose_core.lmo import LMO_DIAMETERS, LMO_K, LMO_SYMMETRIC
 
 
 def test_lmo_models_info_in_metres_with_symmetries(lmo_dir):

@@ -12,7 +12,8 @@ from axispose_core.camera import (
     square_around_box,
     validate_intrinsics,
 )
-from axispose_core.pose_sampling import LMO_K, sample_pose
+from axispose_core.lmo import LMO_K
+from axispose_core.pose_sampling import sample_pose
 
 
 def test_crop_intrinsics_match_projection_then_crop(rng):

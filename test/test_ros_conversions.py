@@ -3,7 +3,7 @@ import pytest
 from sensor_msgs.msg import CameraInfo, Image
 from std_msgs.msg import Header
 
-from axispose_core.pose_sampling import LMO_K
+from axispose_core.lmo import LMO_K
 from axispose_ros.conversions import InputError, Undistorter, camera_for_image, camera_from_info, image_to_rgb, rgb_to_image
 from axispose_ros.sync import GapCounter, StampSynchronizer
 

@@ -17,6 +17,7 @@ import cv2
 import numpy as np
 
 from axispose_core.camera import IntrinsicsError, project_model, validate_intrinsics
+from axispose_core.rotation import nearest_rotation
 
 MM = 1e-3
 """Metres per millimetre: BOP files are in mm, the project in m."""
@@ -186,12 +187,6 @@ class GTInfo:
     px_count_valid: int = 0
     px_count_visib: int = 0
     visib_fract: float = 0.0
-
-
-def nearest_rotation(R: np.ndarray) -> np.ndarray:
-    """The rotation nearest R in the Frobenius norm (SVD, reflection excluded)."""
-    U, _, Vt = np.linalg.svd(R)
-    return U @ np.diag([1.0, 1.0, np.sign(np.linalg.det(U @ Vt))]) @ Vt
 
 
 @dataclass(frozen=True)

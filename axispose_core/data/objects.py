@@ -9,6 +9,7 @@ from pathlib import Path
 
 from axispose_core.axis_image import AxisSpec
 from axispose_core.data.bop import ObjectInfo, load_models_info
+from axispose_core.lmo import LMO_DIAMETERS, LMO_NAMES, LMO_SYMMETRIC
 
 NAMES_FILE = "names.json"
 """Beside models_info.json: {"<obj_id>": "<name>"}, written by `axispose synth` from the imported meshes' file names."""
@@ -20,13 +21,6 @@ def object_name(stem: str, obj_id: int) -> str:
     """A valid object name from a file name: other characters become '_', lower case, obj_<id> if nothing is left."""
     name = re.sub(r"[^a-z0-9_]+", "_", stem.lower()).strip("_")
     return name if NAME.fullmatch(name) else f"obj_{obj_id:06d}"
-
-
-LMO_NAMES = {1: "ape", 5: "can", 6: "cat", 8: "driller", 9: "duck", 10: "eggbox", 11: "glue", 12: "holepuncher"}
-"""Names of the eight LINEMOD-Occluded objects by BOP id."""
-LMO_DIAMETERS = {1: 0.102099, 5: 0.201404, 6: 0.154546, 8: 0.261472, 9: 0.108999, 10: 0.164628, 11: 0.175889, 12: 0.145543}
-"""Their model diameters in metres (models_info.json), so demos run without the dataset on disk."""
-LMO_SYMMETRIC = frozenset({10, 11})
 
 
 @dataclass(frozen=True)

@@ -5,9 +5,8 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from axispose_core.checkpoint import CheckpointError, load_state, read_checkpoint, read_metadata
+from axispose_core.checkpoint import ESTIMATOR, CheckpointError, load_state, read_checkpoint, read_metadata
 from axispose_core.detect.model import Localiser, LocaliserConfig, build_localiser
-from axispose_core.estimator import KIND as ESTIMATOR
 
 KIND = "localiser"
 

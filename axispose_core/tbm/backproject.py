@@ -27,6 +27,7 @@ from scipy.spatial.transform import Rotation
 
 from axispose_core.axis_image import axis_points
 from axispose_core.camera import IntrinsicsError, project, transform, validate_intrinsics
+from axispose_core.rotation import nearest_rotation
 
 MIN_AXIS_PIXELS = 1e-3
 """Projected legs shorter than this (pixels) point at the camera: their depth cannot be recovered."""
@@ -50,13 +51,6 @@ class Backprojection(NamedTuple):
 
 def _fail(reason: str) -> Backprojection:
     return Backprojection(np.eye(3), np.zeros(3), False, reason)
-
-
-def nearest_rotation(M: np.ndarray) -> np.ndarray:
-    """The rotation closest to M in the Frobenius norm (SVD projection onto SO(3))."""
-    U, _, Vt = np.linalg.svd(M)
-    D = np.diag([1.0, 1.0, np.sign(np.linalg.det(U @ Vt))])
-    return U @ D @ Vt
 
 
 def _check_input(K: np.ndarray, uv_origin: np.ndarray, uv_axes: np.ndarray) -> tuple[np.ndarray, np.ndarray, str]:

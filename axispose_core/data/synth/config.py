@@ -8,7 +8,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from axispose_core.checkpoint import config_from_dict
-from axispose_core.pose_sampling import LMO_K
+from axispose_core.lmo import LMO_K
 
 PHOTOS = (
     "astronaut.png", "brick.png", "camera.png", "chelsea.png", "coffee.png", "coins.png", "color.png", "grass.png",
