@@ -18,6 +18,7 @@ import torch
 
 from axispose_core.agm.guidance import self_consistency_target
 from axispose_core.agm.model import VERSION, AGMConfig, AxisGenerator, depth_from_log
+from axispose_core.agm.sampler import sample
 from axispose_core.axis_image import AxisSpec
 from axispose_core.camera import validate_intrinsics
 from axispose_core.checkpoint import ESTIMATOR, CheckpointError, load_state, read_checkpoint, read_metadata, save_checkpoint
@@ -140,6 +141,8 @@ class Estimator:
         self.index = {o.obj_id: k for k, o in enumerate(config.objects)}
         self.bf16 = False
         """Run the AGM (encoder and denoiser) under bfloat16 autocast; see `set_precision`."""
+        self.sampler = sample
+        """How axis images are drawn from an encoding (`agm/sampler.py`'s `sample`, with its signature)."""
 
     def set_precision(self, precision: str) -> str:
         """Set the AGM's arithmetic: float32, bfloat16, or auto (bfloat16 where the device computes it natively:
@@ -236,8 +239,8 @@ class Estimator:
             noise_scale[::hypotheses] = 0.0
         with torch.inference_mode(scale <= 0), torch.autocast(self.device.type, dtype=torch.bfloat16, enabled=self.bf16):
             enc = self.agm.encode(x.to(self.device), objects)
-            axes = self.agm.sample(
-                enc.repeat(hypotheses), steps, generator=gen, guidance=guidance if scale > 0 else None, guidance_scale=scale,
+            axes = self.sampler(
+                self.agm, enc.repeat(hypotheses), steps, generator=gen, guidance=guidance if scale > 0 else None, guidance_scale=scale,
                 cancelled=cancelled, noise_scale=noise_scale,
             )  # fmt: skip
         log_depth = enc.log_depth.detach().float().cpu().numpy()  # guided sampling runs outside inference mode

@@ -46,7 +46,7 @@ from scipy.spatial.transform import Rotation
 from sensor_msgs.msg import CameraInfo, Image, RegionOfInterest
 from visualization_msgs.msg import Marker, MarkerArray
 
-from axispose_core.agm.model import Cancelled
+from axispose_core.agm.sampler import Cancelled
 from axispose_core.axis_image import draw_axes
 from axispose_core.camera import crop_transform
 from axispose_core.checkpoint import CheckpointError

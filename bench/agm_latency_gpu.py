@@ -22,6 +22,7 @@ import numpy as np
 import torch
 from write_results import write_results
 
+from axispose_core.agm.sampler import sample
 from axispose_core.data.bop import bop_frames
 from axispose_core.detect.scoring import frame_instances
 from axispose_core.estimator import Estimator
@@ -69,7 +70,7 @@ def main() -> None:
 
                 def call(agm=agm, crops=crops, steps=steps, mode=mode) -> torch.Tensor:
                     with torch.inference_mode(), torch.autocast("cuda", torch.bfloat16, enabled=mode != "fp32"):
-                        return agm.sample(agm.encode(crops, torch.zeros(len(crops), dtype=torch.long, device="cuda")), steps)
+                        return sample(agm, agm.encode(crops, torch.zeros(len(crops), dtype=torch.long, device="cuda")), steps)
 
                 start = time.perf_counter()
                 try:

@@ -12,7 +12,8 @@ from safetensors import safe_open
 from safetensors.torch import load_file, save_file
 
 from axispose_core.agm.guidance import AxisGeometry, axis_geometry, geo_loss, guided_eps, inject
-from axispose_core.agm.model import AGMConfig, AxisGenerator, EncoderLossConfig, depth_from_log, grow_into, log_depth_target
+from axispose_core.agm.model import AGMConfig, AxisGenerator, EncoderLossConfig, depth_from_log, grow_into
+from axispose_core.agm.sampler import sample
 from axispose_core.agm.scheduler import DDIMScheduler, SchedulerConfig
 from axispose_core.axis_image import axis_keypoints, render_axis_keypoints
 from axispose_core.checkpoint import CheckpointError, save_checkpoint
@@ -20,6 +21,7 @@ from axispose_core.data.objects import lmo_objects
 from axispose_core.estimator import Estimator, EstimatorConfig, fuse_depth
 from axispose_core.pose_sampling import sample_patch
 from axispose_core.tbm.reader import SHIPPED_READER, load_reader
+from axispose_core.train.losses import AGMObjective, log_depth_target
 
 TINY = TINY_AGM.denoiser
 
@@ -161,20 +163,20 @@ def test_sampler_is_deterministic_under_a_seed():
         p.data.normal_(0, 0.05)
     crops = torch.rand(2, 3, 64, 64) * 2 - 1
     enc = agm.encode(crops, torch.tensor([0, 1]))
-    a = agm.sample(enc, 4, generator=torch.Generator().manual_seed(7))
-    b = agm.sample(enc, 4, generator=torch.Generator().manual_seed(7))
-    c = agm.sample(enc, 4, generator=torch.Generator().manual_seed(8))
+    a = sample(agm, enc, 4, generator=torch.Generator().manual_seed(7))
+    b = sample(agm, enc, 4, generator=torch.Generator().manual_seed(7))
+    c = sample(agm, enc, 4, generator=torch.Generator().manual_seed(8))
     assert a.shape == (2, 3, 64, 64) and torch.equal(a, b) and not torch.equal(a, c)
     # the object conditions the generation: the same crop told another object draws another image
-    other = agm.sample(agm.encode(crops, torch.tensor([2, 1])), 4, generator=torch.Generator().manual_seed(7))
+    other = sample(agm, agm.encode(crops, torch.tensor([2, 1])), 4, generator=torch.Generator().manual_seed(7))
     assert not torch.equal(other[0], a[0]) and torch.equal(other[1], a[1])
     # hypotheses share the crop's encoding
     assert torch.equal(enc.repeat(3).context[3:6], enc.context[1:2].expand(3, -1))
     assert a.min() >= -1 and a.max() <= 1
     # a row started from the prior's mode (x_T = 0) is the same under every seed; the others still follow it
     z = torch.tensor([0.0, 1.0])
-    m7 = agm.sample(enc, 4, generator=torch.Generator().manual_seed(7), noise_scale=z)
-    m8 = agm.sample(enc, 4, generator=torch.Generator().manual_seed(8), noise_scale=z)
+    m7 = sample(agm, enc, 4, generator=torch.Generator().manual_seed(7), noise_scale=z)
+    m8 = sample(agm, enc, 4, generator=torch.Generator().manual_seed(8), noise_scale=z)
     assert torch.equal(m7[0], m8[0]) and not torch.equal(m7[0], a[0])
     assert torch.equal(m7[1], a[1]) and not torch.equal(m8[1], m7[1])
 
@@ -185,11 +187,12 @@ def test_loss_falls_on_a_tiny_set(guided, rng):
     targets = torch.cat([_gt_axis_image(rng)[0] for _ in range(4)]).float()
     crops = targets.clone()  # a crop that shows its answer: only whether learning happens is tested
     agm = AxisGenerator(AGMConfig(denoiser=TINY, train_guidance=guided))
+    objective = AGMObjective(agm)
     opt = torch.optim.Adam(agm.parameters(), lr=2e-3)
     losses = []
     batch = {"crop": crops, "axes": targets, "object": torch.arange(4)}
     for i in range(120):
-        loss = agm(batch, torch.Generator().manual_seed(i % 8))
+        loss = objective(batch, torch.Generator().manual_seed(i % 8))
         opt.zero_grad()
         loss.backward()
         opt.step()

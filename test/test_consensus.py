@@ -78,25 +78,25 @@ def test_consensus_rejects_malformed_input():
         consensus(np.stack([R]), np.stack([t]), 0.0)
 
 
-class _OracleAGM(AxisGenerator):
+class _OracleSampler:
     """Draws the axis image of the true pose tilted by a per-sample random rotation of `sigma_deg`.
 
-    A stand-in for a trained AGM whose samples scatter around the truth, so the estimator's batching,
+    A stand-in for sampling a trained AGM whose samples scatter around the truth, so the estimator's batching,
     consensus and covariance can be checked against known poses.
     """
 
-    def __init__(self, config, K_patch, R, t, lengths, sigma_deg):
-        super().__init__(config)
+    def __init__(self, K_patch, R, t, lengths, sigma_deg, size):
         self.K_patch, self.R, self.t, self.lengths, self.sigma = K_patch, R, t, lengths, np.radians(sigma_deg)
+        self.size = size
         self.batches: list[int] = []
 
-    def sample(self, enc, steps, eta=0.0, generator=None, guidance=None, guidance_scale=0.0, cancelled=None, noise_scale=None):
+    def __call__(self, agm, enc, steps, eta=0.0, generator=None, guidance=None, guidance_scale=0.0, cancelled=None, noise_scale=None):
         n = len(enc.context)
         scale = np.ones(n) if noise_scale is None else noise_scale.numpy()  # the prior's mode draws the exact axes
         self.batches.append(n)
         seed = int(torch.randint(0, 2**31 - 1, (1,), generator=generator))
         rng = np.random.default_rng(seed)
-        S = self.config.denoiser.size
+        S = self.size
         out = []
         for k in range(n):
             tilt = Rotation.from_rotvec(rng.normal(0, self.sigma, 3) * scale[k]).as_matrix()
@@ -121,7 +121,9 @@ def oracle_setup():
     cfg = EstimatorConfig(agm=agm, reader=reader.config, objects=(spec,), ddim_steps=1, head_depth_weight=0.0)
 
     def make(sigma_deg: float) -> Estimator:
-        return Estimator(cfg, _OracleAGM(cfg.agm, K_patch, R, t, spec.axes.lengths, sigma_deg), reader)
+        est = Estimator(cfg, AxisGenerator(cfg.agm), reader)
+        est.sampler = _OracleSampler(K_patch, R, t, spec.axes.lengths, sigma_deg, cfg.agm.denoiser.size)
+        return est
 
     return make, image, K, box, spec, R, t
 
@@ -132,7 +134,7 @@ def test_estimator_samples_every_box_k_times_in_one_batch(oracle_setup):
     (single,) = est.estimate(image, K, [(spec.obj_id, box)], hypotheses=1)
     assert single.ok and single.covariance is None and np.isnan(single.spread_deg)
     many = est.estimate(image, K, [(spec.obj_id, box), (spec.obj_id, box)], hypotheses=8, seed=3)
-    assert est.agm.batches == [1, 16]
+    assert est.sampler.batches == [1, 16]
     for e in many:
         assert e.ok and e.samples == 8 and e.samples_ok >= 6
         assert re(e.R, R) < 3.0
@@ -174,6 +176,7 @@ def test_the_encoders_depth_is_reported_and_fused_along_the_tbms_ray(oracle_setu
     (alone,) = tbm.estimate(image, K, [(spec.obj_id, box)])
     assert alone.ok and np.isfinite(alone.head_depth) and alone.head_depth > 0
     encoder = Estimator(replace(tbm.config, head_depth_weight=1.0), tbm.agm, tbm.reader)
+    encoder.sampler = tbm.sampler
     (fused,) = encoder.estimate(image, K, [(spec.obj_id, box)])
     assert fused.head_depth == pytest.approx(alone.head_depth)
     np.testing.assert_allclose(fused.t, alone.t * alone.head_depth / alone.t[2])  # the encoder's depth, the TBM's ray

@@ -142,9 +142,10 @@ def test_loss_falls_on_the_stream(lmo_dir):
     from axispose_core.agm.model import AxisGenerator
     from axispose_core.data.synth.config import StreamConfig
     from axispose_core.data.synth.stream import CropStream, CropStreamDataset, stream_loader
+    from axispose_core.train.losses import AGMObjective
 
     torch.manual_seed(0)
-    model = AxisGenerator(replace(TINY_AGM, train_guidance=False))
+    model = AGMObjective(AxisGenerator(replace(TINY_AGM, train_guidance=False)))
     stream = CropStream(StreamConfig(objects=(1,), seed=3), lmo_dir / "models")
     held = [CropStreamDataset(CropStream(StreamConfig(objects=(1,), seed=4), lmo_dir / "models"))[i] for i in range(8)]
     batch = {k: torch.stack([h[k] for h in held]) for k in ("crop", "axes", "object", "points", "mask_visib")}

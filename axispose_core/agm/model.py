@@ -1,18 +1,16 @@
-"""The Axis Generation Module: encoder + denoiser + DDIM schedule, its training loss and its sampler."""
+"""The Axis Generation Module: encoder + denoiser + DDIM schedule, the weights and their configuration (diffusers'
+model side). Sampling lives in `agm/sampler.py`, the training losses in `train/losses.py`."""
 
 from __future__ import annotations
 
 import math
-from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 
 import numpy as np
 import torch
-import torch.nn.functional as F
 from torch import nn
 
 from axispose_core.agm.denoiser import Denoiser, DenoiserConfig, Encoding
-from axispose_core.agm.guidance import AxisGeometry, axis_geometry, guided_eps
 from axispose_core.agm.scheduler import DDIMScheduler, SchedulerConfig
 
 VERSION = 2
@@ -20,35 +18,15 @@ VERSION = 2
 without it were made by an earlier AxisPose, whose networks this one cannot run."""
 
 
-def log_depth_target(K: torch.Tensor, t: torch.Tensor, scale: torch.Tensor, size: int) -> torch.Tensor:
-    """The encoder's depth target log(z S / (f λ_O)) for crop intrinsics K (B,3,3), translations t (B,3) and object
-    scales λ_O (B,): f is the crop's mean focal length in px, S its side."""
-    f = 0.5 * (K[:, 0, 0] + K[:, 1, 1])
-    return torch.log(t[:, 2] * size / (f * scale)).float()
-
-
 def depth_from_log(log_depth: float, K: np.ndarray, scale: float, size: int) -> float:
-    """Inverse of `log_depth_target` for one crop: metres, linear in λ_O."""
+    """The encoder's depth for one crop in metres, linear in λ_O (the inverse of `train/losses.py`'s
+    `log_depth_target`: log_depth = log(z S / (f λ_O)), f the crop's mean focal length in px, S its side)."""
     return math.exp(log_depth) * 0.5 * float(K[0, 0] + K[1, 1]) * scale / size
-
-
-def encoder_losses(enc: Encoding, batch: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
-    """The encoder's dense and depth losses on the targets the batch has: "points" (L1 over the visible pixels, in
-    object radii), "mask" (binary cross-entropy), "depth" (L1 on log depth); and "unused", 0 times every head, so
-    that a head without its target still enters the graph (DistributedDataParallel wants every parameter used)."""
-    parts = {"unused": 0.0 * (enc.points.sum() + enc.mask.sum() + enc.log_depth.sum()).float()}
-    if "points" in batch:
-        m = batch["mask_visib"]
-        parts["points"] = (m * (enc.points.float() - batch["points"]).abs()).sum() / (3 * m.sum() + 1)
-        parts["mask"] = F.binary_cross_entropy_with_logits(enc.mask.float(), m)
-    if "log_depth" in batch:
-        parts["depth"] = (enc.log_depth.float() - batch["log_depth"]).abs().mean()
-    return parts
 
 
 @dataclass(frozen=True)
 class EncoderLossConfig:
-    """Weights of the crop encoder's auxiliary losses (`encoder_losses`), one section for every network built on
+    """Weights of the crop encoder's auxiliary losses (`train/losses.py`'s `encoder_losses`), one section for every network built on
     the encoder (the AGM, the direct baseline), so that all learn from the same signal."""
 
     points_weight: float = 1.0
@@ -65,10 +43,6 @@ class EncoderLossConfig:
             if name in parts:
                 total = total + w * parts[name]
         return total
-
-
-class Cancelled(Exception):
-    """Sampling was stopped between DDIM steps by its `cancelled` callback."""
 
 
 DENOISERS: dict[str, type[nn.Module]] = {"unet": Denoiser}
@@ -105,70 +79,6 @@ class AxisGenerator(nn.Module):
 
     def encode(self, crops: torch.Tensor, objects: torch.Tensor) -> Encoding:
         return self.denoiser.encode(crops, objects)
-
-    def losses(self, batch: dict[str, torch.Tensor], generator: torch.Generator | None = None) -> dict[str, torch.Tensor]:
-        """The training losses of a batch (crop, object, axes; points + mask_visib and log_depth where known):
-        "diffusion" at random timesteps (with train_guidance, the guided estimate ε' is what it sees), the
-        encoder's "points", "mask" and "depth", and their weighted "total"."""
-        crops, x0 = batch["crop"], batch["axes"]
-        cfg, sched = self.config, self.scheduler
-        b = x0.shape[0]
-        t = torch.randint(0, sched.config.num_train_timesteps, (b,), generator=generator).to(x0.device)
-        noise = torch.randn(x0.shape, generator=generator).to(x0.device)
-        x_t = sched.add_noise(x0, noise, t)
-        enc = self.encode(crops, batch["object"])
-        out = self.denoiser(x_t, t, enc)
-        if cfg.train_guidance:
-            abar = sched.alphas_cumprod.to(x0.device)[t].to(x0.dtype).view(-1, 1, 1, 1)
-            eps, _ = sched.to_eps_x0(out, t, x_t, clip=False)
-            eps_g = guided_eps(eps, x_t, abar, axis_geometry(x0), cfg.guidance_sigma, create_graph=True)
-            # ε-prediction: the ε-loss sees ε' (the paper). Other parametrisations: ε' is mapped back with x̂0
-            # clamped to the image range, as sampling does: unclamped, the 1/√ᾱ_t factors blow up at large t.
-            out = sched.from_eps(eps_g, t, x_t, clip=sched.config.prediction_type != "epsilon")
-        weight = 1 + cfg.line_weight * (x0 > -1).any(dim=1, keepdim=True).to(x0.dtype)
-        parts = {"diffusion": (weight * (out.float() - sched.target(x0, noise, t)) ** 2).mean(), **encoder_losses(enc, batch)}
-        parts["total"] = cfg.encoder_loss.total(parts, "diffusion")
-        return parts
-
-    def forward(self, batch: dict[str, torch.Tensor], generator: torch.Generator | None = None) -> torch.Tensor:
-        """The total training loss (so that DistributedDataParallel wraps it)."""
-        return self.losses(batch, generator)["total"]
-
-    @torch.no_grad()
-    def sample(
-        self,
-        enc: Encoding,
-        steps: int,
-        eta: float = 0.0,
-        generator: torch.Generator | None = None,
-        guidance: Callable[[torch.Tensor], AxisGeometry] | None = None,
-        guidance_scale: float = 0.0,
-        cancelled: Callable[[], bool] | None = None,
-        noise_scale: torch.Tensor | None = None,
-    ) -> torch.Tensor:
-        """Generate one axis image per row of `enc` (`Encoding.repeat` for several per crop); `guidance(x̂0) -> g`
-        supplies the measurement for run-time guidance. `cancelled()` is asked before every step; True raises
-        `Cancelled` (a node shutting down mid-frame). `noise_scale` (one factor per row) scales the starting noise
-        x_T: 0 starts the deterministic (eta = 0) path from the mode of the prior N(0, I)."""
-        sched = self.scheduler
-        sched.set_timesteps(steps)
-        S = self.config.denoiser.size
-        ref = enc.context
-        x = torch.randn((ref.shape[0], 3, S, S), generator=generator, dtype=ref.dtype).to(ref.device)
-        if noise_scale is not None:
-            x = x * noise_scale.to(x).view(-1, 1, 1, 1)
-        for t in sched.timesteps.tolist():
-            if cancelled is not None and cancelled():
-                raise Cancelled("sampling cancelled")
-            out = self.denoiser(x, torch.full((x.shape[0],), t, device=x.device), enc)
-            eps_override = None
-            if guidance is not None and guidance_scale > 0:
-                eps, x0 = sched.to_eps_x0(out, t, x)
-                abar = sched.alphas_cumprod[t].to(x.dtype)
-                sigma = self.config.guidance_sigma / guidance_scale**0.5
-                eps_override = guided_eps(eps, x, abar, guidance(x0), sigma, create_graph=False)
-            x, x0 = sched.step(out, t, x, eta=eta, generator=generator, eps_override=eps_override)
-        return x0
 
 
 def grow_into(model: AxisGenerator, start: AxisGenerator) -> list[str]:

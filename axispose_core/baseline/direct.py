@@ -13,11 +13,10 @@ from pathlib import Path
 
 import numpy as np
 import torch
-import torch.nn.functional as F
 from torch import nn
 
 from axispose_core.agm.denoiser import CropEncoder, EncoderConfig
-from axispose_core.agm.model import EncoderLossConfig, encoder_losses
+from axispose_core.agm.model import EncoderLossConfig
 from axispose_core.checkpoint import load_state, read_checkpoint, save_checkpoint
 from axispose_core.data.objects import ObjectSpec
 from axispose_core.estimator import crop_batch
@@ -50,16 +49,6 @@ class DirectRegressor(nn.Module):
         """Keypoints in normalised crop coordinates (-1, 1 at the crop's edges), (B,4,2)."""
         return self.head(self.encoder(crops, objects).context).view(-1, 4, 2)
 
-    def losses(self, batch: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
-        """ "keypoints": smooth L1 to the true keypoints (normalised units; `batch["keypoints"]` in pixels), the
-        encoder's losses where the batch has their targets, and their weighted "total"."""
-        enc = self.encoder(batch["crop"], batch["object"])
-        kp = self.head(enc.context).view(-1, 4, 2)
-        target = keypoints_to_normalised(batch["keypoints"].to(kp.dtype), self.config.size)
-        parts = {"keypoints": F.smooth_l1_loss(kp.float(), target.float(), beta=0.02), **encoder_losses(enc, batch)}
-        parts["total"] = self.config.encoder_loss.total(parts, "keypoints")
-        return parts
-
     def keypoints(self, crops: torch.Tensor, objects: torch.Tensor) -> torch.Tensor:
         """Keypoints in crop pixels (pixel centres at integers), (B,4,2)."""
         return (self(crops, objects) + 1) * 0.5 * self.config.size - 0.5
@@ -68,11 +57,6 @@ class DirectRegressor(nn.Module):
 def keypoints_to_normalised(kp: torch.Tensor, size: int) -> torch.Tensor:
     """Crop pixels -> the regressor's output units (inverse of `DirectRegressor.keypoints`)."""
     return (kp + 0.5) / size * 2 - 1
-
-
-def regression_loss(model: DirectRegressor, batch: dict[str, torch.Tensor]) -> torch.Tensor:
-    """The training loss: `DirectRegressor.losses`' total."""
-    return model.losses(batch)["total"]
 
 
 class DirectEstimator:

@@ -26,7 +26,8 @@ import numpy as np
 import torch
 import torch.distributed as dist
 
-from axispose_core.agm.model import AGMConfig, AxisGenerator, depth_from_log, grow_into, log_depth_target
+from axispose_core.agm.model import AGMConfig, AxisGenerator, depth_from_log, grow_into
+from axispose_core.agm.sampler import sample
 from axispose_core.axis_image import axis_keypoints
 from axispose_core.data.synth.config import StreamConfig
 from axispose_core.data.synth.stream import CropStream, stream_loader
@@ -36,6 +37,7 @@ from axispose_core.tbm.backproject import backproject_readings
 from axispose_core.tbm.reader import SHIPPED_READER, KeypointReader, load_reader
 from axispose_core.train.dataset import AxisCropDataset
 from axispose_core.train.loop import DEFAULT_RUN, OptimConfig, RunOptions, epochs, fit, training_device, training_record, world
+from axispose_core.train.losses import AGMObjective, agm_losses, log_depth_target
 from axispose_core.train.sources import CropSources
 
 
@@ -98,9 +100,9 @@ def validate(
     endpoints) on the generated axis images; the median relative depth error of the TBM (from the drawn axis
     lengths) and of the encoder's depth head; the encoder's median surface-point error (object radii)."""
     with torch.no_grad():
-        loss = float(np.mean([agm.losses(batch, torch.Generator().manual_seed(k))["diffusion"].item() for k in range(4)]))
+        loss = float(np.mean([agm_losses(agm, batch, torch.Generator().manual_seed(k))["diffusion"].item() for k in range(4)]))
         enc = agm.encode(batch["crop"], batch["object"])
-        axes = agm.sample(enc, steps, generator=torch.Generator().manual_seed(0), noise_scale=torch.zeros(len(batch["crop"])))
+        axes = sample(agm, enc, steps, generator=torch.Generator().manual_seed(0), noise_scale=torch.zeros(len(batch["crop"])))
     readings = reader.read(((axes + 1) * 0.5).clamp(0, 1).cpu())
     size = batch["crop"].shape[-1]
     errs, kp_errs, tbm_depth, head_depth = [], [], [], []
@@ -240,5 +242,5 @@ def train_agm(
 
     return fit(
         cfg, model, batches, loss, out, save, validate_ema, VAL_COLUMNS, run, dev, "train agm",
-        str(init) if init else None, ("stream", "curriculum"), lambda saved, at: same_stream_before(saved, cfg, at),
+        str(init) if init else None, ("stream", "curriculum"), lambda saved, at: same_stream_before(saved, cfg, at), AGMObjective,
     )  # fmt: skip

@@ -13,7 +13,7 @@ import torch
 from axispose_core.agm.denoiser import EncoderConfig
 from axispose_core.agm.model import depth_from_log
 from axispose_core.axis_image import axis_keypoints
-from axispose_core.baseline.direct import DirectConfig, DirectEstimator, DirectRegressor, regression_loss
+from axispose_core.baseline.direct import DirectConfig, DirectEstimator, DirectRegressor
 from axispose_core.data.synth.config import StreamConfig
 from axispose_core.data.synth.stream import stream_loader
 from axispose_core.metrics import re
@@ -21,6 +21,7 @@ from axispose_core.tbm.backproject import backproject
 from axispose_core.train.agm import with_depth_target
 from axispose_core.train.dataset import AxisCropDataset
 from axispose_core.train.loop import DEFAULT_RUN, OptimConfig, RunOptions, epochs, fit, training_device, training_record
+from axispose_core.train.losses import DirectObjective
 from axispose_core.train.sources import CropSources
 
 
@@ -76,7 +77,7 @@ def train_direct(cfg: DirectTrainConfig, sources: CropSources, out: str | Path, 
                 "val_kp_err_px": float(np.median(kp_errs)), "val_depth_head": float(np.median(depth))}  # fmt: skip
 
     def loss(model: torch.nn.Module, batch: dict[str, torch.Tensor], _: torch.Generator) -> torch.Tensor:
-        return regression_loss(model, with_depth_target(batch, scales.to(batch["t"].device), cfg.size))
+        return model(with_depth_target(batch, scales.to(batch["t"].device), cfg.size))
 
     def batches(step: int):
         return stream_loader(stream, cfg.optim.batch, start=step * cfg.optim.batch, workers=cfg.optim.workers)
@@ -84,5 +85,5 @@ def train_direct(cfg: DirectTrainConfig, sources: CropSources, out: str | Path, 
     return fit(
         cfg, DirectRegressor(config), batches if stream is not None else epochs(train_set, cfg.optim), loss, out, save,
         validate if val_batch else None, ("val_rot_median_deg", "val_rot_within_15deg", "val_kp_err_px", "val_depth_head"),
-        run, dev, "train direct",
+        run, dev, "train direct", objective=DirectObjective,
     )  # fmt: skip

@@ -139,6 +139,7 @@ def fit(
     init: str | None = None,
     data_fields: tuple[str, ...] = (),
     same_data: Callable[[dict[str, Any], int], bool] | None = None,
+    objective: Callable[[torch.nn.Module], torch.nn.Module] | None = None,
 ) -> int:
     """Train `model` for cfg.optim.steps; returns the step reached.
 
@@ -150,7 +151,9 @@ def fit(
     `model`, so its initial weights follow the seed too. `init` names the checkpoint `model` was warm-started from;
     a resumed run takes it from its state, so that every call records it. `cfg` is saved in the resume state and
     must match on resume but for the run's length, how often it saves and validates, and `data_fields` where
-    `same_data` accepts them (`load_run_state`)."""
+    `same_data` accepts them (`load_run_state`). `objective(model)`, where given, is the module whose forward
+    computes the loss (`train/losses.py`): what loss_fn is handed and DistributedDataParallel wraps, while the
+    model's own state is what the EMA, the checkpoints and the resume state hold."""
     optim: OptimConfig = cfg.optim
     rank, size = world()
     model = model.to(device)
@@ -160,7 +163,8 @@ def fit(
     step, before = 0, 0.0
     if run.resume:
         step, init, before = load_run_state(run.resume, cfg, model, ema, opt, sched, data_fields, same_data)
-    net = torch.nn.parallel.DistributedDataParallel(model) if size > 1 else model
+    trained = objective(model) if objective is not None else model
+    net = torch.nn.parallel.DistributedDataParallel(trained) if size > 1 else trained
     gen = torch.Generator().manual_seed(optim.seed * 1000 + step + rank)
     log = open(out.with_suffix(".csv"), "a", newline="") if rank == 0 else None
     writer = csv.writer(log) if log else None
