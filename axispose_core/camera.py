@@ -103,3 +103,37 @@ def square_around_box(box_xywh: tuple[float, float, float, float], pad: float = 
     # (x, y, w, h) in BOP counts pixels: the box covers pixel centres x .. x + w - 1.
     center = (x + 0.5 * (w - 1), y + 0.5 * (h - 1))
     return center, max(w, h) * pad
+
+
+@dataclass(frozen=True)
+class CropJitter:
+    """Detector-like noise on the crop: centre shift as a fraction of the side, and a scale range of the pad."""
+
+    shift: float = 0.1
+    pad: tuple[float, float] = (1.1, 1.5)
+
+
+@dataclass(frozen=True)
+class InstanceCrop:
+    patch: np.ndarray
+    K_patch: np.ndarray
+    center: tuple[float, float]
+    side: float
+
+
+def instance_crop(
+    image: np.ndarray,
+    K: np.ndarray,
+    box_xywh: tuple[float, float, float, float],
+    size: int,
+    rng: np.random.Generator | None = None,
+    jitter: CropJitter = CropJitter(),
+    pad: float = 1.25,
+) -> InstanceCrop:
+    """Cut the size x size crop around a box; with `rng`, jitter it as `jitter` says (else `pad`, centred)."""
+    if rng is None:
+        center, side = square_around_box(box_xywh, pad=pad)
+    else:
+        center, side = square_around_box(box_xywh, pad=float(rng.uniform(*jitter.pad)))
+        center = (center[0] + rng.uniform(-jitter.shift, jitter.shift) * side, center[1] + rng.uniform(-jitter.shift, jitter.shift) * side)
+    return InstanceCrop(crop_image(image, center, side, size), crop_intrinsics(K, center, side, size), center, side)

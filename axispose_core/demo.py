@@ -16,8 +16,8 @@ import matplotlib.pyplot as plt
 import numpy as np
 
 from axispose_core.axis_image import axis_keypoints, render_axis_keypoints
-from axispose_core.data.objects import lmo_objects
 from axispose_core.metrics import re, te
+from axispose_core.objects import lmo_objects
 from axispose_core.pose_sampling import sample_patch
 from axispose_core.tbm.backproject import backproject
 from axispose_core.tbm.keypoints import AxisKeypoints

@@ -20,13 +20,12 @@ from axispose_core.agm.guidance import self_consistency_target
 from axispose_core.agm.model import VERSION, AGMConfig, AxisGenerator, depth_from_log
 from axispose_core.agm.sampler import sample
 from axispose_core.axis_image import AxisSpec
-from axispose_core.camera import validate_intrinsics
+from axispose_core.camera import InstanceCrop, instance_crop, validate_intrinsics
 from axispose_core.checkpoint import ESTIMATOR, CheckpointError, load_state, read_checkpoint, read_metadata, save_checkpoint
 from axispose_core.consensus import consensus
-from axispose_core.data.crops import InstanceCrop, instance_crop
-from axispose_core.data.objects import ObjectSpec
 from axispose_core.detect.decode import Detection
 from axispose_core.detect.model import Localiser, LocaliserConfig, build_localiser
+from axispose_core.objects import ObjectSpec
 from axispose_core.tbm.backproject import backproject_readings
 from axispose_core.tbm.reader import KeypointReader, ReaderConfig
 

@@ -27,11 +27,11 @@ from axispose_core.bop19 import BopObject, ImageErrors, average_recall, image_er
 from axispose_core.camera import crop_image, crop_intrinsics, square_around_box
 from axispose_core.data.bop import BopEstimate, BopScene, GTInfo, GTInstance, bop_frames, load_models_info, model_path, read_bgr
 from axispose_core.data.meshes import load_ply
-from axispose_core.data.objects import ObjectSpec
 from axispose_core.data.visibility import gt_info_from_models
 from axispose_core.detect.decode import Detection, match
 from axispose_core.detect.scoring import false_alarms
 from axispose_core.metrics import ADD_THRESHOLDS, REPROJ_THRESHOLDS, pose_scores
+from axispose_core.objects import ObjectSpec
 
 MIN_VISIB = 0.1
 SUMMARY_KEYS = [f"add_{f:g}d" for f in ADD_THRESHOLDS] + [f"reproj_{p:g}px" for p in REPROJ_THRESHOLDS]

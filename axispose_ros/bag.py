@@ -26,8 +26,8 @@ from tqdm import tqdm
 
 from axispose_core.data.bop import BopFormatError, BopScene, model_path
 from axispose_core.data.meshes import load_ply
-from axispose_core.data.objects import ObjectSpec
 from axispose_core.data.visibility import gt_info_from_models
+from axispose_core.objects import ObjectSpec
 
 TYPESTORE = get_typestore(Stores.ROS2_JAZZY)
 FORMATS = {"sqlite3": StoragePlugin.SQLITE3, "mcap": StoragePlugin.MCAP}

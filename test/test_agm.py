@@ -17,8 +17,8 @@ from axispose_core.agm.sampler import sample
 from axispose_core.agm.scheduler import DDIMScheduler, SchedulerConfig
 from axispose_core.axis_image import axis_keypoints, render_axis_keypoints
 from axispose_core.checkpoint import CheckpointError, save_checkpoint
-from axispose_core.data.objects import lmo_objects
 from axispose_core.estimator import Estimator, EstimatorConfig, fuse_depth
+from axispose_core.objects import lmo_objects
 from axispose_core.pose_sampling import sample_patch
 from axispose_core.tbm.reader import SHIPPED_READER, load_reader
 from axispose_core.train.losses import AGMObjective, log_depth_target

@@ -10,12 +10,11 @@ from scipy.spatial.transform import Rotation
 
 from axispose_core.agm.model import AxisGenerator
 from axispose_core.axis_image import render_axis_image
-from axispose_core.camera import project
+from axispose_core.camera import instance_crop, project
 from axispose_core.consensus import ROT_FLOOR_RAD, TRANS_FLOOR_M, consensus
-from axispose_core.data.crops import instance_crop
-from axispose_core.data.objects import lmo_objects
 from axispose_core.estimator import Estimator, EstimatorConfig
 from axispose_core.metrics import re
+from axispose_core.objects import lmo_objects
 from axispose_core.tbm.reader import SHIPPED_READER, load_reader
 
 FLOOR = np.diag([TRANS_FLOOR_M**2] * 3 + [ROT_FLOOR_RAD**2] * 3)

@@ -10,11 +10,10 @@ import torch
 from conftest import TINY_AGM
 
 from axispose_core.agm.model import AxisGenerator
-from axispose_core.camera import crop_transform, project
+from axispose_core.camera import crop_transform, instance_crop, project
 from axispose_core.checkpoint import CheckpointError, read_checkpoint, stored_half
 from axispose_core.cli import _score_and_attach, main
 from axispose_core.data.bop import BopFormatError, BopScene
-from axispose_core.data.crops import instance_crop
 from axispose_core.data.objects import objects_from_models
 from axispose_core.detect.decode import Detection, decode, draw_targets, focal_loss, iou, match
 from axispose_core.detect.model import STRIDE, Localiser, LocaliserConfig

@@ -10,13 +10,13 @@ from conftest import TINY_AGM_YAML, TINY_ENCODER
 
 from axispose_core.axis_image import axis_keypoints
 from axispose_core.baseline.direct import DirectConfig, DirectEstimator, DirectRegressor, keypoints_to_normalised
+from axispose_core.camera import instance_crop
 from axispose_core.checkpoint import CheckpointError
 from axispose_core.cli import main
-from axispose_core.data.crops import instance_crop
-from axispose_core.data.objects import lmo_objects
 from axispose_core.data.synth.config import SynthConfig
 from axispose_core.data.synth.generate import generate
 from axispose_core.metrics import re, te
+from axispose_core.objects import lmo_objects
 from axispose_core.train.direct import KeypointCropDataset
 from axispose_core.train.losses import direct_losses
 

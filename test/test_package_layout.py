@@ -193,3 +193,11 @@ def test_axispose_core_has_no_import_circle_and_never_imports_ros():
             assert not [m for m in mods if m.split(".")[0] in ros], f"{path} imports ROS ({mods})"
     # the BOP reader never renders
     assert not {d for d in graph["axispose_core.data.bop"] if ".synth." in d or d.endswith(("visibility", "meshes"))}
+
+
+def test_the_node_loads_no_data_or_training_code():
+    """The node runs the estimator: readers of datasets, the synthetic-data package and the trainers stay out."""
+    pkgs = "('axispose_core.data', 'axispose_core.train')"
+    code = f"import sys, axispose_ros.node; print(*sorted(m for m in sys.modules if m.startswith({pkgs})))"
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True, cwd=REPO)
+    assert out.stdout.strip() == ""

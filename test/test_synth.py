@@ -10,13 +10,13 @@ import pytest
 from conftest import within_a_pixel
 
 from axispose_core.axis_image import AxisSpec
-from axispose_core.camera import project
+from axispose_core.camera import instance_crop, project
 from axispose_core.data.bop import BopScene, load_models_info, model_path
-from axispose_core.data.crops import axis_target, instance_crop
 from axispose_core.data.meshes import load_ply, load_render_mesh
 from axispose_core.data.synth.config import SynthConfig
 from axispose_core.data.synth.generate import generate, render_image
 from axispose_core.data.synth.raster import Light, render
+from axispose_core.train.dataset import axis_target
 
 CFG = SynthConfig(seed=11, scenes=2, images_per_scene=3, objects=(1, 5, 6, 8, 9))
 

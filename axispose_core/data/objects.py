@@ -1,15 +1,14 @@
-"""The objects a model knows: id, name, size, axis lengths and symmetry; built from a BOP models folder."""
+"""The objects a model knows (`ObjectSpec`), read from a BOP models folder or a dataset: names, sizes, symmetry."""
 
 from __future__ import annotations
 
 import json
 import re
-from dataclasses import dataclass
 from pathlib import Path
 
-from axispose_core.axis_image import AxisSpec
 from axispose_core.data.bop import ObjectInfo, load_models_info
-from axispose_core.lmo import LMO_DIAMETERS, LMO_NAMES, LMO_SYMMETRIC
+from axispose_core.lmo import LMO_DIAMETERS, LMO_NAMES
+from axispose_core.objects import ObjectSpec
 
 NAMES_FILE = "names.json"
 """Beside models_info.json: {"<obj_id>": "<name>"}, written by `axispose synth` from the imported meshes' file names."""
@@ -21,28 +20,6 @@ def object_name(stem: str, obj_id: int) -> str:
     """A valid object name from a file name: other characters become '_', lower case, obj_<id> if nothing is left."""
     name = re.sub(r"[^a-z0-9_]+", "_", stem.lower()).strip("_")
     return name if NAME.fullmatch(name) else f"obj_{obj_id:06d}"
-
-
-@dataclass(frozen=True)
-class ObjectSpec:
-    """What the TBM and the metrics need of one object; serialisable into checkpoint configs."""
-
-    obj_id: int
-    name: str
-    diameter: float
-    scale: float
-    ratio_b: float = 1.0
-    ratio_c: float = 1.0
-    symmetric: bool = False
-
-    @property
-    def axes(self) -> AxisSpec:
-        return AxisSpec(self.scale, self.ratio_b, self.ratio_c)
-
-
-def lmo_objects() -> list[ObjectSpec]:
-    """The embedded LM-O object list with the default λ_O = half the diameter."""
-    return [ObjectSpec(i, LMO_NAMES[i], d, 0.5 * d, symmetric=i in LMO_SYMMETRIC) for i, d in sorted(LMO_DIAMETERS.items())]
 
 
 def is_lmo(infos: dict[int, ObjectInfo]) -> bool:

@@ -9,10 +9,11 @@ import numpy as np
 import torch
 from torch.utils.data import Dataset
 
+from axispose_core.axis_image import DEFAULT_LINE_WIDTH, render_axis_image
+from axispose_core.camera import CropJitter, InstanceCrop, instance_crop
 from axispose_core.data.bop import BopScene, bop_frames
-from axispose_core.data.crops import CropJitter, axis_target, instance_crop
-from axispose_core.data.objects import ObjectSpec
 from axispose_core.data.visibility import gt_info_from_models
+from axispose_core.objects import ObjectSpec
 
 DEFAULT_JITTER = CropJitter()
 
@@ -82,3 +83,10 @@ class AxisCropDataset(Dataset):
             "R": torch.from_numpy(g.R),
             "t": torch.from_numpy(g.t),
         }
+
+
+def axis_target(
+    crop: InstanceCrop, R: np.ndarray, t: np.ndarray, lengths: np.ndarray, size: int, line_width: float = DEFAULT_LINE_WIDTH
+) -> np.ndarray:
+    """The axis image (size x size x 3 in [0,1]) of the GT pose in this crop."""
+    return render_axis_image(crop.K_patch, R, t, lengths, size, line_width)
