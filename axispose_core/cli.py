@@ -179,11 +179,11 @@ def _train_direct(args: argparse.Namespace) -> int:
 
 
 def _score_and_attach(args: argparse.Namespace) -> int:
-    """After `train-detector`: the localiser in OUT scored on --val, then given to --attach."""
+    """After `train-localiser`: the localiser in OUT scored on --val, then given to --attach."""
     from axispose_core.checkpoint import stored_half
-    from axispose_core.detect.scoring import detection_scores
-    from axispose_core.detect.weights import load_localiser
     from axispose_core.estimator import Estimator
+    from axispose_core.localiser.scoring import detection_scores
+    from axispose_core.localiser.weights import load_localiser
 
     localiser = load_localiser(args.out)
     if args.val:
@@ -196,18 +196,18 @@ def _score_and_attach(args: argparse.Namespace) -> int:
     return 0
 
 
-def _train_detector(args: argparse.Namespace) -> int:
+def _train_localiser(args: argparse.Namespace) -> int:
     import torch
 
     from axispose_core.data.objects import dataset_objects
-    from axispose_core.train.detector import DetectorTrainConfig, train_detector
+    from axispose_core.train.localiser import LocaliserTrainConfig, train_localiser
 
     torch.set_num_threads(args.threads)
-    cfg = _config(DetectorTrainConfig, args.config)
+    cfg = _config(LocaliserTrainConfig, args.config)
     if not cfg.localiser.obj_ids:  # default: the objects the data shows
         ids = tuple(o.obj_id for o in dataset_objects(args.data))
         cfg = dataclasses.replace(cfg, localiser=dataclasses.replace(cfg.localiser, obj_ids=ids))
-    step = train_detector(cfg, args.data, args.out, args.val, _run_options(args), init=args.init)
+    step = train_localiser(cfg, args.data, args.out, args.val, _run_options(args), init=args.init)
     print(f"stopped at step {step} of {cfg.optim.steps}; localiser {args.out}")
     return _score_and_attach(args)
 
@@ -257,7 +257,7 @@ def _eval(args: argparse.Namespace) -> int:
     if args.crops == "detect":
         if est.localiser is None:
             print(
-                f"axispose eval: {args.checkpoint} has no localiser (attach one with `axispose train-detector --attach`)", file=sys.stderr
+                f"axispose eval: {args.checkpoint} has no localiser (attach one with `axispose train-localiser --attach`)", file=sys.stderr
             )
             return 2
         detector, counts = est.detect, {}
@@ -410,12 +410,12 @@ def build_parser() -> argparse.ArgumentParser:
                     help="with --recipe: an existing checkpoint stands in for a stage (recorded as adopted)")  # fmt: skip
     tn.set_defaults(func=_train)
 
-    td = sub.add_parser("train-detector", help="train the 2D localiser (CenterNet) on synthetic BOP frames")
-    _training_args(td, "localiser checkpoint", "DetectorTrainConfig", "config/train_detector.yaml")
+    td = sub.add_parser("train-localiser", help="train the 2D localiser (CenterNet) on synthetic BOP frames")
+    _training_args(td, "localiser checkpoint", "LocaliserTrainConfig", "config/train_localiser.yaml")
     td.add_argument("--attach", help="estimator checkpoint to add the trained localiser to (rewritten in place)")
     td.add_argument("--init", help="trained localiser or estimator checkpoint to start from: weights whose names and shapes "
                     "match are copied (a wider/deeper localiser or other objects keep the rest fresh)")  # fmt: skip
-    td.set_defaults(func=_train_detector)
+    td.set_defaults(func=_train_localiser)
 
     tr = sub.add_parser("train-direct", help="train the direct-regression baseline (keypoints from the crop, no diffusion)")
     _training_args(tr, "regressor checkpoint", "DirectTrainConfig", "config/train_direct.yaml",

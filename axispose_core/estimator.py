@@ -23,8 +23,8 @@ from axispose_core.axis_image import AxisSpec
 from axispose_core.camera import InstanceCrop, instance_crop, validate_intrinsics
 from axispose_core.checkpoint import ESTIMATOR, CheckpointError, load_state, read_checkpoint, read_metadata, save_checkpoint
 from axispose_core.consensus import consensus
-from axispose_core.detect.decode import Detection
-from axispose_core.detect.model import Localiser, LocaliserConfig, build_localiser
+from axispose_core.localiser.decode import Detection
+from axispose_core.localiser.model import Localiser, LocaliserConfig, build_localiser
 from axispose_core.objects import ObjectSpec
 from axispose_core.tbm.backproject import backproject_readings
 from axispose_core.tbm.reader import KeypointReader, ReaderConfig
@@ -167,7 +167,7 @@ class Estimator:
     def detect(self, image_rgb: np.ndarray, threshold: float | None = None) -> list[Detection]:
         """Objects found in a full frame by the checkpoint's localiser (none found: an empty list)."""
         if self._detector is None:
-            raise ValueError("this checkpoint has no localiser: pass boxes, or attach one with `axispose train-detector --attach`")
+            raise ValueError("this checkpoint has no localiser: pass boxes, or attach one with `axispose train-localiser --attach`")
         return self._detector.detect(image_rgb, threshold)
 
     @classmethod

@@ -28,8 +28,8 @@ from axispose_core.camera import crop_image, crop_intrinsics, square_around_box
 from axispose_core.data.bop import BopEstimate, BopScene, GTInfo, GTInstance, bop_frames, load_models_info, model_path, read_bgr
 from axispose_core.data.meshes import load_ply
 from axispose_core.data.visibility import gt_info_from_models
-from axispose_core.detect.decode import Detection, match
-from axispose_core.detect.scoring import false_alarms
+from axispose_core.localiser.decode import Detection, match
+from axispose_core.localiser.scoring import false_alarms
 from axispose_core.metrics import ADD_THRESHOLDS, REPROJ_THRESHOLDS, pose_scores
 from axispose_core.objects import ObjectSpec
 

@@ -20,8 +20,8 @@ import torch
 from write_results import write_results
 
 from axispose_core.data.bop import bop_frames
-from axispose_core.detect.scoring import frame_instances
 from axispose_core.estimator import Estimator
+from axispose_core.localiser.scoring import frame_instances
 
 
 def _median_ms(fn, repeats: int) -> float:

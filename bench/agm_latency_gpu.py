@@ -24,8 +24,8 @@ from write_results import write_results
 
 from axispose_core.agm.sampler import sample
 from axispose_core.data.bop import bop_frames
-from axispose_core.detect.scoring import frame_instances
 from axispose_core.estimator import Estimator
+from axispose_core.localiser.scoring import frame_instances
 
 MODES = ("fp32", "bf16", "bf16+graphs")
 

@@ -31,10 +31,10 @@ from tqdm import tqdm
 from write_results import write_results
 
 from axispose_core.data.bop import BopScene, bop_frames
-from axispose_core.detect.decode import Detection, iou
-from axispose_core.detect.model import Localiser
-from axispose_core.detect.scoring import frame_instances, frame_outcome
-from axispose_core.detect.weights import load_localiser
+from axispose_core.localiser.decode import Detection, iou
+from axispose_core.localiser.model import Localiser
+from axispose_core.localiser.scoring import frame_instances, frame_outcome
+from axispose_core.localiser.weights import load_localiser
 
 THRESHOLDS = (0.05, 0.1, 0.15, 0.2, 0.25, 0.3, 0.4, 0.5, 0.6, 0.7)
 VISIB = ((0.3, 0.5), (0.5, 0.8), (0.8, 1.01))

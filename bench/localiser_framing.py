@@ -21,9 +21,9 @@ from write_results import write_results
 
 from axispose_core.camera import square_around_box
 from axispose_core.data.bop import bop_frames
-from axispose_core.detect.decode import match
-from axispose_core.detect.scoring import frame_instances, frame_outcome
 from axispose_core.estimator import Estimator
+from axispose_core.localiser.decode import match
+from axispose_core.localiser.scoring import frame_instances, frame_outcome
 
 
 def framing_errors(est: Estimator, data: list[str], min_visib: float) -> np.ndarray:

@@ -20,9 +20,9 @@ from visualization_msgs.msg import Marker, MarkerArray
 
 from axispose_core.agm.model import AxisGenerator
 from axispose_core.checkpoint import CheckpointError
-from axispose_core.detect.model import Localiser, LocaliserConfig
 from axispose_core.estimator import Estimator, EstimatorConfig, PoseEstimate, bf16_native
 from axispose_core.lmo import LMO_K
+from axispose_core.localiser.model import Localiser, LocaliserConfig
 from axispose_core.objects import lmo_objects
 from axispose_core.tbm.reader import SHIPPED_READER, load_reader
 from axispose_msgs.msg import DetectionArray

@@ -38,17 +38,17 @@ from axispose_core.data.objects import dataset_objects
 from axispose_core.data.synth.config import SynthConfig
 from axispose_core.data.synth.config import recipe as synth_recipe
 from axispose_core.data.synth.generate import generate
-from axispose_core.detect.weights import load_localiser
 from axispose_core.estimator import Estimator, EstimatorConfig
+from axispose_core.localiser.weights import load_localiser
 from axispose_core.tbm.reader import load_reader
 from axispose_core.train.agm import TrainConfig, train_agm
-from axispose_core.train.detector import DetectorTrainConfig, train_detector
+from axispose_core.train.localiser import LocaliserTrainConfig, train_localiser
 from axispose_core.train.loop import DEFAULT_RUN, RunOptions
 from axispose_core.train.reader import ReaderTrainConfig, train_reader
 from axispose_core.train.resume import state_path
 from axispose_core.train.sources import CropSources
 
-CONFIGS: dict[str, type] = {"reader": ReaderTrainConfig, "agm": TrainConfig, "localiser": DetectorTrainConfig}
+CONFIGS: dict[str, type] = {"reader": ReaderTrainConfig, "agm": TrainConfig, "localiser": LocaliserTrainConfig}
 """Each trainer's config class, by the name a stage gives as its `trainer`."""
 
 SYNTH_KEYS = {"scenes", "images_per_scene", "seed", "recipe", "depth", "objects"}
@@ -353,10 +353,10 @@ class RecipeRunner:
             reader = self.checkpoint(self.recipe.estimator["reader"])
             return train_agm(cfg, CropSources((), (), self.recipe.models), self.checkpoint(stage.name), run, reader, init)
         data, val = self._data(segment.data or stage.data), self._data(stage.val)
-        if not cfg.localiser.obj_ids:  # as `axispose train-detector`: the objects the training data shows
+        if not cfg.localiser.obj_ids:  # as `axispose train-localiser`: the objects the training data shows
             ids = tuple(o.obj_id for o in dataset_objects(data))
             cfg = dataclasses.replace(cfg, localiser=dataclasses.replace(cfg.localiser, obj_ids=ids))
-        return train_detector(cfg, data, self.checkpoint(stage.name), val or None, run, init)
+        return train_localiser(cfg, data, self.checkpoint(stage.name), val or None, run, init)
 
     def assemble(self) -> Path:
         """One estimator checkpoint from the estimator's stages, with the recipe and every stage's record."""

@@ -1,4 +1,4 @@
-"""`axispose train-detector`: the CenterNet localiser on synthetic BOP frames, with the AGM trainer's conventions
+"""`axispose train-localiser`: the CenterNet localiser on synthetic BOP frames, with the AGM trainer's conventions
 (AdamW, warm-up + cosine, clipping, EMA weights in the checkpoint, seeded, resumable from OUT.state.pt, CSV log
 with periodic validation recall, `--max-minutes`).
 
@@ -22,15 +22,15 @@ from torch.utils.data import Dataset
 from axispose_core.checkpoint import save_checkpoint
 from axispose_core.data.bop import bop_frames
 from axispose_core.data.visibility import gt_info_from_models
-from axispose_core.detect.decode import draw_targets, focal_loss
-from axispose_core.detect.model import STRIDE, Localiser, LocaliserConfig, build_localiser
-from axispose_core.detect.scoring import detection_scores, frame_instances
-from axispose_core.detect.weights import KIND, warm_start
+from axispose_core.localiser.decode import draw_targets, focal_loss
+from axispose_core.localiser.model import STRIDE, Localiser, LocaliserConfig, build_localiser
+from axispose_core.localiser.scoring import detection_scores, frame_instances
+from axispose_core.localiser.weights import KIND, warm_start
 from axispose_core.train.loop import DEFAULT_RUN, OptimConfig, RunOptions, epochs, fit, training_device, training_record
 
 
 @dataclass(frozen=True)
-class DetectorTrainConfig:
+class LocaliserTrainConfig:
     localiser: LocaliserConfig = field(default_factory=LocaliserConfig)
     optim: OptimConfig = field(
         default_factory=lambda: OptimConfig(steps=4000, batch=16, lr=2e-3, warmup=100, grad_clip=5.0, ema_decay=0.99)
@@ -42,7 +42,7 @@ class DetectorTrainConfig:
     val_frames: int = 40
 
 
-class DetectionDataset(Dataset):
+class LocaliserDataset(Dataset):
     """Resized frames in [-1,1] with heatmap/size/offset targets; randomness depends on (seed, epoch, index)."""
 
     def __init__(
@@ -100,7 +100,7 @@ class DetectionDataset(Dataset):
         }
 
 
-def detector_loss(model: Localiser, batch: dict[str, torch.Tensor], cfg: DetectorTrainConfig) -> torch.Tensor:
+def localiser_loss(model: Localiser, batch: dict[str, torch.Tensor], cfg: LocaliserTrainConfig) -> torch.Tensor:
     heat, log_size, offset = model(batch["image"])
     mask = batch["mask"][:, None]
     n = mask.sum().clamp(min=1)
@@ -109,8 +109,8 @@ def detector_loss(model: Localiser, batch: dict[str, torch.Tensor], cfg: Detecto
     return focal_loss(heat, batch["heat"], mask) + cfg.size_weight * size_loss + cfg.offset_weight * off_loss
 
 
-def train_detector(
-    cfg: DetectorTrainConfig,
+def train_localiser(
+    cfg: LocaliserTrainConfig,
     data: list[str | Path],
     out: str | Path,
     val_data: list[str | Path] | None = None,
@@ -124,7 +124,7 @@ def train_detector(
     out = Path(out)
     out.parent.mkdir(parents=True, exist_ok=True)
     torch.manual_seed(cfg.optim.seed)
-    train_set = DetectionDataset(data, cfg.localiser, cfg.min_visib, seed=cfg.optim.seed, occluded_weight=cfg.occluded_weight)
+    train_set = LocaliserDataset(data, cfg.localiser, cfg.min_visib, seed=cfg.optim.seed, occluded_weight=cfg.occluded_weight)
     if not len(train_set):
         raise ValueError(f"no frames in {data}")
 
@@ -142,7 +142,7 @@ def train_detector(
         shown = (": " + ", ".join(fresh[:6]) + (" ..." if len(fresh) > 6 else "")) if fresh else ""
         print(f"started from {init}; {len(fresh)} of {len(model.state_dict())} tensors start fresh{shown}")
     return fit(
-        cfg, model, epochs(train_set, cfg.optim), lambda net, batch, _: detector_loss(net, batch, cfg), out, save,
-        validate if val_data else None, ("val_recall", "val_precision"), run, dev, "train detector",
+        cfg, model, epochs(train_set, cfg.optim), lambda net, batch, _: localiser_loss(net, batch, cfg), out, save,
+        validate if val_data else None, ("val_recall", "val_precision"), run, dev, "train localiser",
         str(init) if init else None,
     )  # fmt: skip

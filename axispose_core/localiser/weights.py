@@ -6,7 +6,7 @@ from __future__ import annotations
 from pathlib import Path
 
 from axispose_core.checkpoint import ESTIMATOR, CheckpointError, load_state, read_checkpoint, read_metadata
-from axispose_core.detect.model import Localiser, LocaliserConfig, build_localiser
+from axispose_core.localiser.model import Localiser, LocaliserConfig, build_localiser
 
 KIND = "localiser"
 

@@ -10,8 +10,8 @@ import numpy as np
 from tqdm import tqdm
 
 from axispose_core.data.bop import BopScene, bop_frames
-from axispose_core.detect.decode import Detection, match
-from axispose_core.detect.model import Localiser
+from axispose_core.localiser.decode import Detection, match
+from axispose_core.localiser.model import Localiser
 
 
 def frame_instances(scene: BopScene, im_id: int, obj_ids: tuple[int, ...]) -> list[tuple[int, tuple[int, int, int, int], float]]:

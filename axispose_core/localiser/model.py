@@ -18,7 +18,7 @@ import torch.nn.functional as F
 from torch import nn
 from torch.nn.utils.fusion import fuse_conv_bn_eval
 
-from axispose_core.detect.decode import Detection, decode
+from axispose_core.localiser.decode import Detection, decode
 
 STRIDE = 8
 

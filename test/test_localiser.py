@@ -15,14 +15,14 @@ from axispose_core.checkpoint import CheckpointError, read_checkpoint, stored_ha
 from axispose_core.cli import _score_and_attach, main
 from axispose_core.data.bop import BopFormatError, BopScene
 from axispose_core.data.objects import objects_from_models
-from axispose_core.detect.decode import Detection, decode, draw_targets, focal_loss, iou, match
-from axispose_core.detect.model import STRIDE, Localiser, LocaliserConfig
-from axispose_core.detect.scoring import detection_scores, frame_outcome
-from axispose_core.detect.weights import KIND, load_localiser, warm_start
 from axispose_core.estimator import Estimator, EstimatorConfig
+from axispose_core.localiser.decode import Detection, decode, draw_targets, focal_loss, iou, match
+from axispose_core.localiser.model import STRIDE, Localiser, LocaliserConfig
+from axispose_core.localiser.scoring import detection_scores, frame_outcome
+from axispose_core.localiser.weights import KIND, load_localiser, warm_start
 from axispose_core.tbm.reader import SHIPPED_READER, load_reader
 from axispose_core.train.dataset import AxisCropDataset
-from axispose_core.train.detector import DetectionDataset, DetectorTrainConfig, train_detector
+from axispose_core.train.localiser import LocaliserDataset, LocaliserTrainConfig, train_localiser
 from axispose_core.train.loop import OptimConfig, RunOptions
 from axispose_core.train.resume import state_path
 
@@ -73,8 +73,8 @@ def test_weighted_centres_count_more_in_the_loss():
 
 
 def test_occluded_instances_weigh_by_their_hidden_fraction(frames):
-    plain = DetectionDataset([frames], TINY, min_visib=0.0)
-    weighted = DetectionDataset([frames], TINY, min_visib=0.0, occluded_weight=2.0)
+    plain = LocaliserDataset([frames], TINY, min_visib=0.0)
+    weighted = LocaliserDataset([frames], TINY, min_visib=0.0, occluded_weight=2.0)
     scene, im_id = weighted.frames[0]
     visib = [info.visib_fract for g, info in zip(scene.gt[im_id], scene.gt_info[im_id], strict=True) if g.obj_id in (1, 5)]
     assert [w for _, _, w in plain.boxes(0)] == [1.0] * len(visib)
@@ -102,9 +102,9 @@ def trained(frames, tmp_path_factory):
     torch.manual_seed(0)
     before = Localiser(TINY).eval()
     optim = OptimConfig(steps=150, batch=4, lr=3e-3, warmup=10, workers=0, save_every=1000, ema_decay=0.9)
-    cfg = DetectorTrainConfig(localiser=TINY, optim=optim)
+    cfg = LocaliserTrainConfig(localiser=TINY, optim=optim)
     out = tmp_path_factory.mktemp("det") / "det.safetensors"
-    train_detector(cfg, [frames], out, run=RunOptions(progress=False))
+    train_localiser(cfg, [frames], out, run=RunOptions(progress=False))
     return before, out
 
 
@@ -122,12 +122,12 @@ def test_frames_without_scene_gt_info_need_the_models(frames, tmp_path, lmo_dir,
     with pytest.raises(BopFormatError, match="scene_gt_info"):
         detection_scores(Localiser(TINY).eval(), [copy], min_visib=0.3, progress=False)
     with pytest.raises(BopFormatError, match="scene_gt_info"):
-        DetectionDataset([copy], TINY, min_visib=0.1)
+        LocaliserDataset([copy], TINY, min_visib=0.1)
     with pytest.raises(BopFormatError, match="scene_gt_info"):  # the AGM's crops, too
         AxisCropDataset([copy], objects_from_models(frames, [1, 5]), 64)
     # With the models, boxes come from them at the GT pose: the same as the files' for every instance.
-    real = DetectionDataset([frames], TINY, min_visib=0.1)
-    estimated = DetectionDataset([copy], TINY, min_visib=0.1, models_dir=lmo_dir / "models")
+    real = LocaliserDataset([frames], TINY, min_visib=0.1)
+    estimated = LocaliserDataset([copy], TINY, min_visib=0.1, models_dir=lmo_dir / "models")
     assert [b for _, b, _ in estimated.boxes(0)] == [b for _, b, _ in real.boxes(0)]
     crops = AxisCropDataset([copy], objects_from_models(frames, [1, 5]), 64, models_dir=lmo_dir / "models")
     assert len(crops) > 0 and crops[0]["crop"].shape == (3, 64, 64)
@@ -267,11 +267,11 @@ def test_warm_start_copies_what_matches_and_leaves_the_rest_fresh(trained, estim
 
 
 def test_a_warm_started_run_keeps_naming_its_start_when_resumed(frames, trained, tmp_path):
-    cfg = DetectorTrainConfig(localiser=TINY, optim=OptimConfig(steps=2, batch=2, warmup=1, workers=0, save_every=1000))
+    cfg = LocaliserTrainConfig(localiser=TINY, optim=OptimConfig(steps=2, batch=2, warmup=1, workers=0, save_every=1000))
     out = tmp_path / "warm.safetensors"
-    train_detector(cfg, [frames], out, run=RunOptions(progress=False), init=trained[1])
+    train_localiser(cfg, [frames], out, run=RunOptions(progress=False), init=trained[1])
     assert read_checkpoint(out, KIND, LocaliserConfig)[2]["training"]["init"] == str(trained[1])
-    train_detector(replace(cfg, optim=replace(cfg.optim, steps=3)), [frames], out, run=RunOptions(state_path(out), progress=False))
+    train_localiser(replace(cfg, optim=replace(cfg.optim, steps=3)), [frames], out, run=RunOptions(state_path(out), progress=False))
     record = read_checkpoint(out, KIND, LocaliserConfig)[2]["training"]
     assert record["steps"] == 3 and record["init"] == str(trained[1])
 
