@@ -15,8 +15,10 @@ Only the objects of `objects` are looked for, estimated and published.
 Images with lens distortion (a non-zero CameraInfo D) are undistorted to the pinhole image of K first; with
 `use_rectified` the images are taken as rectified and P is used instead.
 
-Inference runs on a worker thread fed by a latest-frame-wins slot, so the executor never blocks and stale
-frames are dropped and counted instead of queueing. `image` and `camera_info` use the sensor-data QoS (best
+The node composes three parts: its inputs (Image/CameraInfo pairing by stamp, transport gaps, the latest ROI per
+object: `sync.py`), the inference worker (`worker.py`: one thread fed by a latest-frame-wins slot, so the executor
+never blocks and stale frames are dropped and counted instead of queueing) and its outputs (`outputs.py`); it
+owns the parameters, the counters and the diagnostics. `image` and `camera_info` use the sensor-data QoS (best
 effort): frames the transport discards never arrive and are estimated from stamp gaps (`frames_lost_in_transport`).
 """
 
@@ -29,33 +31,28 @@ from collections import Counter
 from dataclasses import dataclass
 from pathlib import Path
 
-import cv2
 import numpy as np
 import rclpy
 import rclpy.executors
 import torch
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
-from geometry_msgs.msg import Point, Pose, PoseArray, PoseStamped, PoseWithCovarianceStamped
 from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor, SetParametersResult
 from rclpy.exceptions import ParameterException, ParameterUninitializedException
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.qos import qos_profile_sensor_data
 from rclpy.qos_overriding_options import QoSOverridingOptions
-from scipy.spatial.transform import Rotation
 from sensor_msgs.msg import CameraInfo, Image, RegionOfInterest
-from visualization_msgs.msg import Marker, MarkerArray
 
 from axispose_core.agm.sampler import Cancelled
-from axispose_core.axis_image import draw_axes
-from axispose_core.camera import crop_transform
 from axispose_core.checkpoint import CheckpointError
 from axispose_core.estimator import Estimator
 from axispose_core.lmo import LMO_K
-from axispose_msgs.msg import Detection, DetectionArray
-from axispose_ros.conversions import InputError, Undistorter, camera_for_image, camera_from_info, image_to_rgb, rgb_to_image
+from axispose_ros.conversions import InputError, Undistorter, camera_for_image, camera_from_info, image_to_rgb
 from axispose_ros.health import Health, HealthConfig
-from axispose_ros.sync import GapCounter, StampSynchronizer
+from axispose_ros.outputs import PoseOutputs
+from axispose_ros.sync import GapCounter, RoiStore, StampSynchronizer
+from axispose_ros.worker import InferenceWorker
 
 DEFAULT_CHECKPOINT = Path(__file__).resolve().parents[1] / "axispose_core" / "models" / "axispose_lmo.safetensors"
 
@@ -106,33 +103,20 @@ class AxisPoseNode(Node):
         self.add_on_set_parameters_callback(self._on_set_parameters)
         self.counts: Counter[str] = Counter()
         self.latency: list[float] = []
-        self._slot: Frame | None = None
-        self._slot_lock = threading.Lock()
-        self._wake = threading.Event()
-        self._stop = threading.Event()
-        self._busy = False
-        self._rois: dict[int, tuple[RegionOfInterest, float]] = {}
-        self._state_lock = threading.Lock()  # counts and _rois: the executor and the inference thread share them
+        self.rois = RoiStore()
+        self._state_lock = threading.Lock()  # the counts: the executor and the inference thread share them
         self.health = Health(HealthConfig(latency_budget_s=float(self.get_parameter("latency_budget").value)), time.monotonic())
         self.sync = StampSynchronizer(float(self.get_parameter("sync_slop").value), self._on_pair, self._on_drop)
         self.gaps = GapCounter()
-        self._ready = threading.Event()
-        self._worker = threading.Thread(target=self._work, name="axispose_inference", daemon=True)
-        self._worker.start()
-        self._ready.wait()  # warmed up: frames are taken only from here on
+        self.worker: InferenceWorker[Frame] = InferenceWorker(self._process, self._warm_up, self._on_error, self.threads)
+        self.worker.start()  # warmed up: frames are taken only from here on
         qos_opts = QoSOverridingOptions.with_default_policies()
         self.create_subscription(Image, "image", self._on_image, qos_profile_sensor_data, qos_overriding_options=qos_opts)
         self.create_subscription(CameraInfo, "camera_info", self._on_info, qos_profile_sensor_data, qos_overriding_options=qos_opts)
         self.undistort = Undistorter()
         for obj_id, name in self.published.items():
             self.create_subscription(RegionOfInterest, f"~/roi/{name}", lambda m, i=obj_id: self._on_roi(i, m), 10)
-        self.pub_pose = self.create_publisher(PoseStamped, "~/pose", 10)
-        self.pub_pose_cov = self.create_publisher(PoseWithCovarianceStamped, "~/pose_cov", 10)
-        self.pub_object = {i: self.create_publisher(PoseStamped, f"~/poses/{n}", 10) for i, n in self.published.items()}
-        self.pub_array = self.create_publisher(PoseArray, "~/pose_array", 10)
-        self.pub_detections = self.create_publisher(DetectionArray, "~/detections", 10)
-        self.pub_markers = self.create_publisher(MarkerArray, "~/markers", 10)
-        self.pub_debug = self.create_publisher(Image, "~/debug/axis_image", 1)
+        self.outputs = PoseOutputs(self, self.published)
         self.pub_diag = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
         self.create_timer(1.0, self._publish_diagnostics)
 
@@ -211,13 +195,7 @@ class AxisPoseNode(Node):
         self.sync.add_info(_stamp_seconds(msg.header), msg)
 
     def _on_roi(self, obj_id: int, msg: RegionOfInterest) -> None:
-        with self._state_lock:
-            self._rois[obj_id] = (msg, time.monotonic())
-
-    def latest_roi(self, obj_id: int) -> RegionOfInterest | None:
-        """The last box received for an object (None before any)."""
-        entry = self._rois.get(obj_id)
-        return entry[0] if entry else None
+        self.rois.add(obj_id, msg, time.monotonic())
 
     def _dropped(self, reason: str) -> None:
         """A frame dropped for a reason: its counter, and the health of the recent window."""
@@ -229,41 +207,18 @@ class AxisPoseNode(Node):
         self.get_logger().warning(f"dropped a frame: {reason}", throttle_duration_sec=5.0)
 
     def _on_pair(self, image: Image, info: CameraInfo) -> None:
-        with self._slot_lock:
-            if self._slot is not None:
-                self._count("dropped_stale")
-            self._slot = Frame(image, info, time.monotonic())
-        self._wake.set()
+        if self.worker.submit(Frame(image, info, time.monotonic())):
+            self._count("dropped_stale")
 
-    # ------------------------------------------------------------------ inference
-    def _work(self) -> None:
-        torch.set_num_threads(self.threads)  # this thread's OpenMP team; see __init__
-        try:
-            self._warm_up()
-        finally:
-            self._ready.set()
-        while not self._stop.is_set():
-            if not self._wake.wait(timeout=0.1):
-                continue
-            with self._slot_lock:
-                frame, self._slot = self._slot, None
-                self._wake.clear()
-                self._busy = frame is not None
-            if frame is None:
-                continue
-            try:
-                self._process(frame)
-            except Cancelled:  # shutting down mid-frame: the frame is abandoned, not dropped
-                return
-            except InputError as err:
-                self._dropped(err.reason)
-                self.get_logger().error(f"dropped a frame: {err}", throttle_duration_sec=5.0)
-            except Exception as err:
-                self._dropped("error")
-                self.get_logger().error(f"inference failed on a frame: {err!r}", throttle_duration_sec=5.0)
-            finally:
-                with self._slot_lock:
-                    self._busy = False
+    # ------------------------------------------------------------------ inference (on the worker's thread)
+    def _on_error(self, err: Exception) -> None:
+        """A frame the worker could not process: dropped and counted, with its reason."""
+        if isinstance(err, InputError):
+            self._dropped(err.reason)
+            self.get_logger().error(f"dropped a frame: {err}", throttle_duration_sec=5.0)
+        else:
+            self._dropped("error")
+            self.get_logger().error(f"inference failed on a frame: {err!r}", throttle_duration_sec=5.0)
 
     def _warm_up(self) -> None:
         """One pass over a blank frame per box count up to `warmup_boxes` (1 DDIM step, the configured hypotheses):
@@ -280,7 +235,7 @@ class AxisPoseNode(Node):
                 self.estimator.detect(rgb)
             for k in range(1, count + 1):
                 boxes = [(ids[i % len(ids)], (280.0, 200.0, 80.0, 90.0)) for i in range(k)]
-                self.estimator.estimate(rgb, LMO_K, boxes, steps=1, hypotheses=hypotheses, cancelled=self._stop.is_set)
+                self.estimator.estimate(rgb, LMO_K, boxes, steps=1, hypotheses=hypotheses, cancelled=self.worker.cancelled)
         except Cancelled:
             return
         except Exception as err:
@@ -304,23 +259,7 @@ class AxisPoseNode(Node):
 
     def idle(self) -> bool:
         """No frame waits for, or is in, inference (frames still waiting for their CameraInfo do not count)."""
-        with self._slot_lock:
-            return self._slot is None and not self._busy
-
-    def _boxes(self, width: int, height: int) -> list[tuple[int, tuple[float, float, float, float]]]:
-        """The fresh ROIs (only objects of `objects` have ROI topics), each inside the image."""
-        now, timeout = time.monotonic(), float(self.get_parameter("roi_timeout").value)
-        boxes = []
-        with self._state_lock:
-            rois = list(self._rois.items())
-        for obj_id, (roi, seen) in rois:
-            if now - seen > timeout or roi.width == 0 or roi.height == 0:
-                continue
-            if roi.x_offset + roi.width > width or roi.y_offset + roi.height > height:
-                self._count("roi_outside")
-                continue
-            boxes.append((obj_id, (roi.x_offset, roi.y_offset, roi.width, roi.height)))
-        return boxes
+        return self.worker.idle()
 
     def _scales(self) -> dict[int, float]:
         common = float(self.get_parameter("object_scale").value)
@@ -337,7 +276,10 @@ class AxisPoseNode(Node):
         camera = camera_for_image(camera_from_info(frame.info, rectified), rgb.shape[1], rgb.shape[0])
         if not rectified and Undistorter.needed(frame.info):
             rgb = self.undistort(frame.info, camera.K, rgb)
-        boxes = self._boxes(rgb.shape[1], rgb.shape[0])
+        timeout = float(self.get_parameter("roi_timeout").value)
+        boxes, outside = self.rois.fresh(time.monotonic(), timeout, rgb.shape[1], rgb.shape[0])
+        if outside:
+            self._count("roi_outside", outside)
         scores = [1.0] * len(boxes)
         if not boxes and self.estimator.localiser is not None:
             threshold = float(self.get_parameter("score_threshold").value)
@@ -351,38 +293,13 @@ class AxisPoseNode(Node):
             guidance_scale=float(self.get_parameter("guidance_scale").value),
             scales=self._scales(),
             hypotheses=int(self.get_parameter("hypotheses").value),
-            cancelled=self._stop.is_set,
+            cancelled=self.worker.cancelled,
         )
-        header = frame.image.header
-        array = PoseArray(header=header)
-        detections = DetectionArray(header=header)
-        markers = MarkerArray(markers=[Marker(header=header, action=Marker.DELETEALL)])  # the last frame's go
         lifetime = float(self.get_parameter("marker_lifetime").value)
-        best: dict[int, tuple[float, PoseStamped, np.ndarray | None]] = {}
-        for k, (est, score, (_, box)) in enumerate(zip(estimates, scores, boxes, strict=True)):
-            if not est.ok:
-                self._count("pose_refused")
-                continue
-            pose = _pose(est.R, est.t)
-            array.poses.append(pose)
-            detections.detections.append(_detection(est, self.names[est.obj_id], score, pose, box))
-            stamped = PoseStamped(header=header, pose=pose)
-            self.pub_object[est.obj_id].publish(stamped)
-            if est.obj_id not in best or score > best[est.obj_id][0]:
-                best[est.obj_id] = (score, stamped, est.covariance)
-            lengths = self.estimator.objects[est.obj_id].axes.lengths
-            markers.markers.extend(_axis_markers(header, est, self.names[est.obj_id], lengths, k, lifetime))
-        for _, stamped, cov in best.values():
-            self.pub_pose.publish(stamped)
-            if cov is not None:
-                msg = PoseWithCovarianceStamped(header=header)
-                msg.pose.pose, msg.pose.covariance = stamped.pose, [float(v) for v in cov.ravel()]
-                self.pub_pose_cov.publish(msg)
-        self.pub_array.publish(array)
-        self.pub_detections.publish(detections)
-        self.pub_markers.publish(markers)
-        if self.pub_debug.get_subscription_count() > 0:
-            self.pub_debug.publish(rgb_to_image(_debug_overlay(rgb, camera.K, estimates, self.estimator), header))
+        header, box_xywh = frame.image.header, [b for _, b in boxes]
+        refused = self.outputs.publish(header, estimates, scores, box_xywh, self.estimator, rgb, camera.K, lifetime)
+        if refused:
+            self._count("pose_refused", refused)
         self._count("frames_processed")
         now = time.monotonic()
         self.latency.append(now - frame.received)
@@ -401,61 +318,8 @@ class AxisPoseNode(Node):
         self.pub_diag.publish(msg)
 
     def destroy_node(self) -> None:
-        self._stop.set()
-        self._wake.set()
-        self._worker.join(timeout=10.0)
+        self.worker.stop()
         super().destroy_node()
-
-
-def _pose(R: np.ndarray, t: np.ndarray) -> Pose:
-    pose = Pose()
-    pose.position.x, pose.position.y, pose.position.z = (float(v) for v in t)
-    q = Rotation.from_matrix(R).as_quat()  # x, y, z, w
-    pose.orientation.x, pose.orientation.y, pose.orientation.z, pose.orientation.w = (float(v) for v in q)
-    return pose
-
-
-def _detection(est, name: str, score: float, pose: Pose, box: tuple[float, float, float, float]) -> Detection:
-    """One posed instance as axispose_msgs/Detection; covariance all zeros (unknown) for a single sample."""
-    msg = Detection(obj_id=int(est.obj_id), name=name, score=float(score), box=[float(v) for v in box])
-    msg.pose.pose = pose
-    if est.covariance is not None:
-        msg.pose.covariance = [float(v) for v in est.covariance.ravel()]
-    return msg
-
-
-def _axis_markers(header, est, name: str, lengths: np.ndarray, instance: int, lifetime: float) -> list[Marker]:
-    """Three arrows (X red, Y green, Z blue) from the object's origin, in the camera frame; ids 3 x instance + axis,
-    so that two instances of one object keep their own, and gone after `lifetime` seconds (0: until replaced)."""
-    out = []
-    for k, color in enumerate(((1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, 0.0, 1.0))):
-        m = Marker(header=header, ns=f"axispose/{name}", id=3 * instance + k, type=Marker.ARROW, action=Marker.ADD)
-        m.lifetime.sec, m.lifetime.nanosec = int(lifetime), round((lifetime % 1.0) * 1e9) % 1_000_000_000
-        start, end = est.t, est.t + est.R[:, k] * lengths[k]
-        m.points = [
-            Point(x=float(start[0]), y=float(start[1]), z=float(start[2])),
-            Point(x=float(end[0]), y=float(end[1]), z=float(end[2])),
-        ]
-        m.scale.x, m.scale.y, m.scale.z = 0.004, 0.008, 0.01
-        m.color.r, m.color.g, m.color.b, m.color.a = (*color, 1.0)
-        out.append(m)
-    return out
-
-
-def _debug_overlay(rgb: np.ndarray, K: np.ndarray, estimates, estimator: Estimator) -> np.ndarray:
-    """The input with each generated axis image blended into its crop and the estimated axes drawn."""
-    out = rgb.copy()
-    S = estimator.size
-    for est in estimates:
-        A = crop_transform(est.center, est.side, S)[:2]
-        warped = cv2.warpAffine((est.axis_image * 255).astype(np.uint8), A, (rgb.shape[1], rgb.shape[0]), flags=cv2.WARP_INVERSE_MAP)
-        lit = warped.max(axis=2) > 64
-        out[lit] = (0.4 * out[lit] + 0.6 * warped[lit]).astype(np.uint8)
-        if est.ok:
-            bgr = out[..., ::-1].copy()
-            draw_axes(bgr, K, est.R, est.t, estimator.objects[est.obj_id].axes.lengths)
-            out = bgr[..., ::-1].copy()
-    return out
 
 
 def main(args: list[str] | None = None) -> int:

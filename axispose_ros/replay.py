@@ -292,7 +292,7 @@ def _run(
                     pubs[ROI_PREFIX + name].publish(roi)
                 if rate is None:  # the boxes must be in place before the image is processed
                     want = {by_name[n].obj_id: rois.get(n, RegionOfInterest()) for n in by_name}
-                    _spin_until(exe, lambda want=want: all(node.latest_roi(i) == roi for i, roi in want.items()), 10.0)
+                    _spin_until(exe, lambda want=want: all(node.rois.latest(i) == roi for i, roi in want.items()), 10.0)
                 for topic, msg in stream:
                     if topic == info_topic:
                         cameras[_stamp_ns(msg.header)] = np.array(msg.k, dtype=float).reshape(3, 3)

@@ -11,9 +11,10 @@ loops, a simulator reset): a stamp more than `jump` seconds older than the newes
 
 from __future__ import annotations
 
+import threading
 from collections import deque
 from collections.abc import Callable
-from typing import Generic, TypeVar
+from typing import Any, Generic, TypeVar
 
 I = TypeVar("I")
 C = TypeVar("C")  # camera-info type
@@ -121,3 +122,40 @@ class GapCounter:
         self.last = stamp
         self.lost += lost
         return lost
+
+
+Box = tuple[float, float, float, float]
+
+
+class RoiStore:
+    """The latest box (a RegionOfInterest-like message: x_offset, y_offset, width, height) received for each
+    object and when, shared between the executor that adds them and the thread that reads them."""
+
+    def __init__(self) -> None:
+        self._boxes: dict[int, tuple[Any, float]] = {}
+        self._lock = threading.Lock()
+
+    def add(self, obj_id: int, roi: Any, now: float) -> None:
+        with self._lock:
+            self._boxes[obj_id] = (roi, now)
+
+    def latest(self, obj_id: int) -> Any | None:
+        """The last box received for an object (None before any)."""
+        with self._lock:
+            entry = self._boxes.get(obj_id)
+        return entry[0] if entry else None
+
+    def fresh(self, now: float, timeout: float, width: int, height: int) -> tuple[list[tuple[int, Box]], int]:
+        """The boxes at most `timeout` seconds old and not empty, as (obj_id, (x, y, w, h)), and how many fresh
+        ones reached outside a `width` x `height` image (left out)."""
+        with self._lock:
+            entries = list(self._boxes.items())
+        boxes, outside = [], 0
+        for obj_id, (roi, seen) in entries:
+            if now - seen > timeout or roi.width == 0 or roi.height == 0:
+                continue
+            if roi.x_offset + roi.width > width or roi.y_offset + roi.height > height:
+                outside += 1
+                continue
+            boxes.append((obj_id, (roi.x_offset, roi.y_offset, roi.width, roi.height)))
+        return boxes, outside

@@ -181,7 +181,7 @@ def test_pose_stamped_for_a_box_with_the_same_header(harness):
 
     harness.node.estimator.estimate = succeed
     harness.roi()
-    harness.spin_until(lambda: 1 in harness.node._rois, 5.0)
+    harness.spin_until(lambda: harness.node.rois.latest(1) is not None, 5.0)
     sent = harness.frame(sec=5)
     assert harness.spin_until(lambda: harness.got["ape"])
     got = harness.got["ape"][0]
@@ -215,7 +215,7 @@ def test_pose_cov_carries_the_covariance_of_the_samples(harness):
 
     harness.node.estimator.estimate = succeed
     harness.roi()
-    harness.spin_until(lambda: 1 in harness.node._rois, 5.0)
+    harness.spin_until(lambda: harness.node.rois.latest(1) is not None, 5.0)
     sent = harness.frame(sec=6)
     assert harness.spin_until(lambda: harness.got["cov"])
     got = harness.got["cov"][0]
@@ -228,9 +228,9 @@ def test_pose_cov_carries_the_covariance_of_the_samples(harness):
 
 def test_debug_image_only_when_subscribed(harness):
     harness.subscribe_debug()
-    harness.spin_until(lambda: harness.node.pub_debug.get_subscription_count() > 0, 5.0)
+    harness.spin_until(lambda: harness.node.outputs.pub_debug.get_subscription_count() > 0, 5.0)
     harness.roi()
-    harness.spin_until(lambda: 1 in harness.node._rois, 5.0)
+    harness.spin_until(lambda: harness.node.rois.latest(1) is not None, 5.0)
     harness.frame(sec=7)
     assert harness.spin_until(lambda: harness.got["debug"])
     assert harness.got["debug"][0].header.stamp.sec == 7 and harness.got["debug"][0].encoding == "rgb8"
@@ -333,7 +333,7 @@ def test_parameters_are_validated_at_start_and_at_run_time(checkpoint, tmp_path)
         assert h.node.set_parameters([Parameter("object_scales.ape", value=-1.0)])[0].successful is False
         assert h.node.set_parameters([Parameter("object_scales.ape", value=0.06)])[0].successful
         assert h.node._scales() == {1: 0.06}
-        assert set(h.node.pub_object) == {1}  # only 'ape' is published
+        assert set(h.node.outputs.pub_object) == {1}  # only 'ape' is published
     finally:
         h.close()
 
@@ -359,7 +359,7 @@ def test_burst_of_300_frames_stays_bounded(harness):
         return c["frames_in"] >= 30 and c["frames_in"] == c["frames_processed"] + dropped + len(node.sync.images)
 
     assert harness.spin_until(accounted, 60.0), dict(node.counts)
-    assert len(node.sync.images) <= node.sync.max_images and node._slot is None
+    assert len(node.sync.images) <= node.sync.max_images and node.worker.idle()
     assert rss_mb() - start < 200
 
 
@@ -369,7 +369,7 @@ def test_clean_shutdown_with_frames_in_flight(checkpoint):
         h.frame(sec=200 + k)
         h.exe.spin_once(timeout_sec=0.01)
     h.close()
-    assert not h.node._worker.is_alive()
+    assert not h.node.worker.alive()
 
 
 def test_shutdown_mid_frame_is_prompt_even_with_1000_ddim_steps(checkpoint):
@@ -387,14 +387,14 @@ def test_shutdown_mid_frame_is_prompt_even_with_1000_ddim_steps(checkpoint):
     try:
         h.spin_until(lambda: h.pub_roi.get_subscription_count() > 0, 5.0)
         h.roi()
-        assert h.spin_until(lambda: 1 in h.node._rois, 5.0)
+        assert h.spin_until(lambda: h.node.rois.latest(1) is not None, 5.0)
         h.frame(sec=300)
-        assert h.spin_until(lambda: h.node._busy, 10.0)
+        assert h.spin_until(lambda: h.node.worker.busy, 10.0)
         time.sleep(0.5)  # well inside the 1000 steps
     finally:
         start = time.monotonic()
         h.close()
-    assert time.monotonic() - start < 1.0 and not h.node._worker.is_alive()
+    assert time.monotonic() - start < 1.0 and not h.node.worker.alive()
     assert not any(k.startswith("dropped_") for k in h.node.counters()) and not h.node.counters().get("frames_processed")
 
 

@@ -329,7 +329,13 @@ class RecipeRunner:
         return True
 
     def _finish(self, stage: Stage, extra: dict[str, Any]) -> None:
-        record = {k: v for k, v in _training_record(self.checkpoint(stage.name)).items() if k != "data"}
+        """Mark the stage done with its record: the trainer's (steps, time, hardware), or an adopted file's whole
+        training record under "training" (which may itself list the stages that made it)."""
+        record = _training_record(self.checkpoint(stage.name))
+        if "adopted" in extra:
+            record = {"training": record} if record else {}
+        else:
+            record.pop("data", None)
         record = {"name": stage.name, "config_sha256": stage.sha256, **record, **extra}
         tmp = self.done_file(stage.name).with_suffix(".tmp")
         tmp.write_text(json.dumps(record, indent=1))
