@@ -374,7 +374,8 @@ def test_clean_shutdown_with_frames_in_flight(checkpoint):
 
 def test_shutdown_mid_frame_is_prompt_even_with_1000_ddim_steps(checkpoint):
     """A frame in the AGM with ddim_steps 1000 (each step slowed to 10 ms: 10 s a frame) is abandoned between two
-    steps when the node shuts down: the worker is gone within a second, nothing counted as dropped."""
+    steps when the node shuts down: the worker is gone long before the frame's remaining steps (at least 9 s)
+    could have run, nothing counted as dropped. The bound leaves a busy host room for the shutdown itself."""
     h = Harness(checkpoint, ddim_steps=1000)
     denoiser = h.node.estimator.agm.denoiser
     real_forward = denoiser.forward
@@ -394,7 +395,7 @@ def test_shutdown_mid_frame_is_prompt_even_with_1000_ddim_steps(checkpoint):
     finally:
         start = time.monotonic()
         h.close()
-    assert time.monotonic() - start < 1.0 and not h.node.worker.alive()
+    assert time.monotonic() - start < 4.0 and not h.node.worker.alive()
     assert not any(k.startswith("dropped_") for k in h.node.counters()) and not h.node.counters().get("frames_processed")
 
 
