@@ -71,7 +71,14 @@ def _synth(args: argparse.Namespace) -> int:
         from axispose_core.data.mesh_import import import_meshes
 
         models = Path(args.out) / "models"
-        ids = import_meshes(args.models, models, units=args.mesh_units)
+        try:
+            symmetries = dict(spec.split("=", 1) for spec in args.symmetry if "=" in spec)
+            if len(symmetries) != len(args.symmetry):
+                raise BopFormatError(f"--symmetry takes NAME=SPEC, got {' '.join(args.symmetry)}")
+            ids = import_meshes(args.models, models, units=args.mesh_units, symmetries=symmetries)
+        except BopFormatError as err:
+            print(f"axispose synth: {err}", file=sys.stderr)
+            return 2
         print("imported " + ", ".join(f"{p} as object {i}" for i, p in ids.items()) + f" into {models}")
     n = generate(cfg, models, args.out, workers=args.workers)
     print(f"wrote {n} images into {args.out}")
@@ -383,6 +390,9 @@ def build_parser() -> argparse.ArgumentParser:
         help="a BOP models folder (obj_XXXXXX.ply + models_info.json), or PLY/OBJ files (ids 1, 2, ... in order)",
     )
     sy.add_argument("--mesh-units", type=float, default=0.001, help="metres per unit of PLY/OBJ files given to --models (BOP: mm)")
+    sy.add_argument("--symmetry", nargs="*", default=[], metavar="NAME=SPEC",
+                    help="an imported mesh's symmetry about an axis of its own frame through its origin: continuous-z "
+                    "(a body of revolution), N-x (looks the same turned by 360/N degrees), ...")  # fmt: skip
     sy.add_argument("--out", required=True, help="dataset folder (reruns resume it)")
     sy.add_argument("--scenes", type=int, required=True)
     sy.add_argument("--images-per-scene", type=int, default=25)

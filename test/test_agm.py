@@ -304,9 +304,15 @@ def test_a_grown_encoder_starts_as_the_network_it_grew_from():
     same = AxisGenerator(AGMConfig(denoiser=TINY, encoder_loss=EncoderLossConfig(depth_weight=2.0), train_guidance=False))
     assert grow_into(same, small) == []
     assert all(torch.equal(v, small.state_dict()[k]) for k, v in same.state_dict().items())
+    # more objects: the known rows are kept, a new object's starts as their mean
+    wider_table = AxisGenerator(AGMConfig(denoiser=replace(TINY, encoder=replace(TINY.encoder, objects=TINY.encoder.objects + 2))))
+    assert grow_into(wider_table, small) == []
+    rows, old = wider_table.denoiser.encoder.embedding.weight, small.denoiser.encoder.embedding.weight
+    torch.testing.assert_close(rows[: len(old)], old)
+    torch.testing.assert_close(rows[len(old) :], old.mean(dim=0, keepdim=True).expand(2, -1))
     # only blocks may be added: another width, or fewer blocks, is refused
     wider = replace(TINY, encoder=replace(TINY.encoder, widths=tuple(2 * w for w in TINY.encoder.widths)))
     fewer = replace(TINY, encoder=replace(TINY.encoder, blocks=tuple(max(b - 1, 0) for b in blocks)))
     for other in (wider, fewer):
-        with pytest.raises(ValueError, match="only the encoder's blocks per stage may grow"):
+        with pytest.raises(ValueError, match="only the encoder's blocks per stage and objects may grow"):
             grow_into(AxisGenerator(AGMConfig(denoiser=other)), small)

@@ -165,7 +165,7 @@ def _models(folder: Path, **kw) -> Path:
     return folder
 
 
-def test_bad_input_is_refused_before_any_work(lmo_dir, tmp_path):
+def test_bad_input_is_refused_before_any_work(lmo_dir, tmp_path, caplog):
     with pytest.raises(ValueError, match=r"object id\(s\) \[2, 3\] are not in"):
         CropStream(StreamConfig(objects=(1, 2, 3)), lmo_dir / "models")
     empty = tmp_path / "empty"
@@ -175,8 +175,12 @@ def test_bad_input_is_refused_before_any_work(lmo_dir, tmp_path):
         CropStream(StreamConfig(), empty)
     with pytest.raises(ValueError, match="no faces"):
         CropStream(StreamConfig(), _models(tmp_path / "nofaces", faces=False))
-    with pytest.raises(ValueError, match="no vertex colours"):
-        CropStream(StreamConfig(), _models(tmp_path / "grey", colours=False))
+    with caplog.at_level("WARNING"):  # an uncoloured mesh is rendered grey, with a warning
+        grey = CropStream(StreamConfig(size=32, occluded_prob=0.0, clutter_prob=0.0), _models(tmp_path / "grey", colours=False))
+    assert "no vertex colours; the crop stream renders it grey" in caplog.text
+    sample = grey[0]
+    obj = sample.crop[sample.mask_visib > 0].astype(float)  # the object's pixels: shaded grey, not coloured
+    assert len(obj) > 20 and np.abs(obj - obj.mean(axis=1, keepdims=True)).max() < 40
     for size in (50, 16, 1024):
         with pytest.raises(ValueError, match="multiple of 16"):
             StreamConfig(size=size)

@@ -39,6 +39,16 @@ def _config(tmp_path, **overrides):
     return str(path)
 
 
+def test_more_objects_than_the_config_has_rows_need_no_edit(data, tmp_path):
+    """The data shows 3 objects, the config's encoder embeds 2: the run gives the embedding a row for each."""
+    tiny = {**TINY_AGM_YAML, "denoiser": {**TINY_AGM_YAML["denoiser"], "encoder": {**TINY_AGM_YAML["denoiser"]["encoder"], "objects": 2}}}
+    cfg = _config(tmp_path, steps=1, agm=tiny)
+    out = tmp_path / "three.safetensors"
+    assert main(["train", "--data", str(data), "--out", str(out), "--config", cfg, "--threads", "1"]) == 0
+    est = Estimator.load(out)
+    assert len(est.config.objects) == 3 and est.config.agm.denoiser.encoder.objects == 3
+
+
 def test_short_run_then_resume(data, tmp_path):
     out = tmp_path / "agm.safetensors"
     cfg = _config(tmp_path)

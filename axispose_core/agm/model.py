@@ -83,16 +83,21 @@ class AxisGenerator(nn.Module):
 
 def grow_into(model: AxisGenerator, start: AxisGenerator) -> list[str]:
     """Load `start`'s weights into `model`: the same network (its training settings, e.g. loss weights, may
-    differ), or one whose encoder has more residual blocks per stage; returns the names of the blocks added (none
-    for the same network). The added blocks start as the identity (their last convolution zeroed), so the grown
-    network computes what `start` did and training goes on from its weights with more capacity."""
+    differ), or one whose encoder has more residual blocks per stage or more object rows; returns the names of the
+    blocks added (none for the same network). The added blocks start as the identity (their last convolution
+    zeroed), so the grown network computes what `start` did and training goes on from its weights with more
+    capacity; an added object's embedding starts as the mean of the known ones'."""
     old, new = start.config, model.config
     oe, ne = old.denoiser.encoder, new.denoiser.encoder
-    same = replace(new.denoiser, encoder=replace(ne, blocks=oe.blocks))
-    if same != old.denoiser or len(ne.blocks) != len(oe.blocks) or any(n < o for n, o in zip(ne.blocks, oe.blocks, strict=True)):
-        raise ValueError(f"cannot grow an AGM {old.denoiser} into {new.denoiser}: only the encoder's blocks per stage may grow")
+    same = replace(new.denoiser, encoder=replace(ne, blocks=oe.blocks, objects=oe.objects))
+    grows = len(ne.blocks) == len(oe.blocks) and all(n >= o for n, o in zip(ne.blocks, oe.blocks, strict=True)) and ne.objects >= oe.objects
+    if same != old.denoiser or not grows:
+        raise ValueError(f"cannot grow an AGM {old.denoiser} into {new.denoiser}: only the encoder's blocks per stage and objects may grow")
     added = [f"denoiser.encoder.stages.{s}.{b}" for s, (o, n) in enumerate(zip(oe.blocks, ne.blocks, strict=True)) for b in range(o, n)]
-    missing, unexpected = model.load_state_dict(start.state_dict(), strict=False)
+    state = start.state_dict()
+    rows = state["denoiser.encoder.embedding.weight"]
+    state["denoiser.encoder.embedding.weight"] = torch.cat([rows, rows.mean(dim=0, keepdim=True).expand(ne.objects - oe.objects, -1)])
+    missing, unexpected = model.load_state_dict(state, strict=False)
     if unexpected or any(not any(k.startswith(a + ".") for a in added) for k in missing):
         raise ValueError(f"weights do not match the grown network: missing {missing}, unexpected {unexpected}")
     for name in added:

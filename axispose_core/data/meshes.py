@@ -47,6 +47,17 @@ def load_ply(path: str | Path, units: float = MM) -> Mesh:
         faces = np.asarray(np.stack(polys) if len(polys) else faces, dtype=np.int64)
     if not np.all(np.isfinite(vertices)) or (faces.size and (faces.min() < 0 or faces.max() >= len(vertices))):
         raise BopFormatError(f"{path}: non-finite vertices or face indices out of range")
+    texture = next((c.split(None, 1)[1] for c in ply.comments if c.lower().startswith("texturefile") and len(c.split()) > 1), None)
+    uv_names = next((uv for uv in (("texture_u", "texture_v"), ("s", "t"), ("u", "v")) if set(uv) <= set(names)), None)
+    if texture is not None and faces.size:  # a textured PLY: UVs per vertex, or per face corner ("texcoord")
+        material = _Material(texture=_read_texture(path.parent / texture.strip()))
+        if uv_names is not None:
+            corner_uv = np.column_stack([v[uv_names[0]], v[uv_names[1]]]).astype(np.float64)[faces]
+        elif "texcoord" in (ply["face"].data.dtype.names or ()):
+            corner_uv = np.asarray(np.stack(ply["face"].data["texcoord"]), dtype=np.float64).reshape(-1, 3, 2)
+        else:
+            raise BopFormatError(f"{path}: names a TextureFile but has no texture coordinates")
+        return _textured_mesh(vertices, faces, corner_uv, np.zeros(len(faces), dtype=np.int64), [material], colors)
     return Mesh(vertices, faces, colors, normals)
 
 
@@ -70,10 +81,123 @@ def ply_vertex_properties(path: str | Path) -> tuple[str, ...]:
     return tuple(names)
 
 
+TEXELS_PER_EDGE = 8.0
+"""A textured face is split until none of its edges spans more texels than this, so the texture's detail survives
+as vertex colours (what the renderer interpolates)."""
+FACE_BUDGET = 200_000
+"""Splitting stops before a mesh would have more faces than this."""
+
+
+@dataclass
+class _Material:
+    kd: np.ndarray | None = None
+    """Diffuse colour in [0, 1]."""
+    texture: np.ndarray | None = None
+    """Diffuse texture, H x W x 3 float RGB in [0, 1] (map_Kd, or a PLY's TextureFile)."""
+
+
+def _read_texture(path: Path) -> np.ndarray:
+    import cv2
+
+    image = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    if image is None:
+        raise BopFormatError(f"{path}: unreadable texture image")
+    image = image[..., None] if image.ndim == 2 else image
+    image = np.repeat(image, 3, axis=2) if image.shape[2] == 1 else image[..., 2::-1]  # BGR(A) -> RGB
+    return image.astype(np.float64) / (65535.0 if image.dtype == np.uint16 else 255.0)
+
+
+def _sample(texture: np.ndarray, uv: np.ndarray) -> np.ndarray:
+    """Bilinear texture colours at UVs (N, 2), v up, repeating outside [0, 1] as OBJ viewers do."""
+    h, w = texture.shape[:2]
+    x = np.mod(uv[:, 0], 1.0) * w - 0.5
+    y = np.mod(1.0 - uv[:, 1], 1.0) * h - 0.5
+    x0, y0 = np.floor(x).astype(int), np.floor(y).astype(int)
+    fx, fy = (x - x0)[:, None], (y - y0)[:, None]
+    c = [texture[np.mod(y0 + dy, h), np.mod(x0 + dx, w)] for dy in (0, 1) for dx in (0, 1)]
+    return (c[0] * (1 - fx) + c[1] * fx) * (1 - fy) + (c[2] * (1 - fx) + c[3] * fx) * fy
+
+
+def _textured_mesh(positions: np.ndarray, corner_v: np.ndarray, corner_uv: np.ndarray, face_mat: np.ndarray,
+                   materials: list[_Material], vertex_colors: np.ndarray | None) -> Mesh:  # fmt: skip
+    """A mesh whose colours come from materials: every distinct (vertex, UV, material) corner becomes a vertex of
+    its own (UV seams and material borders keep their colours), textured faces are split down to
+    TEXELS_PER_EDGE, and each vertex takes its texture's colour at its UV, else its material's Kd, else the file's
+    vertex colour, else grey. `corner_uv` holds NaN where a corner has no UV; `face_mat` -1 for no material."""
+    F = len(corner_v)
+    mat = np.repeat(face_mat, 3)
+    keys = np.column_stack([corner_v.ravel(), np.nan_to_num(corner_uv.reshape(-1, 2), nan=-1e9), mat])
+    uniq, inverse = np.unique(keys, axis=0, return_inverse=True)
+    pos = positions[uniq[:, 0].astype(int)]
+    src = uniq[:, 0].astype(int)
+    uv = np.where(uniq[:, 1:3] < -1e8, np.nan, uniq[:, 1:3])
+    vmat = uniq[:, 3].astype(int)
+    faces = inverse.reshape(-1).reshape(F, 3).astype(np.int64)
+    tex_size = np.array([max(m.texture.shape[:2]) if m.texture is not None else 0 for m in materials] + [0], dtype=float)
+    while True:
+        fm = vmat[faces[:, 0]]
+        textured = (tex_size[fm] > 0) & ~np.isnan(uv[faces]).any(axis=(1, 2))
+        span = np.max([np.abs(uv[faces[:, k]] - uv[faces[:, (k + 1) % 3]]).max(axis=1) for k in range(3)], axis=0)
+        big = textured & (np.nan_to_num(span) * tex_size[fm] > TEXELS_PER_EDGE)
+        if not big.any() or len(faces) + 3 * int(big.sum()) > FACE_BUDGET:
+            break
+        tri = faces[big]
+        edges = np.sort(np.concatenate([tri[:, [0, 1]], tri[:, [1, 2]], tri[:, [2, 0]]]), axis=1)
+        pairs, which = np.unique(edges, axis=0, return_inverse=True)
+        mid = len(pos) + which.reshape(-1).reshape(3, -1)  # ab, bc, ca of each split face
+        pos = np.concatenate([pos, 0.5 * (pos[pairs[:, 0]] + pos[pairs[:, 1]])])
+        uv = np.concatenate([uv, 0.5 * (uv[pairs[:, 0]] + uv[pairs[:, 1]])])
+        vmat, src = np.concatenate([vmat, vmat[pairs[:, 0]]]), np.concatenate([src, src[pairs[:, 0]]])
+        a, b, c = tri.T
+        ab, bc, ca = mid
+        split = np.concatenate([np.stack(t, axis=1) for t in ((a, ab, ca), (ab, b, bc), (ca, bc, c), (ab, bc, ca))])
+        faces = np.concatenate([faces[~big], split])
+    colors = np.full((len(pos), 3), 0.6)
+    if vertex_colors is not None:
+        colors = vertex_colors[src].astype(np.float64) / 255.0
+    for k, m in enumerate(materials):
+        own = vmat == k
+        if m.kd is not None:
+            colors[own] = m.kd
+        if m.texture is not None:
+            hit = own & ~np.isnan(uv).any(axis=1)
+            colors[hit] = _sample(m.texture, uv[hit])
+    return Mesh(pos, faces, (np.clip(colors, 0, 1) * 255).round().astype(np.uint8))
+
+
+def _read_mtl(path: Path) -> dict[str, _Material]:
+    """The materials of an MTL file by name: Kd and the map_Kd texture (relative to the MTL file)."""
+    try:
+        lines = path.read_text(encoding="utf-8", errors="replace").splitlines()
+    except OSError as err:
+        raise BopFormatError(f"{path}: cannot read the OBJ's material file ({err})") from err
+    out: dict[str, _Material] = {}
+    current: _Material | None = None
+    for n, line in enumerate(lines, 1):
+        parts = line.split()
+        if not parts:
+            continue
+        try:
+            if parts[0] == "newmtl":
+                current = out.setdefault(" ".join(parts[1:]), _Material())
+            elif parts[0] == "Kd" and current is not None:
+                current.kd = np.clip([float(v) for v in parts[1:4]], 0, 1)
+            elif parts[0] == "map_Kd" and current is not None:
+                current.texture = _read_texture(path.parent / parts[-1])  # options (-s, -o ...) come before the name
+        except (ValueError, IndexError) as err:
+            raise BopFormatError(f"{path}:{n}: malformed '{parts[0]}' line") from err
+    return out
+
+
 def load_obj(path: str | Path, units: float = MM) -> Mesh:
-    """Wavefront OBJ: `v x y z [r g b]` vertices (colours in [0,1]) and polygon faces, fan-triangulated."""
+    """Wavefront OBJ: `v x y z [r g b]` vertices (colours in [0,1]), `vt` texture coordinates and polygon faces
+    (fan-triangulated), coloured by their MTL materials (`mtllib`, `usemtl`: the map_Kd texture where a face has
+    UVs, else Kd); without materials, by the vertex colours."""
     path = Path(path)
-    verts, cols, faces = [], [], []
+    verts, cols, uvs, corners, corner_uv, face_mat = [], [], [], [], [], []
+    materials: dict[str, _Material] = {}
+    order: list[str] = []
+    current = -1
     try:
         lines = path.read_text(encoding="utf-8", errors="replace").splitlines()
     except OSError as err:
@@ -89,20 +213,42 @@ def load_obj(path: str | Path, units: float = MM) -> Mesh:
                 verts.append([float(v) for v in parts[1:4]])
                 if len(parts) >= 7:
                     cols.append([float(c) for c in parts[4:7]])
+            elif parts[0] == "vt":
+                uvs.append([float(parts[1]), float(parts[2]) if len(parts) > 2 else 0.0])
             elif parts[0] == "f":
-                idx = [int(p.split("/")[0]) for p in parts[1:]]
+                refs = [p.split("/") for p in parts[1:]]
+                idx = [int(r[0]) for r in refs]
                 idx = [i - 1 if i > 0 else len(verts) + i for i in idx]
-                faces += [(idx[0], idx[k], idx[k + 1]) for k in range(1, len(idx) - 1)]
+                tex = [int(r[1]) if len(r) > 1 and r[1] else 0 for r in refs]
+                tex = [t - 1 if t > 0 else (len(uvs) + t if t < 0 else -1) for t in tex]
+                for k in range(1, len(idx) - 1):
+                    corners.append((idx[0], idx[k], idx[k + 1]))
+                    corner_uv.append((tex[0], tex[k], tex[k + 1]))
+                    face_mat.append(current)
+            elif parts[0] == "mtllib":
+                for name in parts[1:]:
+                    for mat_name, m in _read_mtl(path.parent / name).items():
+                        materials[mat_name] = m
+            elif parts[0] == "usemtl":
+                name = " ".join(parts[1:])
+                if name not in order:
+                    order.append(name)
+                current = order.index(name)
         except (ValueError, IndexError) as err:
             raise BopFormatError(f"{path}:{n}: malformed '{parts[0]}' line") from err
-    if not verts or not faces:
+    if not verts or not corners:
         raise BopFormatError(f"{path}: no vertices or faces")
     vertices = np.asarray(verts, dtype=np.float64) * units
-    f = np.asarray(faces, dtype=np.int64)
-    if f.min() < 0 or f.max() >= len(vertices):
+    f = np.asarray(corners, dtype=np.int64)
+    t = np.asarray(corner_uv, dtype=np.int64)
+    if f.min() < 0 or f.max() >= len(vertices) or t.max() >= len(uvs):
         raise BopFormatError(f"{path}: face index out of range")
     colors = (np.clip(np.asarray(cols), 0, 1) * 255).astype(np.uint8) if len(cols) == len(verts) else None
-    return Mesh(vertices, f, colors)
+    used = [materials.get(name, _Material()) for name in order]
+    if not any(m.kd is not None or m.texture is not None for m in used):
+        return Mesh(vertices, f, colors)
+    uv_table = np.concatenate([np.asarray(uvs, dtype=np.float64).reshape(-1, 2), np.full((1, 2), np.nan)])
+    return _textured_mesh(vertices, f, uv_table[t], np.asarray(face_mat), used, colors)
 
 
 def load_mesh(path: str | Path, units: float = MM) -> Mesh:

@@ -213,9 +213,10 @@ def train_agm(
         def batches(step: int) -> Iterator[dict[str, torch.Tensor]]:
             return curriculum_batches(stages, optim.batch, step, size, rank, optim.workers)
 
-    if len(objects) > cfg.agm.denoiser.encoder.objects:
-        n = cfg.agm.denoiser.encoder.objects
-        raise ValueError(f"{len(objects)} objects to train on, but the AGM's encoder embeds {n} (agm.denoiser.encoder.objects)")
+    if len(objects) > (rows := cfg.agm.denoiser.encoder.objects):  # the config's rows are a minimum, not a limit
+        encoder = dataclasses.replace(cfg.agm.denoiser.encoder, objects=len(objects))
+        cfg = dataclasses.replace(cfg, agm=dataclasses.replace(cfg.agm, denoiser=dataclasses.replace(cfg.agm.denoiser, encoder=encoder)))
+        print(f"{len(objects)} objects: the encoder's object embedding gets a row for each (the config has {rows})")
     model = AxisGenerator(cfg.agm)
     if init and not run.resume:
         start_from = Estimator.load(init)

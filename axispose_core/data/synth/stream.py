@@ -21,6 +21,7 @@ One sample, in order:
 
 from __future__ import annotations
 
+import logging
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -44,6 +45,8 @@ from axispose_core.data.synth.randomize import background, camera_effects, jpeg,
 from axispose_core.data.synth.raster import Light, RenderMesh, decimate, render
 from axispose_core.data.synth.scene import primitive, upright_rotation
 from axispose_core.objects import ObjectSpec
+
+log = logging.getLogger(__name__)
 
 ATTEMPTS = 20
 """Fresh draws of one sample, from (seed, i, attempt), before giving up (a draw fails when its visible fraction
@@ -102,8 +105,8 @@ class _Model:
 def _check_mesh(mesh: RenderMesh, path: Path) -> None:
     if not len(mesh.faces):
         raise ValueError(f"{path}: the mesh has no faces (the stream renders surfaces, not point clouds)")
-    if "red" not in ply_vertex_properties(path):
-        raise ValueError(f"{path}: the mesh has no vertex colours (the stream renders the object's appearance)")
+    if "red" not in ply_vertex_properties(path):  # rendered grey, as the synthetic frames render it
+        log.warning("%s: the mesh has no vertex colours; the crop stream renders it grey", path)
 
 
 class CropStream:
