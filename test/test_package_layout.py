@@ -201,3 +201,13 @@ def test_the_node_loads_no_data_or_training_code():
     code = f"import sys, axispose_ros.node; print(*sorted(m for m in sys.modules if m.startswith({pkgs})))"
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True, cwd=REPO)
     assert out.stdout.strip() == ""
+
+
+def test_the_docs_describe_the_product_not_its_history():
+    """BENCHMARKS holds the shipped model's numbers and one row per design comparison, the model card the model;
+    the history of runs lives in git."""
+    limits = {"BENCHMARKS.md": 400, "MODEL_CARD.md": 120}
+    for name, most in limits.items():
+        text = (REPO / "docs" / name).read_text()
+        assert len(text.splitlines()) <= most, f"docs/{name}: {len(text.splitlines())} lines, at most {most}"
+        assert not re.search(r"\b(phase|session)s?\b", text, re.IGNORECASE), f"docs/{name} tells its history"
