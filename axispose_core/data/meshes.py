@@ -3,6 +3,7 @@ renderer's mesh. Lengths become metres here, as `data/bop.py` does for BOP's oth
 
 from __future__ import annotations
 
+import logging
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -11,6 +12,8 @@ import plyfile
 
 from axispose_core.data.bop import MM, BopFormatError, model_path
 from axispose_core.data.synth.raster import RenderMesh, vertex_normals
+
+log = logging.getLogger(__name__)
 
 
 @dataclass(frozen=True)
@@ -169,8 +172,9 @@ def _read_mtl(path: Path) -> dict[str, _Material]:
     """The materials of an MTL file by name: Kd and the map_Kd texture (relative to the MTL file)."""
     try:
         lines = path.read_text(encoding="utf-8", errors="replace").splitlines()
-    except OSError as err:
-        raise BopFormatError(f"{path}: cannot read the OBJ's material file ({err})") from err
+    except OSError as err:  # as viewers do: the mesh without those materials
+        log.warning("%s: cannot read the OBJ's material file (%s); its materials are left out", path, err)
+        return {}
     out: dict[str, _Material] = {}
     current: _Material | None = None
     for n, line in enumerate(lines, 1):
@@ -183,7 +187,13 @@ def _read_mtl(path: Path) -> dict[str, _Material]:
             elif parts[0] == "Kd" and current is not None:
                 current.kd = np.clip([float(v) for v in parts[1:4]], 0, 1)
             elif parts[0] == "map_Kd" and current is not None:
-                current.texture = _read_texture(path.parent / parts[-1])  # options (-s, -o ...) come before the name
+                texture = path.parent / parts[-1]  # options (-s, -o ...) come before the name
+                if texture.is_file():
+                    current.texture = _read_texture(texture)
+                else:
+                    log.warning("%s:%d: texture %s not found; the material's Kd stands in", path, n, texture)
+        except BopFormatError:
+            raise
         except (ValueError, IndexError) as err:
             raise BopFormatError(f"{path}:{n}: malformed '{parts[0]}' line") from err
     return out
@@ -226,7 +236,7 @@ def load_obj(path: str | Path, units: float = MM) -> Mesh:
                     corner_uv.append((tex[0], tex[k], tex[k + 1]))
                     face_mat.append(current)
             elif parts[0] == "mtllib":
-                for name in parts[1:]:
+                for name in parts[1:]:  # none named: nothing to read
                     for mat_name, m in _read_mtl(path.parent / name).items():
                         materials[mat_name] = m
             elif parts[0] == "usemtl":
@@ -234,6 +244,8 @@ def load_obj(path: str | Path, units: float = MM) -> Mesh:
                 if name not in order:
                     order.append(name)
                 current = order.index(name)
+        except BopFormatError:
+            raise
         except (ValueError, IndexError) as err:
             raise BopFormatError(f"{path}:{n}: malformed '{parts[0]}' line") from err
     if not verts or not corners:
