@@ -108,6 +108,7 @@ def trained(frames, tmp_path_factory):
     return before, out
 
 
+@pytest.mark.slow
 def test_training_on_a_tiny_set_increases_recall(frames, trained):
     before, path = trained
     after = load_localiser(path)

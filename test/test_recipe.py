@@ -44,6 +44,7 @@ def _write(tmp_path: Path, recipe: dict, name: str = "tiny.yaml") -> Path:
     return path
 
 
+@pytest.mark.slow
 def test_a_short_recipe_builds_resumes_and_records_itself(lmo_dir, tmp_path):
     path, out = _write(tmp_path, _recipe(lmo_dir / "models")), tmp_path / "run"
     recipe = load_recipe(path)

@@ -97,6 +97,7 @@ def test_visibility_ranges_are_met(stream, samples, lmo_dir, tmp_path):
     assert np.all((vis >= 0.3) & (vis <= 0.5)), vis
 
 
+@pytest.mark.slow
 def test_worker_processes_deliver_the_same_samples_and_stop(stream, samples):
     """After the parent has rendered (its OpenCV pool running), workers still start, deliver samples 100-111 in
     order exactly as one process makes them, and exit when the loader goes."""
@@ -127,6 +128,7 @@ def _peak_mb() -> float:
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024  # kB on Linux
 
 
+@pytest.mark.slow
 def test_memory_stays_flat_over_10000_samples(stream):
     for i in range(500):
         stream[i]

@@ -79,6 +79,7 @@ def test_short_run_then_resume(data, tmp_path):
     assert resumed and all(1000 < t < 1600 for t in resumed)  # the CSV's clock goes on from the saved time
 
 
+@pytest.mark.slow
 def test_torchrun_two_cpu_processes_with_gloo(data, tmp_path):
     out = tmp_path / "ddp.safetensors"
     torchrun = os.path.join(os.path.dirname(sys.executable), "torchrun")
@@ -114,6 +115,7 @@ def test_init_starts_from_a_checkpoints_weights(data, tmp_path):
               "--init", str(first)])  # fmt: skip
 
 
+@pytest.mark.slow
 def test_stream_training_is_seeded_resumable_and_validated(lmo_dir, tmp_path):
     """On the crop stream (no BOP folders): two runs of one config give the same weights; the CSV logs the crops
     seen and held-out metrics; a resumed run continues."""
@@ -143,6 +145,7 @@ def test_stream_training_is_seeded_resumable_and_validated(lmo_dir, tmp_path):
               "--config", _config(tmp_path, stream={"size": 32})])  # fmt: skip
 
 
+@pytest.mark.slow
 def test_loss_falls_on_the_stream(lmo_dir):
     """A small AGM trained for 40 steps on fresh stream crops lowers its loss on a fixed held-out batch."""
     from dataclasses import replace
