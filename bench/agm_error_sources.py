@@ -9,7 +9,10 @@ as large as the crop's box (which needs the mesh at run time, so the model-free 
 Depth sources: the poses are estimated with head_depth_weight 0 (the TBM's depth from the drawn axis lengths),
 and each instance's encoder depth (`PoseEstimate.head_depth`) is kept, so one run scores the TBM's depth, the
 encoder's, and their fusion at every weight in `--weights` on the same rotations: the table that sets the
-checkpoint's head_depth_weight (choose it on validation frames, not on the test set).
+checkpoint's head_depth_weight (choose it on validation frames, not on the test set). Two more sources read the
+encoder's dense surface points (model coordinates in λ_O units at half the crop's resolution, where its mask is
+above 0.5): "dense", t solved from them with the TBM's rotation (`tbm/dense.py`), and "PnP", rotation and
+translation from the same correspondences by OpenCV's EPnP in RANSAC (its rotation error is printed too).
 
     python bench/agm_error_sources.py --checkpoint axispose_core/models/axispose_lmo.safetensors \\
         --data data/lmo_val --models ../shared/data/lmo/models_eval --json bench/results/agm_error_sources.json
@@ -22,6 +25,7 @@ import dataclasses
 import platform
 import time
 
+import cv2
 import numpy as np
 import torch
 from write_results import write_results
@@ -29,9 +33,10 @@ from write_results import write_results
 from axispose_core.camera import project_model
 from axispose_core.data.bop import model_path
 from axispose_core.data.meshes import load_ply
-from axispose_core.estimator import Estimator, fuse_depth
+from axispose_core.estimator import Estimator, crop_batch, fuse_depth
 from axispose_core.evaluate import Prediction, evaluate
-from axispose_core.metrics import add_or_adi
+from axispose_core.metrics import add_or_adi, re
+from axispose_core.tbm.dense import translation_from_points
 
 BANDS = ((0.1, 0.5), (0.5, 0.8), (0.8, 1.0))
 """Visible-fraction bands the depth errors are split by."""
@@ -68,10 +73,28 @@ def main() -> None:
     est.config = dataclasses.replace(est.config, head_depth_weight=0.0)  # t is the TBM's; the encoder's depth rides along
     objects = list(est.config.objects)
     head_depths: list[float] = []
+    dense: list[tuple[float, float, np.ndarray | None]] = []  # per record: dense z, PnP z, PnP rotation
+    S = est.size
+    grid = np.stack(np.meshgrid(np.arange(S // 2) * 2 + 0.5, np.arange(S // 2) * 2 + 0.5), axis=-1).reshape(-1, 2)
 
     def predict(image: np.ndarray, K: np.ndarray, boxes: list) -> list[Prediction]:
         poses = est.estimate(image, K, boxes, steps=args.steps)
         head_depths.extend(p.head_depth for p in poses)
+        cuts, x = crop_batch(image, K, boxes, est.objects, S, est.config.crop_pad)
+        with torch.inference_mode():
+            enc = est.agm.encode(x, torch.tensor([est.index[o] for o, _ in boxes], dtype=torch.long))
+        pts = enc.points.float().numpy().reshape(len(boxes), 3, -1).transpose(0, 2, 1)
+        prob = torch.sigmoid(enc.mask.float()).numpy().reshape(len(boxes), -1)
+        for p, cut, (obj_id, _), X, w in zip(poses, cuts, boxes, pts, prob, strict=True):
+            X, vis = X * est.objects[obj_id].scale, w > 0.5
+            t_dense = translation_from_points(cut.K_patch, p.R, grid, X, np.where(vis, w, 0.0)) if p.ok else None
+            z_pnp, R_pnp = float("nan"), None
+            if vis.sum() >= 6:
+                ok, rvec, tvec, _ = cv2.solvePnPRansac(X[vis], grid[vis], cut.K_patch, None, flags=cv2.SOLVEPNP_EPNP,
+                                                       reprojectionError=2.0, iterationsCount=200)  # fmt: skip
+                if ok and tvec[2, 0] > 0:
+                    z_pnp, R_pnp = float(tvec[2, 0]), cv2.Rodrigues(rvec)[0]
+            dense.append((float(t_dense[2]) if t_dense is not None and t_dense[2] > 0 else float("nan"), z_pnp, R_pnp))
         return [Prediction(p.R, p.t, p.ok) for p in poses]
 
     records = evaluate(predict, args.data, args.models, objects)
@@ -80,7 +103,7 @@ def main() -> None:
     specs = {o.obj_id: o for o in objects}
     points = {i: load_ply(model_path(args.models, i)).vertices for i in specs}
     rows = []
-    for r, z_head in ((r, z) for r, z in zip(records, head_depths, strict=True) if r.ok):
+    for r, z_head, (z_dense, z_pnp, R_pnp) in ((r, z, d) for r, z, d in zip(records, head_depths, dense, strict=True) if r.ok):
         spec, pts = specs[r.obj_id], points[r.obj_id]
         d = r.t - r.t_gt
         thr = 0.1 * spec.diameter
@@ -95,11 +118,18 @@ def main() -> None:
             "add_ok_box_depth": add_or_adi(r.R, depth_from_box(r.R, r.t, r.K, pts, r.box), r.R_gt, r.t_gt, pts, spec.symmetric) < thr,
             "log_depth_err_tbm": float(np.log(r.t[2] / r.t_gt[2])),
             "log_depth_err_head": float(np.log(z_head / r.t_gt[2])),
+            "log_depth_err_dense": float(np.log(z_dense / r.t_gt[2])),
+            "log_depth_err_pnp": float(np.log(z_pnp / r.t_gt[2])),
+            "rot_err_pnp_deg": re(R_pnp, r.R_gt) if R_pnp is not None else 180.0,
             "visib_fract": r.visib_fract,
         })  # fmt: skip
         for w in weights:
             t_w = fuse_depth(r.t, z_head, w)
             rows[-1][f"add_ok_w{w:g}"] = add_or_adi(r.R, t_w, r.R_gt, r.t_gt, pts, spec.symmetric) < thr
+        for name, z in (("dense", z_dense), ("pnp", z_pnp)):  # that depth on the TBM's ray, as the head's is used
+            rows[-1][f"add_ok_{name}"] = (
+                bool(np.isfinite(z)) and add_or_adi(r.R, fuse_depth(r.t, z, 1.0), r.R_gt, r.t_gt, pts, spec.symmetric) < thr
+            )
     n = len(records)
 
     def summary(sel: list[dict]) -> dict:
@@ -156,6 +186,23 @@ def main() -> None:
         label = {0.0: "0 (TBM alone)", 1.0: "1 (encoder alone)"}.get(w, f"{w:g}")
         cells = "".join(f"{v:>9.3f}" if v is not None else f"{'-':>9}" for v in bands.values())
         print(f"{label:<20}{q[0]:>8.3f}{q[1]:>8.3f}{q[2]:>8.3f}{bias:>8.3f}{add:>9.3f}{cells}")
+    for name, label in (("dense", "dense points + R"), ("pnp", "PnP (EPnP, RANSAC)")):
+        log_err = np.array([s[f"log_depth_err_{name}"] for s in rows])
+        found = np.isfinite(log_err)
+        e = np.abs(np.expm1(log_err[found]))
+        q = [float(v) for v in np.percentile(e, [25, 50, 75])] if found.any() else [float("nan")] * 3
+        bias = float(np.exp(np.median(log_err[found]))) if found.any() else float("nan")
+        add = sum(s[f"add_ok_{name}"] for s in rows) / n
+        vis = visib[found]
+        bands = {f"{a:g}-{b:g}": float(np.median(e[(vis >= a) & (vis <= b)])) if np.any((vis >= a) & (vis <= b)) else None
+                 for a, b in BANDS}  # fmt: skip
+        out["depth_sources"].append({"source": name, "solved": int(found.sum()), "rel_depth_err_quartiles": q, "bias": bias,
+                                     "add_0.1d_of_all": add, "median_rel_depth_err_by_visib": bands})  # fmt: skip
+        cells = "".join(f"{v:>9.3f}" if v is not None else f"{'-':>9}" for v in bands.values())
+        print(f"{label:<20}{q[0]:>8.3f}{q[1]:>8.3f}{q[2]:>8.3f}{bias:>8.3f}{add:>9.3f}{cells}   ({int(found.sum())} solved)")
+    out["rot_err_pnp_median_deg"] = float(np.median([s["rot_err_pnp_deg"] for s in rows]))
+    print(f"PnP's own rotation: median error {out['rot_err_pnp_median_deg']:.1f} deg (the TBM's: "
+          f"{np.median([s['rot_err_deg'] for s in rows]):.1f} deg)")  # fmt: skip
     out["log_depth_err_std"] = {"tbm": float(np.std(e_tbm)), "head": float(np.std(e_head)),
                                 "correlation": float(np.corrcoef(e_tbm, e_head)[0, 1])}  # fmt: skip
     print("log depth error std: TBM {tbm:.3f}, encoder {head:.3f}, correlation {correlation:.2f}".format(**out["log_depth_err_std"]))

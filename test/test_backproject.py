@@ -1,5 +1,6 @@
 import numpy as np
 import pytest
+from scipy.spatial.transform import Rotation
 
 from axispose_core.axis_image import axis_keypoints
 from axispose_core.lmo import LMO_K
@@ -153,3 +154,22 @@ def test_nearest_rotation_projects_onto_so3(rng):
     R = nearest_rotation(M)
     np.testing.assert_allclose(R @ R.T, np.eye(3), atol=1e-12)
     assert np.linalg.det(R) == pytest.approx(1.0)
+
+
+def test_translation_from_dense_points_is_exact_and_robust():
+    """Model points seen at their exact projections give the true t; a fifth of them moved far off do not pull it
+    (Huber IRLS); too few points, or none weighted, give None."""
+    from axispose_core.tbm.dense import translation_from_points
+
+    rng = np.random.default_rng(3)
+    R = Rotation.from_euler("xyz", [20, -35, 50], degrees=True).as_matrix()
+    t = np.array([0.05, -0.03, 0.8])
+    X = rng.uniform(-0.05, 0.05, (300, 3))
+    cam = X @ R.T + t
+    uv = (cam @ LMO_K.T)[:, :2] / cam[:, 2:]
+    np.testing.assert_allclose(translation_from_points(LMO_K, R, uv, X, np.ones(300)), t, atol=1e-9)
+    bad = uv.copy()
+    bad[:60] += rng.uniform(20, 40, (60, 2))
+    assert abs(translation_from_points(LMO_K, R, bad + rng.normal(0, 0.3, bad.shape), X, np.ones(300))[2] / t[2] - 1) < 0.005
+    assert translation_from_points(LMO_K, R, uv[:5], X[:5], np.ones(5)) is None
+    assert translation_from_points(LMO_K, R, uv, X, np.zeros(300)) is None
