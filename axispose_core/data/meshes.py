@@ -4,6 +4,7 @@ renderer's mesh. Lengths become metres here, as `data/bop.py` does for BOP's oth
 from __future__ import annotations
 
 import logging
+from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -168,6 +169,13 @@ def _textured_mesh(positions: np.ndarray, corner_v: np.ndarray, corner_uv: np.nd
     return Mesh(pos, faces, (np.clip(colors, 0, 1) * 255).round().astype(np.uint8))
 
 
+def _statements(lines: list[str]) -> Iterator[tuple[int, list[str]]]:
+    """(line number, words) of an OBJ or MTL file's non-blank lines."""
+    for n, line in enumerate(lines, 1):
+        if parts := line.split():
+            yield n, parts
+
+
 def _read_mtl(path: Path) -> dict[str, _Material]:
     """The materials of an MTL file by name: Kd and the map_Kd texture (relative to the MTL file)."""
     try:
@@ -177,10 +185,7 @@ def _read_mtl(path: Path) -> dict[str, _Material]:
         return {}
     out: dict[str, _Material] = {}
     current: _Material | None = None
-    for n, line in enumerate(lines, 1):
-        parts = line.split()
-        if not parts:
-            continue
+    for n, parts in _statements(lines):
         try:
             if parts[0] == "newmtl":
                 current = out.setdefault(" ".join(parts[1:]), _Material())
@@ -212,10 +217,7 @@ def load_obj(path: str | Path, units: float = MM) -> Mesh:
         lines = path.read_text(encoding="utf-8", errors="replace").splitlines()
     except OSError as err:
         raise BopFormatError(f"{path}: cannot read OBJ ({err})") from err
-    for n, line in enumerate(lines, 1):
-        parts = line.split()
-        if not parts:
-            continue
+    for n, parts in _statements(lines):
         try:
             if parts[0] == "v":
                 if len(parts) < 4:
