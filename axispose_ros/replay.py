@@ -57,9 +57,9 @@ from axispose_ros.conversions import image_to_rgb
 from axispose_ros.node import AxisPoseNode
 
 # How long one spin of the replay's executor may wait for an event before it re-checks its condition. The node's
-# inference runs on its own thread in this process: spinning every 5 ms took CPU from it and lengthened the
-# measured frame latency by ~15 % (the sample bag, four alternating runs: median 303-343 ms at 5 ms, 255-288 ms at
-# 50 ms), so conditions that no ROS event signals (a count, a clock) are polled no faster than this.
+# inference runs on its own thread in this process, and a fast spin takes CPU from it (and lengthens the frame
+# latency being measured: docs/BENCHMARKS.md, Latency), so conditions that no ROS event signals (a count, a
+# clock) are polled no faster than this.
 POLL_S = 0.05
 
 ROS_TYPES = {
