@@ -29,6 +29,8 @@ def test_shipped_training_configs_load_into_their_dataclasses(path):
     kinds = {"train_agm": TrainConfig, "train_direct": DirectTrainConfig, "train_localiser": LocaliserTrainConfig}
     cls = next(c for prefix, c in kinds.items() if path.name.startswith(prefix))
     cfg = _config(cls, str(path))  # unknown or misspelt fields raise
+    if path.name == "train_agm.yaml":  # the defaults are the shipped recipe's first stage
+        assert cfg == TrainConfig()
     if path.name == "train_agm_gpu.yaml":  # the CPU recipe's network and stream, a larger batch: --init a CPU run
         assert cfg.agm == _config(TrainConfig, str(path.with_name("train_agm.yaml"))).agm
     if path.name == "train_localiser.yaml":  # the shipped localiser's network, so --init can be the shipped model
