@@ -34,6 +34,8 @@ def _replay(args: argparse.Namespace) -> int:
         params["ddim_steps"] = args.steps
     if args.guidance is not None:
         params["guidance_scale"] = args.guidance
+    if args.precision is not None:
+        params["precision"] = args.precision
     try:
         result = replay(
             args.bag, args.checkpoint, args.out, rate=None if args.as_fast_as_possible else args.rate, params=params,
@@ -91,6 +93,8 @@ def build_ros_parser() -> argparse.ArgumentParser:
     rp.add_argument("--overlays", default=None, help="folder for a few debug overlay PNGs")
     rp.add_argument("--steps", type=int, default=None, help="ddim_steps parameter of the node")
     rp.add_argument("--guidance", type=float, default=None, help="guidance_scale parameter of the node")
+    rp.add_argument("--precision", choices=["auto", "float32", "bfloat16"], default=None,
+                    help="precision parameter of the node (default: auto, bfloat16 where the CPU has it natively)")  # fmt: skip
     rp.add_argument("--format", choices=["sqlite3", "mcap"], default="mcap", help="storage of the output bag")
     rp.add_argument("--image-topic", default=None, help="Image topic in the bag (default: its only one)")
     rp.add_argument("--camera-info-topic", default=None, help="CameraInfo topic in the bag (default: its only one)")

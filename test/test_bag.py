@@ -210,8 +210,9 @@ def test_the_readme_demo_runs_the_shipped_checkpoint_on_the_shipped_bag(ignore_r
     assert len(est.config.objects) == 8 and est.localiser is not None
     args = ["replay", str(REPO / "demo" / "lmo_sample_bag"), "--checkpoint", str(ckpt), "--out", str(tmp_path / "out"),
             "--report", str(tmp_path / "r.json"), "--overlays", str(tmp_path / "png")]  # fmt: skip
-    assert main(args + (["--ignore-rois", "--steps", "1"] if ignore_rois else [])) == 0
+    assert main(args + (["--ignore-rois", "--steps", "1", "--precision", "float32"] if ignore_rois else [])) == 0
     report = json.loads((tmp_path / "r.json").read_text())
+    assert report["config"]["precision"] == "float32" or not ignore_rois  # `--precision` reaches the node
     assert report["counts"]["frames_processed"] == 6 and report["objects"]
     if not ignore_rois:  # the demo's floor: the shipped model reads about 0.83 here
         assert report["mean"]["reproj_15px"] >= 0.75, report["mean"]
