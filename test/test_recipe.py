@@ -106,8 +106,12 @@ def test_a_recipe_with_a_mistake_is_refused_before_training(lmo_dir, tmp_path, c
     assert message.split("'")[0] in capsys.readouterr().err and not (tmp_path / "run").exists()
 
 
-def test_the_shipped_recipe_resolves():
+def test_the_shipped_recipe_resolves_and_is_the_shipped_models():
+    """The recipe file describes the shipped checkpoint: the runner assembled it from this recipe (its hash), so
+    a change to a stage's config must come with a model built by it."""
     recipe = load_recipe(SHIPPED_RECIPE)
+    shipped = Path(__file__).resolve().parents[1] / "axispose_core" / "models" / "axispose_lmo.safetensors"
+    assert Estimator.load(shipped).config.training["recipe_sha256"] == recipe.sha256
     needed = {s.name for s in recipe.needed()}
     assert {recipe.estimator[k] for k in ("agm", "reader", "localiser")} <= needed
     assert all(s.trainer != "agm" or s.config["agm"]["denoiser"]["size"] == 64 for s in recipe.stages)

@@ -372,8 +372,7 @@ class RecipeRunner:
         localiser = load_localiser(self.checkpoint(est["localiser"]))
         done = {s.name: json.loads(self.done_file(s.name).read_text()) for s in self.recipe.stages if self.done_file(s.name).is_file()}
         stages = [done[s.name] for s in self.recipe.needed(lambda name: "adopted" in done[name])]  # the whole chain
-        training = {"recipe": self.recipe.as_dict(), "recipe_sha256": self.recipe.sha256, "stages": stages,
-                    "seconds": sum(float(s.get("seconds", 0.0)) for s in stages)}  # fmt: skip
+        training = {"recipe": self.recipe.as_dict(), "recipe_sha256": self.recipe.sha256, "stages": stages}
         config = dataclasses.replace(agm.config, reader=reader.config, localiser=localiser.config, training=training, **est["config"])
         path = self.checkpoint(self.name)
         Estimator(config, agm.agm, reader, "cpu", localiser).save(path, half=bool(est["half"]))
