@@ -139,9 +139,10 @@ def test_memory_stays_flat_over_10000_samples(stream):
     assert grew < 30, f"RSS grew {grew:.1f} MB over 10,000 samples"
     # No transient spike either: the process's peak stayed within 30 MB of where it stood before the samples.
     assert _peak_mb() < max(peak_before, before) + 30, f"peak RSS {_peak_mb():.0f} MB, {before:.0f} MB before"
-    # The instruments see memory: 64 MB held raise both.
+    # The instruments see memory: 64 MB held raise the RSS by as much, and the peak is at least the RSS then.
     ballast = np.ones(8 * 2**20)
-    assert _rss_mb() - before > 50 and _peak_mb() > max(peak_before, before) + 50
+    now = _rss_mb()
+    assert now - before > 50 and _peak_mb() >= now - 1
     del ballast
 
 
