@@ -85,6 +85,8 @@ def ply_vertex_properties(path: str | Path) -> tuple[str, ...]:
     return tuple(names)
 
 
+GREY = 0.6
+"""The colour (in [0, 1]) of a mesh, or a part of one, that brings none of its own."""
 TEXELS_PER_EDGE = 8.0
 """A textured face is split until none of its edges spans more texels than this, so the texture's detail survives
 as vertex colours (what the renderer interpolates)."""
@@ -132,8 +134,8 @@ def _textured_mesh(positions: np.ndarray, corner_v: np.ndarray, corner_uv: np.nd
     mat = np.repeat(face_mat, 3)
     keys = np.column_stack([corner_v.ravel(), np.nan_to_num(corner_uv.reshape(-1, 2), nan=-1e9), mat])
     uniq, inverse = np.unique(keys, axis=0, return_inverse=True)
-    pos = positions[uniq[:, 0].astype(int)]
     src = uniq[:, 0].astype(int)
+    pos = positions[src]
     uv = np.where(uniq[:, 1:3] < -1e8, np.nan, uniq[:, 1:3])
     vmat = uniq[:, 3].astype(int)
     faces = inverse.reshape(-1).reshape(F, 3).astype(np.int64)
@@ -156,7 +158,7 @@ def _textured_mesh(positions: np.ndarray, corner_v: np.ndarray, corner_uv: np.nd
         ab, bc, ca = mid
         split = np.concatenate([np.stack(t, axis=1) for t in ((a, ab, ca), (ab, b, bc), (ca, bc, c), (ab, bc, ca))])
         faces = np.concatenate([faces[~big], split])
-    colors = np.full((len(pos), 3), 0.6)
+    colors = np.full((len(pos), 3), GREY)
     if vertex_colors is not None:
         colors = vertex_colors[src].astype(np.float64) / 255.0
     for k, m in enumerate(materials):
@@ -301,7 +303,7 @@ def load_render_mesh(models_dir: str | Path, obj_id: int, cache_dir: str | Path 
         if np.array_equal(data["stamp"], stamp):
             return RenderMesh(data["vertices"], data["faces"], data["colors"], data["normals"])
     mesh = load_ply(src)
-    colors = mesh.colors / 255.0 if mesh.colors is not None else np.full((len(mesh.vertices), 3), 0.6)
+    colors = mesh.colors / 255.0 if mesh.colors is not None else np.full((len(mesh.vertices), 3), GREY)
     normals = mesh.normals if mesh.normals is not None else vertex_normals(mesh.vertices, mesh.faces)
     normals = normals / np.maximum(np.linalg.norm(normals, axis=1, keepdims=True), 1e-12)
     rm = RenderMesh(mesh.vertices, mesh.faces, colors, normals)

@@ -251,7 +251,8 @@ def _training_record(path: Path) -> dict[str, Any]:
 
 
 def _saved_step(state: Path) -> int:
-    return int(torch.load(state, map_location="cpu", weights_only=False)["step"]) if state.is_file() else 0
+    """The step a resume state was saved at (0: none yet), read without loading its tensors (memory-mapped)."""
+    return int(torch.load(state, map_location="cpu", weights_only=False, mmap=True)["step"]) if state.is_file() else 0
 
 
 def _synth_config(spec: dict[str, Any]) -> SynthConfig:
