@@ -7,7 +7,7 @@ STAMP := $(VENV)/.installed-stamp
 
 $(STAMP): setup.py axispose_msgs/CMakeLists.txt axispose_msgs/package.xml axispose_msgs/build-requirements.txt $(wildcard axispose_msgs/msg/*.msg)
 	test -x $(PY) || python3 -m venv $(VENV)
-	$(PY) -m pip install -q -e ".[ros,dev]"
+	$(PY) -m pip install -q -e ".[ros,dev,train]"
 	tools/build_msgs.sh $(VENV)
 	touch $(STAMP)
 

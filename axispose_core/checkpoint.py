@@ -69,10 +69,13 @@ def nest_moved_keys(cls: type, data: dict[str, Any]) -> dict[str, Any]:
 def config_from_dict(cls: type[C], data: dict[str, Any], source: str = "config") -> C:
     """Build a (possibly nested) config dataclass from a dict, naming any missing or unknown key. Where a field
     may hold one of several config classes (a union), their `kind` fields tell them apart. Keys a class lists in
-    its `RETIRED` (fields earlier versions wrote that no longer configure anything) are ignored, and keys that
-    have moved into a nested section are read from where they were (`nest_moved_keys`)."""
+    its `RETIRED` (fields earlier versions wrote that no longer configure anything) are ignored, keys that have
+    moved into a nested section are read from where they were (`nest_moved_keys`), and a class with an
+    `upgrade_config(data) -> data` rewrites what an earlier version wrote first."""
     if not isinstance(data, dict):
         raise CheckpointError(f"{source}: expected a mapping for {cls.__name__}")
+    if callable(upgrade := getattr(cls, "upgrade_config", None)):
+        data = upgrade(data)
     fields = {f.name: f for f in dataclasses.fields(cls)}  # type: ignore[arg-type]
     hints = get_type_hints(cls)
     data = {k: v for k, v in nest_moved_keys(cls, data).items() if k not in getattr(cls, "RETIRED", ())}
@@ -187,8 +190,19 @@ def read_checkpoint(
     return config, states, extra
 
 
+def upgrade_state(module: torch.nn.Module, state: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
+    """`state` with the names an earlier version saved under renamed as `module` names them now: every submodule
+    that moved weights has an `upgrade_state(state, prefix)` that renames its own in place."""
+    state = dict(state)
+    for name, sub in module.named_modules():
+        if callable(upgrade := getattr(sub, "upgrade_state", None)):
+            upgrade(state, f"{name}." if name else "")
+    return state
+
+
 def load_state(module: torch.nn.Module, state: dict[str, torch.Tensor], source: str) -> None:
-    """load_state_dict with an error that lists what is missing, unexpected or mis-shaped."""
+    """load_state_dict (after `upgrade_state`) with an error that lists what is missing, unexpected or mis-shaped."""
+    state = upgrade_state(module, state)
     own = module.state_dict()
     missing = sorted(set(own) - set(state))
     unexpected = sorted(set(state) - set(own))

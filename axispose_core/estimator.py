@@ -71,16 +71,16 @@ class EstimatorConfig:
 def crop_batch(
     image_rgb: np.ndarray, K: np.ndarray, boxes: list[tuple[int, tuple[float, float, float, float]]], known: dict, size: int, pad: float
 ) -> tuple[list[InstanceCrop], torch.Tensor]:
-    """Check K and that every box's object is `known`, then cut the boxes' crops and their (B,3,S,S) batch in
-    [-1,1]: one place, so the estimator and the direct baseline read an image the same way."""
+    """Check K and that every box's object is `known`, then cut the boxes' crops and their (B,3,S,S) uint8 batch
+    (the network normalises it): one place, so the estimator and the direct baseline read an image the same way."""
     K = validate_intrinsics(K)
     unknown = [o for o, _ in boxes if o not in known]
     if unknown:
         raise ValueError(f"objects {unknown} are not in this checkpoint (it knows {sorted(known)})")
     cuts = [instance_crop(image_rgb, K, box, size, pad=pad) for _, box in boxes]
     if not cuts:
-        return cuts, torch.zeros((0, 3, size, size))
-    return cuts, torch.from_numpy(np.stack([c.patch for c in cuts]).astype(np.float32) / 127.5 - 1).permute(0, 3, 1, 2)
+        return cuts, torch.zeros((0, 3, size, size), dtype=torch.uint8)
+    return cuts, torch.from_numpy(np.stack([c.patch for c in cuts])).permute(0, 3, 1, 2)
 
 
 def fuse_depth(t: np.ndarray, z_head: float, weight: float) -> np.ndarray:

@@ -52,7 +52,7 @@ def main() -> None:
     for threads in args.threads:
         torch.set_num_threads(threads)
         for n in args.objects:
-            crops, objects = torch.rand(n, 3, size, size) * 2 - 1, torch.zeros(n, dtype=torch.long)
+            crops, objects = torch.randint(0, 256, (n, 3, size, size), dtype=torch.uint8), torch.zeros(n, dtype=torch.long)
             with torch.inference_mode():
                 enc = agm.encode(crops, objects)
                 x, t = torch.randn(n, 3, size, size), torch.full((n,), 500)

@@ -65,7 +65,7 @@ def main() -> None:
             agm = copy.deepcopy(est.agm)
             agm.denoiser = torch.compile(agm.denoiser, mode="reduce-overhead")
         for n in args.batches:
-            crops = torch.rand(n, 3, size, size, device="cuda") * 2 - 1
+            crops = torch.randint(0, 256, (n, 3, size, size), dtype=torch.uint8, device="cuda")
             for steps in args.steps:
 
                 def call(agm=agm, crops=crops, steps=steps, mode=mode) -> torch.Tensor:

@@ -13,6 +13,7 @@ import torch
 
 from axispose_core.agm.denoiser import DenoiserConfig, EncoderConfig
 from axispose_core.agm.model import AGMConfig
+from axispose_core.trunks import ResidualGNConfig
 
 REPO = Path(__file__).resolve().parents[1]
 LMO_DIR = Path(os.environ.get("AXISPOSE_LMO_DIR", REPO.parent / "shared" / "data" / "lmo"))
@@ -43,12 +44,14 @@ def rng() -> np.random.Generator:
     return np.random.default_rng(1234)
 
 
-TINY_ENCODER = EncoderConfig(widths=(8, 8, 8, 8), blocks=(1, 1, 1, 1), embed=8, context=16, dense=8, groups=4)
+TINY_TRUNK = ResidualGNConfig(widths=(8, 8, 8, 8), blocks=(1, 1, 1, 1), groups=4)
+TINY_ENCODER = EncoderConfig(trunk=TINY_TRUNK, embed=8, context=16, dense=8, groups=4)
 TINY_AGM = AGMConfig(denoiser=DenoiserConfig(channels=8, multipliers=(1, 2), groups=4, encoder=TINY_ENCODER))
 """A small AGM for tests of plumbing, not of accuracy."""
 TINY_AGM_YAML = {
     "denoiser": {"size": 64, "channels": 8, "multipliers": [1, 2], "groups": 4,
-                 "encoder": {"widths": [8, 8, 8, 8], "blocks": [1, 1, 1, 1], "embed": 8, "context": 16, "dense": 8, "groups": 4}}
+                 "encoder": {"trunk": {"kind": "residual_gn", "widths": [8, 8, 8, 8], "blocks": [1, 1, 1, 1], "groups": 4},
+                             "embed": 8, "context": 16, "dense": 8, "groups": 4}}
 }  # fmt: skip
 
 OFF_ORTHONORMAL = np.array([[0.005, 0.003, 0.0], [0.003, 0.004, 0.002], [0.0, 0.002, 0.005]])

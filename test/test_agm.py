@@ -161,7 +161,7 @@ def test_sampler_is_deterministic_under_a_seed():
     agm = AxisGenerator(AGMConfig(denoiser=TINY))
     for p in agm.parameters():  # a non-trivial network: zero-initialised output layers would hide differences
         p.data.normal_(0, 0.05)
-    crops = torch.rand(2, 3, 64, 64) * 2 - 1
+    crops = torch.randint(0, 256, (2, 3, 64, 64), dtype=torch.uint8)
     enc = agm.encode(crops, torch.tensor([0, 1]))
     a = sample(agm, enc, 4, generator=torch.Generator().manual_seed(7))
     b = sample(agm, enc, 4, generator=torch.Generator().manual_seed(7))
@@ -185,7 +185,7 @@ def test_sampler_is_deterministic_under_a_seed():
 def test_loss_falls_on_a_tiny_set(guided, rng):
     torch.manual_seed(0)
     targets = torch.cat([_gt_axis_image(rng)[0] for _ in range(4)]).float()
-    crops = targets.clone()  # a crop that shows its answer: only whether learning happens is tested
+    crops = ((targets + 1) * 127.5).round().to(torch.uint8)  # a crop that shows its answer: only whether learning happens is tested
     agm = AxisGenerator(AGMConfig(denoiser=TINY, train_guidance=guided))
     objective = AGMObjective(agm)
     opt = torch.optim.Adam(agm.parameters(), lr=2e-3)
@@ -230,7 +230,7 @@ def test_bfloat16_runs_the_agm_in_bfloat16_but_keeps_depth_and_poses_in_float32(
     with pytest.raises(ValueError, match="precision must be one of"):
         est.set_precision("half")
     with torch.autocast("cpu", dtype=torch.bfloat16):
-        enc = est.agm.encode(torch.zeros(2, 3, 64, 64), torch.tensor([0, 1]))
+        enc = est.agm.encode(torch.zeros(2, 3, 64, 64, dtype=torch.uint8), torch.tensor([0, 1]))
     assert enc.context.dtype == torch.bfloat16 and enc.log_depth.dtype == torch.float32  # bf16 would cost ~0.5 % of depth
     image = (np.random.default_rng(0).uniform(0, 255, (480, 640, 3))).astype(np.uint8)
     K = np.array([[572.4, 0, 325.3], [0, 573.6, 242.0], [0, 0, 1]])
@@ -289,12 +289,13 @@ def test_a_grown_encoder_starts_as_the_network_it_grew_from():
     small = AxisGenerator(AGMConfig(denoiser=TINY))
     for p in small.parameters():  # a non-trivial network: zero-initialised output layers would hide differences
         p.data.normal_(0, 0.05)
-    blocks = TINY.encoder.blocks
-    deeper = replace(TINY, encoder=replace(TINY.encoder, blocks=tuple(b + 1 for b in blocks)))
+    trunk = TINY.encoder.trunk
+    blocks = trunk.blocks
+    deeper = replace(TINY, encoder=replace(TINY.encoder, trunk=replace(trunk, blocks=tuple(b + 1 for b in blocks))))
     big = AxisGenerator(AGMConfig(denoiser=deeper))
     added = grow_into(big, small)
     assert len(added) == len(blocks)
-    crops, objects = torch.rand(2, 3, 64, 64) * 2 - 1, torch.tensor([0, 1])
+    crops, objects = torch.randint(0, 256, (2, 3, 64, 64), dtype=torch.uint8), torch.tensor([0, 1])
     a, b = small.encode(crops, objects), big.encode(crops, objects)
     torch.testing.assert_close(a.context, b.context)
     torch.testing.assert_close(a.points, b.points)
@@ -311,8 +312,8 @@ def test_a_grown_encoder_starts_as_the_network_it_grew_from():
     torch.testing.assert_close(rows[: len(old)], old)
     torch.testing.assert_close(rows[len(old) :], old.mean(dim=0, keepdim=True).expand(2, -1))
     # only blocks may be added: another width, or fewer blocks, is refused
-    wider = replace(TINY, encoder=replace(TINY.encoder, widths=tuple(2 * w for w in TINY.encoder.widths)))
-    fewer = replace(TINY, encoder=replace(TINY.encoder, blocks=tuple(max(b - 1, 0) for b in blocks)))
+    wider = replace(TINY, encoder=replace(TINY.encoder, trunk=replace(trunk, widths=tuple(2 * w for w in trunk.widths))))
+    fewer = replace(TINY, encoder=replace(TINY.encoder, trunk=replace(trunk, blocks=tuple(max(b - 1, 0) for b in blocks))))
     for other in (wider, fewer):
-        with pytest.raises(ValueError, match="only the encoder's blocks per stage and objects may grow"):
+        with pytest.raises(ValueError, match="only the residual trunk's blocks per stage and the objects may grow"):
             grow_into(AxisGenerator(AGMConfig(denoiser=other)), small)

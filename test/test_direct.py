@@ -32,7 +32,7 @@ def data(tmp_path_factory, lmo_dir):
 
 def test_keypoint_units_round_trip():
     model = DirectRegressor(DirectConfig(encoder=TINY))
-    crops = torch.rand(3, 3, 64, 64) * 2 - 1
+    crops = torch.randint(0, 256, (3, 3, 64, 64), dtype=torch.uint8)
     objects = torch.tensor([0, 1, 0])
     out = model.keypoints(crops, objects)
     assert out.shape == (3, 4, 2)

@@ -25,8 +25,9 @@ from axispose_core.train.dataset import AxisCropDataset
 from axispose_core.train.localiser import LocaliserDataset, LocaliserTrainConfig, train_localiser
 from axispose_core.train.loop import OptimConfig, RunOptions
 from axispose_core.train.resume import state_path
+from axispose_core.trunks import ResidualBNConfig
 
-TINY = LocaliserConfig(obj_ids=(1, 5), input_size=(160, 128), channels=(8, 16, 24, 32))
+TINY = LocaliserConfig(obj_ids=(1, 5), input_size=(160, 128), trunk=ResidualBNConfig(widths=(8, 16, 24, 32)))
 
 
 def test_decode_finds_peaks_with_nms_threshold_offset_and_size():
@@ -244,27 +245,27 @@ def test_eval_with_detected_crops_reports_detection_scores(estimator_with_locali
 
 
 def test_a_fifth_width_adds_a_stride_32_context_stage():
-    deep = Localiser(LocaliserConfig(obj_ids=(1, 5), input_size=(160, 112), channels=(8, 16, 24, 32, 48))).eval()
-    heat, size, offset = deep(torch.zeros(1, 3, 112, 160))  # 112 / 32 is not whole: the stage's map is resized back
+    deep = Localiser(LocaliserConfig(obj_ids=(1, 5), input_size=(160, 112), trunk=ResidualBNConfig(widths=(8, 16, 24, 32, 48)))).eval()
+    heat, size, offset = deep(torch.zeros(1, 3, 112, 160, dtype=torch.uint8))  # 112 / 32 is not whole: the stage's map is resized back
     assert heat.shape == (1, 2, 14, 20) and size.shape == offset.shape == (1, 2, 14, 20)
-    assert any(k.startswith("s32.") for k in deep.state_dict())
-    with pytest.raises(ValueError, match="4 or 5 widths"):
-        Localiser(LocaliserConfig(obj_ids=(1,), channels=(8, 16, 24)))
+    assert any(k.startswith("trunk.stages.4.") for k in deep.state_dict())
+    with pytest.raises(ValueError, match="4 or 5 stages"):
+        Localiser(LocaliserConfig(obj_ids=(1,), trunk=ResidualBNConfig(widths=(8, 16, 24))))
 
 
 def test_warm_start_copies_what_matches_and_leaves_the_rest_fresh(trained, estimator_with_localiser):
     source = load_localiser(trained[1]).state_dict()
     torch.manual_seed(1)
-    deep = Localiser(LocaliserConfig(obj_ids=(1, 5), input_size=(160, 128), channels=(*TINY.channels, 48)))
+    deep = Localiser(LocaliserConfig(obj_ids=(1, 5), input_size=(160, 128), trunk=ResidualBNConfig(widths=(*TINY.trunk.widths, 48))))
     fresh = warm_start(deep, trained[1])
-    assert fresh and all(k.startswith(("s32.", "fuse32.")) for k in fresh)
+    assert fresh and all(k.startswith(("trunk.stages.4.", "fuse32.")) for k in fresh)
     for k, v in deep.state_dict().items():
         if k not in fresh:
             assert torch.equal(v, source[k]), k
-    other = Localiser(LocaliserConfig(obj_ids=(5, 1), input_size=(160, 128), channels=TINY.channels))
+    other = Localiser(LocaliserConfig(obj_ids=(5, 1), input_size=(160, 128), trunk=TINY.trunk))
     fresh = warm_start(other, estimator_with_localiser)  # the estimator's copy; objects in another order
     assert fresh and all(k.startswith("heat.") for k in fresh) and "heat.0.0.weight" in fresh
-    assert torch.equal(other.state_dict()["s8.0.0.weight"], source["s8.0.0.weight"])
+    assert torch.equal(other.state_dict()["trunk.stages.2.0.0.weight"], source["trunk.stages.2.0.0.weight"])
 
 
 def test_a_warm_started_run_keeps_naming_its_start_when_resumed(frames, trained, tmp_path):

@@ -25,6 +25,7 @@ from axispose_core.lmo import LMO_K
 from axispose_core.localiser.model import Localiser, LocaliserConfig
 from axispose_core.objects import lmo_objects
 from axispose_core.tbm.reader import SHIPPED_READER, load_reader
+from axispose_core.trunks import ResidualBNConfig
 from axispose_msgs.msg import DetectionArray
 from axispose_ros.node import AxisPoseNode
 
@@ -403,7 +404,8 @@ def test_shutdown_mid_frame_is_prompt_even_with_1000_ddim_steps(checkpoint):
 def localised_checkpoint(tmp_path_factory):
     """The tiny estimator with an untrained localiser of ape and can: at threshold 0 it finds both, twice each."""
     reader = load_reader(SHIPPED_READER)
-    localiser = Localiser(LocaliserConfig(obj_ids=(1, 5), input_size=(160, 128), channels=(8, 16, 24, 32), max_per_object=2))
+    trunk = ResidualBNConfig(widths=(8, 16, 24, 32))
+    localiser = Localiser(LocaliserConfig(obj_ids=(1, 5), input_size=(160, 128), trunk=trunk, max_per_object=2))
     cfg = EstimatorConfig(
         agm=TINY_AGM, reader=reader.config,
         objects=tuple(lmo_objects()[:2]), ddim_steps=1,

@@ -106,7 +106,7 @@ def test_worker_processes_deliver_the_same_samples_and_stop(stream, samples):
     batches = list(loader)
     workers = list(loader._iterator._workers)  # observed only, to see them go
     assert len(workers) == 2 and all(w.is_alive() for w in workers)
-    assert len(batches) == 3 and batches[0]["crop"].shape == (4, 3, 64, 64) and batches[0]["crop"].dtype == torch.float32
+    assert len(batches) == 3 and batches[0]["crop"].shape == (4, 3, 64, 64) and batches[0]["crop"].dtype == torch.uint8
     for k, i in enumerate(range(104, 108)):
         one = dataset[i]
         for key in one:

@@ -1,7 +1,7 @@
 """The AGM's networks: a crop encoder that runs once per object, and a light denoiser that runs per DDIM step.
 
-The encoder carries the perception. It sees the whole crop (strided stages down to 1/16 of it, then the 4 x 4
-layout flattened into one context vector) and is told which object it looks at (an embedding that scales and
+The encoder carries the perception. It sees the whole crop (a trunk's strided stages down to 1/16 of it, then the
+4 x 4 layout flattened into one context vector) and is told which object it looks at (an embedding that scales and
 shifts every stage). Besides the features the denoiser reads, it predicts what supervises it densely: the
 visible surface's model coordinates and mask at half resolution (the correspondences of GDR-Net-style methods:
 every pixel says something about the pose) and a scale-invariant depth (GDR-Net's SITE: depth relative to the
@@ -22,13 +22,15 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from axispose_core.trunks import Trunk, TrunkConfig, build_trunk
+from axispose_core.trunks.residual import ResBlock, ResidualGNConfig
+
 
 @dataclass(frozen=True)
 class EncoderConfig:
-    widths: tuple[int, ...] = (32, 64, 128, 256)
-    """Channels of the stages at 1/2, 1/4, 1/8 and 1/16 of the crop (64 px: 32, 16, 8 and 4 px)."""
-    blocks: tuple[int, ...] = (1, 2, 2, 1)
-    """Residual blocks per stage."""
+    trunk: TrunkConfig = field(default_factory=ResidualGNConfig)
+    """The stages the encoder is built on (`axispose_core/trunks`): strides 2, 4, 8, 16 (a 64 px crop: 32, 16, 8 and
+    4 px), each told the object by FiLM."""
     objects: int = 8
     """Rows of the object embedding: the estimator's objects by their position in its list."""
     embed: int = 64
@@ -37,6 +39,18 @@ class EncoderConfig:
     dense: int = 64
     """Channels of the half-resolution map the dense head and the denoiser's first level read."""
     groups: int = 8
+    """GroupNorm groups of the heads."""
+
+    @staticmethod
+    def upgrade_config(data: dict) -> dict:
+        """An encoder written before it had a trunk: its widths and blocks were a GroupNorm residual trunk's, with
+        the encoder's groups."""
+        if "trunk" in data or not {"widths", "blocks"} & set(data):
+            return data
+        data = dict(data)
+        legacy = {k: data.pop(k) for k in ("widths", "blocks") if k in data}
+        data["trunk"] = {"kind": "residual_gn", **legacy, "groups": data.get("groups", 8)}
+        return data
 
 
 @dataclass(frozen=True)
@@ -61,26 +75,6 @@ def timestep_embedding(t: torch.Tensor, dim: int) -> torch.Tensor:
     return torch.cat([torch.sin(args), torch.cos(args)], dim=1)
 
 
-class ResBlock(nn.Module):
-    """GroupNorm-SiLU-conv twice, with an embedding (time, context) added in between when given."""
-
-    def __init__(self, cin: int, cout: int, groups: int, edim: int = 0) -> None:
-        super().__init__()
-        self.norm1 = nn.GroupNorm(groups, cin)
-        self.conv1 = nn.Conv2d(cin, cout, 3, padding=1)
-        self.emb = nn.Linear(edim, cout) if edim else None
-        self.norm2 = nn.GroupNorm(groups, cout)
-        self.conv2 = nn.Conv2d(cout, cout, 3, padding=1)
-        self.skip = nn.Conv2d(cin, cout, 1) if cin != cout else nn.Identity()
-
-    def forward(self, x: torch.Tensor, emb: torch.Tensor | None = None) -> torch.Tensor:
-        h = self.conv1(F.silu(self.norm1(x)))
-        if self.emb is not None and emb is not None:
-            h = h + self.emb(emb)[:, :, None, None]
-        h = self.conv2(F.silu(self.norm2(h)))
-        return self.skip(x) + h
-
-
 class Encoding(NamedTuple):
     """What the encoder computes once per crop."""
 
@@ -103,23 +97,19 @@ class Encoding(NamedTuple):
 
 
 class CropEncoder(nn.Module):
-    """Crop (B,3,S,S) in [-1,1] + object index (B,) -> `Encoding`."""
+    """Crop (B,3,S,S) uint8 + object index (B,) -> `Encoding`."""
 
     def __init__(self, config: EncoderConfig, size: int) -> None:
         super().__init__()
-        n = len(config.widths)
-        if size % 2**n:
-            raise ValueError(f"crop size {size} must be divisible by {2**n} (the encoder has {n} stride-2 stages)")
-        if len(config.blocks) != n or config.objects < 1:
-            raise ValueError("the encoder needs one block count per stage and at least one object")
+        self.trunk: Trunk = build_trunk(config.trunk)
+        w = self.widths = self.trunk.widths
+        n = len(w)
+        if n < 3 or size % 2**n:
+            raise ValueError(f"the encoder needs at least 3 trunk stages and a crop size divisible by 2^stages, got {n} and {size}")
+        if config.objects < 1:
+            raise ValueError("the encoder needs at least one object")
         self.config = config
-        w = config.widths
         self.embedding = nn.Embedding(config.objects, config.embed)
-        self.stem = nn.Sequential(nn.Conv2d(3, w[0], 3, stride=2, padding=1), nn.GroupNorm(config.groups, w[0]), nn.SiLU())
-        self.down = nn.ModuleList([nn.Identity()] + [nn.Conv2d(w[i - 1], w[i], 3, stride=2, padding=1) for i in range(1, n)])
-        self.stages = nn.ModuleList(
-            nn.ModuleList(ResBlock(c, c, config.groups) for _ in range(b)) for c, b in zip(w, config.blocks, strict=True)
-        )
         # FiLM by the object: zero-initialised, so an untrained network starts as if unconditioned.
         self.film = nn.ModuleList(nn.Linear(config.embed, 2 * c) for c in w)
         for lin in self.film:
@@ -139,12 +129,10 @@ class CropEncoder(nn.Module):
 
     def forward(self, crop: torch.Tensor, obj: torch.Tensor) -> Encoding:
         e = self.embedding(obj)
-        h = self.stem(crop)
+        h = self.trunk.normalise(crop)
         feats = []
-        for down, blocks, film in zip(self.down, self.stages, self.film, strict=True):
-            h = down(h)
-            for block in blocks:
-                h = block(h)
+        for stage, film in zip(self.trunk.stages, self.film, strict=True):
+            h = stage(h)
             scale, shift = film(e)[:, :, None, None].chunk(2, dim=1)
             h = h * (1 + scale) + shift
             feats.append(h)
@@ -159,6 +147,22 @@ class CropEncoder(nn.Module):
             log_depth = self.depth(context.float())[:, 0]
         return Encoding([dense, *feats[1:]], context, out[:, :3], out[:, 3:], log_depth)
 
+    @staticmethod
+    def upgrade_state(state: dict[str, torch.Tensor], prefix: str) -> None:
+        """Weights saved before the encoder had a trunk (stem, down.i, stages.i.j) under the trunk's names
+        (`checkpoint.upgrade_state`)."""
+        for key in [k for k in state if k.startswith(prefix) and k[len(prefix) :].split(".")[0] in ("stem", "down", "stages")]:
+            part, rest = key[len(prefix) :].split(".", 1)
+            if part == "stem":
+                new = f"trunk.stages.0.0.{rest}"
+            elif part == "down":
+                i, tail = rest.split(".", 1)
+                new = f"trunk.stages.{i}.0.{tail}"  # stage 0's was an identity, without weights
+            else:
+                i, j, tail = rest.split(".", 2)
+                new = f"trunk.stages.{i}.{int(j) + 1}.{tail}"
+            state[prefix + new] = state.pop(key)
+
 
 class Denoiser(nn.Module):
     """UNet over the pixel-unshuffled axis image; `encode(crop, obj)` once, then `forward(x_t, t, enc)` per step."""
@@ -167,18 +171,19 @@ class Denoiser(nn.Module):
         super().__init__()
         enc = config.encoder
         levels = len(config.multipliers)
-        if not 1 <= levels <= len(enc.widths):
-            raise ValueError(f"the denoiser's {levels} levels need as many encoder stages (it has {len(enc.widths)})")
+        self.encoder = CropEncoder(enc, config.size)
+        widths = self.encoder.widths
+        if not 1 <= levels <= len(widths):
+            raise ValueError(f"the denoiser's {levels} levels need as many encoder stages (it has {len(widths)})")
         if config.size % 2:
             raise ValueError(f"size {config.size} must be even")
         self.config = config
-        self.encoder = CropEncoder(enc, config.size)
         ch = [config.channels * m for m in config.multipliers]
         edim = 4 * config.channels
         self.time_mlp = nn.Sequential(nn.Linear(config.channels, edim), nn.SiLU(), nn.Linear(edim, edim))
         self.context_proj = nn.Linear(enc.context, edim)
         self.inp = nn.Conv2d(12, ch[0], 3, padding=1)
-        sources = [enc.dense, *enc.widths[1:]]
+        sources = [enc.dense, *widths[1:]]
         self.inject = nn.ModuleList(nn.Conv2d(sources[i], c, 1) for i, c in enumerate(ch))
         self.down = nn.ModuleList()
         self.downsample = nn.ModuleList()

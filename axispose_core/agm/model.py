@@ -12,6 +12,7 @@ from torch import nn
 
 from axispose_core.agm.denoiser import Denoiser, DenoiserConfig, Encoding
 from axispose_core.agm.scheduler import DDIMScheduler, SchedulerConfig
+from axispose_core.trunks import ResidualGNConfig
 
 VERSION = 2
 """The AGM's network generation: 2 is the object-conditioned encoder with dense and depth heads; checkpoints
@@ -67,7 +68,7 @@ class AGMConfig:
 
 
 class AxisGenerator(nn.Module):
-    """Crop (B,3,S,S) in [-1,1] and object index (B,) -> axis image (B,3,S,S) in [-1,1] by DDIM."""
+    """Crop (B,3,S,S) uint8 and object index (B,) -> axis image (B,3,S,S) in [-1,1] by DDIM."""
 
     def __init__(self, config: AGMConfig) -> None:
         super().__init__()
@@ -83,17 +84,26 @@ class AxisGenerator(nn.Module):
 
 def grow_into(model: AxisGenerator, start: AxisGenerator) -> list[str]:
     """Load `start`'s weights into `model`: the same network (its training settings, e.g. loss weights, may
-    differ), or one whose encoder has more residual blocks per stage or more object rows; returns the names of the
-    blocks added (none for the same network). The added blocks start as the identity (their last convolution
-    zeroed), so the grown network computes what `start` did and training goes on from its weights with more
-    capacity; an added object's embedding starts as the mean of the known ones'."""
+    differ), or one whose residual trunk has more blocks per stage or whose encoder has more object rows; returns
+    the names of the blocks added (none for the same network). The added blocks start as the identity (their last
+    convolution zeroed), so the grown network computes what `start` did and training goes on from its weights with
+    more capacity; an added object's embedding starts as the mean of the known ones'."""
     old, new = start.config, model.config
     oe, ne = old.denoiser.encoder, new.denoiser.encoder
-    same = replace(new.denoiser, encoder=replace(ne, blocks=oe.blocks, objects=oe.objects))
-    grows = len(ne.blocks) == len(oe.blocks) and all(n >= o for n, o in zip(ne.blocks, oe.blocks, strict=True)) and ne.objects >= oe.objects
-    if same != old.denoiser or not grows:
-        raise ValueError(f"cannot grow an AGM {old.denoiser} into {new.denoiser}: only the encoder's blocks per stage and objects may grow")
-    added = [f"denoiser.encoder.stages.{s}.{b}" for s, (o, n) in enumerate(zip(oe.blocks, ne.blocks, strict=True)) for b in range(o, n)]
+    ot, nt = oe.trunk, ne.trunk
+    if isinstance(ot, ResidualGNConfig) and isinstance(nt, ResidualGNConfig):
+        grows = len(nt.blocks) == len(ot.blocks) and all(n >= o for n, o in zip(nt.blocks, ot.blocks, strict=True))
+        nt_as_old = replace(nt, blocks=ot.blocks)
+    else:
+        grows, nt_as_old = True, nt
+    same = replace(new.denoiser, encoder=replace(ne, trunk=nt_as_old, objects=oe.objects))
+    if same != old.denoiser or not grows or ne.objects < oe.objects:
+        raise ValueError(
+            f"cannot grow an AGM {old.denoiser} into {new.denoiser}: only the residual trunk's blocks per stage and the objects may grow"
+        )
+    added = [] if nt_as_old is nt else [
+        f"denoiser.encoder.trunk.stages.{s}.{b + 1}" for s, (o, n) in enumerate(zip(ot.blocks, nt.blocks, strict=True)) for b in range(o, n)
+    ]  # fmt: skip
     state = start.state_dict()
     rows = state["denoiser.encoder.embedding.weight"]
     state["denoiser.encoder.embedding.weight"] = torch.cat([rows, rows.mean(dim=0, keepdim=True).expand(ne.objects - oe.objects, -1)])

@@ -37,7 +37,7 @@ class DirectConfig:
 
 
 class DirectRegressor(nn.Module):
-    """Crop (B,3,S,S) in [-1,1] + object index (B,) -> keypoints (B,4,2): origin, end X, end Y, end Z."""
+    """Crop (B,3,S,S) uint8 + object index (B,) -> keypoints (B,4,2): origin, end X, end Y, end Z."""
 
     def __init__(self, config: DirectConfig) -> None:
         super().__init__()

@@ -1,15 +1,15 @@
 """The 2D localiser: a small CenterNet (centre heatmap per object, box size, centre offset) in plain PyTorch.
 
-torchvision cannot be installed beside the pinned torch here, so the backbone is written out: a stride-16
-residual encoder whose stride-16 features are upsampled and fused with the stride-8 ones, read by three 1x1
-heads at stride 8. The frame is resized to `input_size` (the shipped localiser: 384x288 for a 640x480 camera,
-20 ms on two cores through `fused`, inside the 30 ms budget); boxes come back in the frame's own pixels.
+A trunk (`axispose_core/trunks`: the from-scratch BatchNorm residual one, or a pretrained EfficientNet-Lite0)
+gives features at strides 8, 16 and optionally 32; the coarser ones are upsampled and fused into the stride-8 map
+that three small heads read. The frame is resized to `input_size` (the shipped localiser: 384x288 for a 640x480
+camera); boxes come back in the frame's own pixels.
 """
 
 from __future__ import annotations
 
 from copy import deepcopy
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import cv2
 import numpy as np
@@ -19,6 +19,8 @@ from torch import nn
 from torch.nn.utils.fusion import fuse_conv_bn_eval
 
 from axispose_core.localiser.decode import Detection, decode
+from axispose_core.trunks import Trunk, TrunkConfig, build_trunk
+from axispose_core.trunks.residual import BNResidual, ResidualBNConfig, conv_bn_act
 
 STRIDE = 8
 
@@ -30,60 +32,64 @@ class LocaliserConfig:
     obj_ids: tuple[int, ...] = ()
     input_size: tuple[int, int] = (320, 240)
     """(width, height) the frame is resized to; both multiples of 16."""
-    channels: tuple[int, ...] = (16, 32, 64, 96)
-    """Widths at strides 2, 4, 8, 16, and optionally 32: a fifth width adds a stride-32 stage whose context (an
-    object's surroundings and whole silhouette, which tell look-alike objects apart) is fused back into stride 16."""
+    trunk: TrunkConfig = field(default_factory=ResidualBNConfig)
+    """Its stages at strides 2..16, and optionally 32: a fifth stage's context (an object's surroundings and whole
+    silhouette, which tell look-alike objects apart) is fused back into stride 16."""
+    neck: int | None = None
+    """Channels of the fused stride-8 map and the heads (None: the trunk's stride-8 width)."""
     threshold: float = 0.3
     """Default score threshold of `detect`."""
     max_per_object: int = 3
 
-
-def _block(c_in: int, c_out: int, stride: int) -> nn.Sequential:
-    return nn.Sequential(nn.Conv2d(c_in, c_out, 3, stride, 1, bias=False), nn.BatchNorm2d(c_out), nn.SiLU(inplace=True))
-
-
-class _Residual(nn.Module):
-    def __init__(self, c: int) -> None:
-        super().__init__()
-        self.body = nn.Sequential(_block(c, c, 1), nn.Conv2d(c, c, 3, 1, 1, bias=False), nn.BatchNorm2d(c))
-
-    def forward(self, x: torch.Tensor) -> torch.Tensor:
-        return F.silu(x + self.body(x))
+    @staticmethod
+    def upgrade_config(data: dict) -> dict:
+        """A localiser written before it had a trunk: its `channels` were the BatchNorm residual trunk's widths."""
+        if "channels" not in data:
+            return data
+        data = dict(data)
+        data["trunk"] = {"kind": "residual_bn", "widths": data.pop("channels")}
+        return data
 
 
 class Localiser(nn.Module):
-    """RGB frames (B,3,H,W) in [-1,1] at `input_size` -> heatmap (B,C,H/8,W/8), log size (B,2,..), offset (B,2,..)."""
+    """RGB frames (B,3,H,W) uint8 at `input_size` -> heatmap (B,C,H/8,W/8), log size (B,2,..), offset (B,2,..)."""
 
     def __init__(self, config: LocaliserConfig) -> None:
         super().__init__()
         w, h = config.input_size
+        self.trunk: Trunk = build_trunk(config.trunk)
+        widths = self.trunk.widths
+        if len(widths) not in (4, 5):
+            raise ValueError(f"a localiser's trunk has 4 or 5 stages (strides 2..16 or 2..32), got widths {widths}")
         if not config.obj_ids or w % 16 or h % 16:
             raise ValueError(f"a localiser needs object ids and an input size in multiples of 16, got {config}")
         self.config = config
-        if len(config.channels) not in (4, 5):
-            raise ValueError(f"localiser channels are 4 or 5 widths (strides 2..16 or 2..32), got {config.channels}")
-        c2, c4, c8, c16 = config.channels[:4]
-        self.stem = _block(3, c2, 2)
-        self.s4 = nn.Sequential(_block(c2, c4, 2), _Residual(c4))
-        self.s8 = nn.Sequential(_block(c4, c8, 2), _Residual(c8))
-        self.s16 = nn.Sequential(_block(c8, c16, 2), _Residual(c16), _Residual(c16))
-        if len(config.channels) == 5:
-            c32 = config.channels[4]
-            self.s32 = nn.Sequential(_block(c16, c32, 2), _Residual(c32), _Residual(c32))
-            self.fuse32 = _block(c16 + c32, c16, 1)
-        self.fuse = nn.Sequential(_block(c8 + c16, c8, 1), _Residual(c8))
-        self.heat = nn.Sequential(_block(c8, c8, 1), nn.Conv2d(c8, len(config.obj_ids), 1))
-        self.size = nn.Sequential(_block(c8, c8, 1), nn.Conv2d(c8, 2, 1))
-        self.offset = nn.Sequential(_block(c8, c8, 1), nn.Conv2d(c8, 2, 1))
+        c8, c16 = widths[2], widths[3]
+        neck = config.neck or c8
+        if len(widths) == 5:
+            self.fuse32 = conv_bn_act(c16 + widths[4], c16, 1)
+        self.fuse = nn.Sequential(conv_bn_act(c8 + c16, neck, 1), BNResidual(neck))
+        self.heat = nn.Sequential(conv_bn_act(neck, neck, 1), nn.Conv2d(neck, len(config.obj_ids), 1))
+        self.size = nn.Sequential(conv_bn_act(neck, neck, 1), nn.Conv2d(neck, 2, 1))
+        self.offset = nn.Sequential(conv_bn_act(neck, neck, 1), nn.Conv2d(neck, 2, 1))
         nn.init.constant_(self.heat[-1].bias, -2.19)  # CenterNet's prior: sigmoid(-2.19) = 0.1
 
     def forward(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        f8 = self.s8(self.s4(self.stem(x)))
-        f16 = self.s16(f8)
-        if hasattr(self, "s32"):
-            f16 = self.fuse32(torch.cat([f16, F.interpolate(self.s32(f16), size=f16.shape[-2:], mode="nearest")], dim=1))
+        feats = self.trunk(self.trunk.normalise(x))
+        f8, f16 = feats[2], feats[3]
+        if len(feats) == 5:
+            f16 = self.fuse32(torch.cat([f16, F.interpolate(feats[4], size=f16.shape[-2:], mode="nearest")], dim=1))
         f = self.fuse(torch.cat([f8, F.interpolate(f16, size=f8.shape[-2:], mode="nearest")], dim=1))
         return torch.sigmoid(self.heat(f)), self.size(f), self.offset(f)
+
+    @staticmethod
+    def upgrade_state(state: dict[str, torch.Tensor], prefix: str) -> None:
+        """Weights saved before the localiser had a trunk (stem, s4, s8, s16, s32) under the trunk's names
+        (`checkpoint.upgrade_state`)."""
+        stages = {"stem": "trunk.stages.0.0", **{f"s{2 ** (i + 1)}": f"trunk.stages.{i}" for i in range(1, 5)}}
+        for key in [k for k in state if k.startswith(prefix) and k[len(prefix) :].split(".")[0] in stages]:
+            part, rest = key[len(prefix) :].split(".", 1)
+            state[f"{prefix}{stages[part]}.{rest}"] = state.pop(key)
 
     def fused(self) -> Localiser:
         """An inference copy with every BatchNorm folded into the convolution before it, in channels-last memory:
@@ -97,10 +103,10 @@ class Localiser(nn.Module):
         return copy.to(memory_format=torch.channels_last)
 
     def prepare(self, image_rgb: np.ndarray) -> torch.Tensor:
-        """(1,3,H,W) input tensor of an RGB uint8 frame of any size."""
+        """(1,3,H,W) uint8 input of an RGB uint8 frame of any size."""
         w, h = self.config.input_size
         small = cv2.resize(image_rgb, (w, h), interpolation=cv2.INTER_AREA)
-        return torch.from_numpy(small).permute(2, 0, 1)[None].float() / 127.5 - 1
+        return torch.from_numpy(small).permute(2, 0, 1)[None]
 
     @torch.inference_mode()
     def detect(self, image_rgb: np.ndarray, threshold: float | None = None) -> list[Detection]:

@@ -31,9 +31,9 @@ class InstanceRef:
 class AxisCropDataset(Dataset):
     """(crop, axis image, object index, K', R, t) per annotated instance with visib_fract >= min_visib.
 
-    Crops are jittered like a detector's boxes when `jitter` is given (training), centred otherwise; images
-    are in [-1, 1], channels first. The sample's randomness depends only on (seed, epoch, index). Scenes without
-    scene_gt_info.json need `models_dir` (`bop_frames`).
+    Crops are jittered like a detector's boxes when `jitter` is given (training), centred otherwise; crops are
+    uint8, channels first (the network normalises them), axis images in [-1, 1]. The sample's randomness depends
+    only on (seed, epoch, index). Scenes without scene_gt_info.json need `models_dir` (`bop_frames`).
     """
 
     def __init__(
@@ -76,7 +76,7 @@ class AxisCropDataset(Dataset):
         spec = self.specs[self.objects[ref.obj_id]]
         target = axis_target(crop, g.R, g.t, spec.axes.lengths, self.size)
         return {
-            "crop": torch.from_numpy(patch * 2 - 1).permute(2, 0, 1),
+            "crop": torch.from_numpy(np.round(patch * 255).astype(np.uint8)).permute(2, 0, 1),
             "axes": torch.from_numpy(target * 2 - 1).permute(2, 0, 1),
             "object": torch.tensor(self.objects[ref.obj_id]),
             "K": torch.from_numpy(crop.K_patch),

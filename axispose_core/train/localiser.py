@@ -43,7 +43,7 @@ class LocaliserTrainConfig:
 
 
 class LocaliserDataset(Dataset):
-    """Resized frames in [-1,1] with heatmap/size/offset targets; randomness depends on (seed, epoch, index)."""
+    """Resized uint8 frames with heatmap/size/offset targets; randomness depends on (seed, epoch, index)."""
 
     def __init__(
         self,
@@ -92,7 +92,7 @@ class LocaliserDataset(Dataset):
         weights = [wt for _, _, wt in instances]
         heat, log_size, offset, mask = draw_targets(boxes, len(self.classes), (h // STRIDE, w // STRIDE), STRIDE, weights)
         return {
-            "image": torch.from_numpy(image * 2 - 1).permute(2, 0, 1).float(),
+            "image": torch.from_numpy(np.round(image * 255).astype(np.uint8)).permute(2, 0, 1),
             "heat": torch.from_numpy(heat),
             "log_size": torch.from_numpy(log_size),
             "offset": torch.from_numpy(offset),

@@ -25,6 +25,7 @@ from torch.utils.data import DataLoader, Dataset, DistributedSampler, RandomSamp
 from tqdm import tqdm
 
 from axispose_core.train.resume import load_run_state, save_run_state, state_path
+from axispose_core.trunks import Trunk
 
 Batch = dict[str, torch.Tensor]
 
@@ -47,6 +48,11 @@ class OptimConfig:
     val_every: int = 500
     bf16: bool = False
     """bfloat16 autocast on the CPU as on CUDA: 1.6-1.8x faster steps on a CPU with AVX-512 BF16."""
+    trunk_lr: float = 1.0
+    """Learning-rate factor of a pretrained trunk's stages (below 1: the ImageNet features move less than the
+    layers trained from scratch)."""
+    freeze_trunk: int = 0
+    """A pretrained trunk's first stages kept as loaded: no gradient, BatchNorm statistics fixed."""
 
 
 def warmup_cosine(step: int, warmup: int, total: int) -> float:
@@ -124,6 +130,21 @@ def epochs(dataset: Dataset, optim: OptimConfig) -> Callable[[int], Iterator[Bat
     return batches
 
 
+def pretrained_trunks(model: torch.nn.Module) -> list[Trunk]:
+    """The trunks in `model` that training starts from learned weights."""
+    return [m for m in model.modules() if isinstance(m, Trunk) and m.pretrained]
+
+
+def param_groups(model: torch.nn.Module, optim: OptimConfig) -> list[dict[str, Any]]:
+    """The optimiser's parameter groups: everything trainable at optim.lr, then the pretrained trunks' trainable
+    stages at optim.lr * optim.trunk_lr (where there are any); frozen stages are left out."""
+    trunk = {id(p) for t in pretrained_trunks(model) for p in t.parameters()}
+    rest = [p for p in model.parameters() if p.requires_grad and id(p) not in trunk]
+    pretrained = [p for p in model.parameters() if p.requires_grad and id(p) in trunk]
+    groups = [{"params": rest, "lr": optim.lr}]
+    return groups + ([{"params": pretrained, "lr": optim.lr * optim.trunk_lr}] if pretrained else [])
+
+
 def fit(
     cfg: Any,
     model: torch.nn.Module,
@@ -153,12 +174,18 @@ def fit(
     must match on resume but for the run's length, how often it saves and validates, and `data_fields` where
     `same_data` accepts them (`load_run_state`). `objective(model)`, where given, is the module whose forward
     computes the loss (`train/losses.py`): what loss_fn is handed and DistributedDataParallel wraps, while the
-    model's own state is what the EMA, the checkpoints and the resume state hold."""
+    model's own state is what the EMA, the checkpoints and the resume state hold. A run from scratch (no `init`,
+    no resume) starts its pretrained trunks from their weights (`Trunk.load_pretrained`); every run freezes their
+    first optim.freeze_trunk stages and trains the rest at optim.trunk_lr times the rate (`param_groups`)."""
     optim: OptimConfig = cfg.optim
     rank, size = world()
+    for trunk in pretrained_trunks(model):
+        if init is None and not run.resume:
+            trunk.load_pretrained()
+        trunk.freeze(optim.freeze_trunk)
     model = model.to(device)
     ema = copy.deepcopy(model).eval()
-    opt = torch.optim.AdamW(model.parameters(), lr=optim.lr, weight_decay=optim.weight_decay)
+    opt = torch.optim.AdamW(param_groups(model, optim), lr=optim.lr, weight_decay=optim.weight_decay)
     sched = torch.optim.lr_scheduler.LambdaLR(opt, lambda s: warmup_cosine(s, optim.warmup, optim.steps))
     step, before = 0, 0.0
     if run.resume:

@@ -355,7 +355,7 @@ class CropStream:
 
 
 class CropStreamDataset(Dataset):
-    """The stream as training tensors (crop and axes in [-1, 1], channels first; object index; K', R, t; visible
+    """The stream as training tensors (crop uint8 and axes in [-1, 1], channels first; object index; K', R, t; visible
     fraction; keypoints; surface points in units of the object's radius and the visible mask, both at half the
     crop's resolution, where the AGM's encoder predicts them). Index i is sample i; `stream_loader` batches it in
     worker processes."""
@@ -379,7 +379,7 @@ class CropStreamDataset(Dataset):
         pts = s.points.reshape(S // 2, 2, S // 2, 2, 3).sum(axis=(1, 3)) / np.maximum(m, 1)[..., None]
         pts /= 0.5 * self.stream.models[s.obj_id].spec.diameter
         return {
-            "crop": torch.from_numpy(s.crop.astype(np.float32) / 127.5 - 1.0).permute(2, 0, 1),
+            "crop": torch.from_numpy(s.crop).permute(2, 0, 1),
             "axes": torch.from_numpy(s.axes * 2 - 1).permute(2, 0, 1),
             "object": torch.tensor(self.stream.index[s.obj_id]),
             "K": torch.from_numpy(s.K_crop),
