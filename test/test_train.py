@@ -110,7 +110,7 @@ def test_init_starts_from_a_checkpoints_weights(data, tmp_path):
     assert not all(torch.equal(v, trained[k]) for k, v in Estimator.load(fresh).agm.denoiser.state_dict().items())
     # another network is refused, naming both
     wider = {**TINY["agm"], "denoiser": {**TINY["agm"]["denoiser"], "channels": 16}}
-    with pytest.raises(ValueError, match="blocks per stage and objects may grow"):
+    with pytest.raises(ValueError, match="blocks per stage and the objects may grow"):
         main(["train", "--data", str(data), "--out", str(tmp_path / "w.safetensors"), "--config", _config(tmp_path, agm=wider),
               "--init", str(first)])  # fmt: skip
 
