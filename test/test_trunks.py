@@ -19,7 +19,7 @@ from axispose_core.agm.model import AGMConfig, AxisGenerator
 from axispose_core.agm.sampler import sample
 from axispose_core.checkpoint import config_from_dict, load_state
 from axispose_core.localiser.model import Localiser, LocaliserConfig
-from axispose_core.train.loop import OptimConfig, RunOptions, fit, param_groups
+from axispose_core.train.loop import OptimConfig, RunOptions, fit, param_groups, start_pretrained
 from axispose_core.trunks import TRUNKS, EfficientNetLiteConfig, ResidualBNConfig, ResidualGNConfig, build_trunk
 from axispose_core.trunks.efficientnet_lite import EfficientNetLiteClassifier, SamePad, imagenet_state, key_map, weights_file
 
@@ -142,9 +142,10 @@ class _Config:
     optim: OptimConfig = field(default_factory=lambda: OptimConfig(steps=3, batch=2, lr=1e-2, warmup=1, trunk_lr=0.1, freeze_trunk=2))
 
 
-def test_training_starts_a_pretrained_trunk_from_imagenet_freezes_its_first_stages_and_slows_the_rest(tmp_path):
+def test_a_pretrained_trunk_starts_from_imagenet_with_its_first_stages_frozen_and_the_rest_slowed(tmp_path):
     torch.manual_seed(0)
     net, cfg = _Net(), _Config()
+    start_pretrained(net)
     images = _images(2, 32)
 
     def batches(step: int):

@@ -26,7 +26,7 @@ import numpy as np
 import torch
 import torch.distributed as dist
 
-from axispose_core.agm.model import AGMConfig, AxisGenerator, depth_from_log, grow_into
+from axispose_core.agm.model import AGMConfig, AxisGenerator, depth_from_log, grow_into, transplant
 from axispose_core.agm.sampler import sample
 from axispose_core.axis_image import axis_keypoints
 from axispose_core.data.synth.config import StreamConfig
@@ -36,7 +36,17 @@ from axispose_core.metrics import re
 from axispose_core.tbm.backproject import backproject_readings
 from axispose_core.tbm.reader import SHIPPED_READER, KeypointReader, load_reader
 from axispose_core.train.dataset import AxisCropDataset
-from axispose_core.train.loop import DEFAULT_RUN, OptimConfig, RunOptions, epochs, fit, training_device, training_record, world
+from axispose_core.train.loop import (
+    DEFAULT_RUN,
+    OptimConfig,
+    RunOptions,
+    epochs,
+    fit,
+    start_pretrained,
+    training_device,
+    training_record,
+    world,
+)
 from axispose_core.train.losses import AGMObjective, agm_losses, log_depth_target
 from axispose_core.train.sources import CropSources
 
@@ -74,6 +84,10 @@ class TrainConfig:
     stream: StreamConfig = field(default_factory=lambda: StreamConfig(occluded_prob=0.0, clutter_prob=0.0, neighbours=(0, 0)))
     """The crop stream trained on when no BOP folders are given; its crop size must be the denoiser's. One object
     per crop, nothing in front or behind: pose is learned about twice as fast per step on these."""
+    distill: float = 0.0
+    """Weight of the distillation loss (`train/losses.py`) against the init checkpoint's encoder, for a run whose
+    encoder has another trunk than init's: the denoiser starts from init's weights and the new encoder learns what
+    it reads. 0: off."""
     val_seed: int = 1_000_000
     """Seed of the held-out stream samples: fixed, so that the curves of different runs read the same crops."""
     curriculum: tuple[CurriculumStage, ...] = ()
@@ -225,9 +239,19 @@ def train_agm(
         cfg = dataclasses.replace(cfg, agm=dataclasses.replace(cfg.agm, denoiser=dataclasses.replace(cfg.agm.denoiser, encoder=encoder)))
         print(f"{len(objects)} objects: the encoder's object embedding gets a row for each (the config has {rows})")
     model = AxisGenerator(cfg.agm)
+    if not run.resume:
+        start_pretrained(model)
+    teacher = None
+    if cfg.distill > 0:
+        if not init:
+            raise ValueError("distill needs init: the checkpoint whose encoder teaches the new one")
+        teacher = Estimator.load(init).agm.to(dev)
     if init and not run.resume:
         start_from = Estimator.load(init)
-        if grown := grow_into(model, start_from.agm):  # the same network: a plain copy, nothing grown
+        if start_from.agm.config.denoiser.encoder.trunk.kind != cfg.agm.denoiser.encoder.trunk.kind:
+            fresh = transplant(model, start_from.agm)
+            print(f"started from {init} with a new trunk: {len(fresh)} tensors start fresh or pretrained")
+        elif grown := grow_into(model, start_from.agm):  # the same network: a plain copy, nothing grown
             print(f"started from {init}, its encoder grown by {len(grown)} block(s), each starting as the identity")
     scales = torch.tensor([o.scale for o in objects], dtype=torch.float64)
     validate_ema = None
@@ -250,5 +274,6 @@ def train_agm(
 
     return fit(
         cfg, model, batches, loss, out, save, validate_ema, VAL_COLUMNS, run, dev, "train agm",
-        str(init) if init else None, ("stream", "curriculum"), lambda saved, at: same_stream_before(saved, cfg, at), AGMObjective,
+        str(init) if init else None, ("stream", "curriculum"), lambda saved, at: same_stream_before(saved, cfg, at),
+        lambda agm: AGMObjective(agm, teacher, cfg.distill),
     )  # fmt: skip

@@ -20,7 +20,7 @@ from axispose_core.metrics import re
 from axispose_core.tbm.backproject import backproject
 from axispose_core.train.agm import with_depth_target
 from axispose_core.train.dataset import AxisCropDataset
-from axispose_core.train.loop import DEFAULT_RUN, OptimConfig, RunOptions, epochs, fit, training_device, training_record
+from axispose_core.train.loop import DEFAULT_RUN, OptimConfig, RunOptions, epochs, fit, start_pretrained, training_device, training_record
 from axispose_core.train.losses import DirectObjective
 from axispose_core.train.sources import CropSources
 
@@ -82,8 +82,11 @@ def train_direct(cfg: DirectTrainConfig, sources: CropSources, out: str | Path, 
     def batches(step: int):
         return stream_loader(stream, cfg.optim.batch, start=step * cfg.optim.batch, workers=cfg.optim.workers)
 
+    model = DirectRegressor(config)
+    if not run.resume:
+        start_pretrained(model)
     return fit(
-        cfg, DirectRegressor(config), batches if stream is not None else epochs(train_set, cfg.optim), loss, out, save,
+        cfg, model, batches if stream is not None else epochs(train_set, cfg.optim), loss, out, save,
         validate if val_batch else None, ("val_rot_median_deg", "val_rot_within_15deg", "val_kp_err_px", "val_depth_head"),
         run, dev, "train direct", objective=DirectObjective,
     )  # fmt: skip

@@ -26,7 +26,7 @@ from axispose_core.localiser.decode import draw_targets, focal_loss
 from axispose_core.localiser.model import STRIDE, Localiser, LocaliserConfig, build_localiser
 from axispose_core.localiser.scoring import detection_scores, frame_instances
 from axispose_core.localiser.weights import KIND, warm_start
-from axispose_core.train.loop import DEFAULT_RUN, OptimConfig, RunOptions, epochs, fit, training_device, training_record
+from axispose_core.train.loop import DEFAULT_RUN, OptimConfig, RunOptions, epochs, fit, start_pretrained, training_device, training_record
 
 
 @dataclass(frozen=True)
@@ -137,6 +137,8 @@ def train_localiser(
         return {"val_recall": scores["recall"], "val_precision": scores["precision"]}
 
     model = build_localiser(cfg.localiser)
+    if not run.resume:
+        start_pretrained(model)
     if init and not run.resume:
         fresh = warm_start(model, init)
         shown = (": " + ", ".join(fresh[:6]) + (" ..." if len(fresh) > 6 else "")) if fresh else ""

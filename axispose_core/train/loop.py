@@ -135,6 +135,13 @@ def pretrained_trunks(model: torch.nn.Module) -> list[Trunk]:
     return [m for m in model.modules() if isinstance(m, Trunk) and m.pretrained]
 
 
+def start_pretrained(model: torch.nn.Module) -> None:
+    """Load the learned weights of `model`'s pretrained trunks: what a trainer does to a network it has just built,
+    before copying a checkpoint's weights into it (which then win where they cover the trunk)."""
+    for trunk in pretrained_trunks(model):
+        trunk.load_pretrained()
+
+
 def param_groups(model: torch.nn.Module, optim: OptimConfig) -> list[dict[str, Any]]:
     """The optimiser's parameter groups: everything trainable at optim.lr, then the pretrained trunks' trainable
     stages at optim.lr * optim.trunk_lr (where there are any); frozen stages are left out."""
@@ -174,14 +181,12 @@ def fit(
     must match on resume but for the run's length, how often it saves and validates, and `data_fields` where
     `same_data` accepts them (`load_run_state`). `objective(model)`, where given, is the module whose forward
     computes the loss (`train/losses.py`): what loss_fn is handed and DistributedDataParallel wraps, while the
-    model's own state is what the EMA, the checkpoints and the resume state hold. A run from scratch (no `init`,
-    no resume) starts its pretrained trunks from their weights (`Trunk.load_pretrained`); every run freezes their
-    first optim.freeze_trunk stages and trains the rest at optim.trunk_lr times the rate (`param_groups`)."""
+    model's own state is what the EMA, the checkpoints and the resume state hold. Pretrained trunks
+    (`start_pretrained`) have their first optim.freeze_trunk stages frozen and train the rest at optim.trunk_lr
+    times the rate (`param_groups`)."""
     optim: OptimConfig = cfg.optim
     rank, size = world()
     for trunk in pretrained_trunks(model):
-        if init is None and not run.resume:
-            trunk.load_pretrained()
         trunk.freeze(optim.freeze_trunk)
     model = model.to(device)
     ema = copy.deepcopy(model).eval()
