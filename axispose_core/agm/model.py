@@ -12,7 +12,7 @@ from torch import nn
 
 from axispose_core.agm.denoiser import Denoiser, DenoiserConfig, Encoding
 from axispose_core.agm.scheduler import DDIMScheduler, SchedulerConfig
-from axispose_core.trunks import ResidualGNConfig
+from axispose_core.trunks import ResidualGNConfig, TrunkConfig
 
 VERSION = 2
 """The AGM's network generation: 2 is the object-conditioned encoder with dense and depth heads; checkpoints
@@ -82,6 +82,14 @@ class AxisGenerator(nn.Module):
         return self.denoiser.encode(crops, objects)
 
 
+def grows(old: TrunkConfig, new: TrunkConfig) -> bool:
+    """Whether a trunk `new` holds `old`'s weights: the same, or a residual one with more blocks per stage."""
+    if isinstance(old, ResidualGNConfig) and isinstance(new, ResidualGNConfig):
+        more = len(new.blocks) == len(old.blocks) and all(n >= o for n, o in zip(new.blocks, old.blocks, strict=True))
+        return more and replace(new, blocks=old.blocks) == old
+    return new == old
+
+
 def grow_into(model: AxisGenerator, start: AxisGenerator) -> list[str]:
     """Load `start`'s weights into `model`: the same network (its training settings, e.g. loss weights, may
     differ), or one whose residual trunk has more blocks per stage or whose encoder has more object rows; returns
@@ -91,13 +99,9 @@ def grow_into(model: AxisGenerator, start: AxisGenerator) -> list[str]:
     old, new = start.config, model.config
     oe, ne = old.denoiser.encoder, new.denoiser.encoder
     ot, nt = oe.trunk, ne.trunk
-    if isinstance(ot, ResidualGNConfig) and isinstance(nt, ResidualGNConfig):
-        grows = len(nt.blocks) == len(ot.blocks) and all(n >= o for n, o in zip(nt.blocks, ot.blocks, strict=True))
-        nt_as_old = replace(nt, blocks=ot.blocks)
-    else:
-        grows, nt_as_old = True, nt
+    nt_as_old = replace(nt, blocks=ot.blocks) if isinstance(ot, ResidualGNConfig) and isinstance(nt, ResidualGNConfig) else nt
     same = replace(new.denoiser, encoder=replace(ne, trunk=nt_as_old, objects=oe.objects))
-    if same != old.denoiser or not grows or ne.objects < oe.objects:
+    if same != old.denoiser or not grows(ot, nt) or ne.objects < oe.objects:
         raise ValueError(
             f"cannot grow an AGM {old.denoiser} into {new.denoiser}: only the residual trunk's blocks per stage and the objects may grow"
         )

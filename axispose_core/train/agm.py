@@ -26,7 +26,7 @@ import numpy as np
 import torch
 import torch.distributed as dist
 
-from axispose_core.agm.model import AGMConfig, AxisGenerator, depth_from_log, grow_into, transplant
+from axispose_core.agm.model import AGMConfig, AxisGenerator, depth_from_log, grow_into, grows, transplant
 from axispose_core.agm.sampler import sample
 from axispose_core.axis_image import axis_keypoints
 from axispose_core.data.synth.config import StreamConfig
@@ -204,7 +204,8 @@ def train_agm(
     Without BOP folders in `sources` the samples come from the crop stream of `cfg.stream` over its models
     folder; with them, from their annotated crops. `init`: an estimator checkpoint whose (EMA) weights a new
     run starts from, with a fresh optimiser and schedule, e.g. to train the shipped model on: the same AGM network,
-    or one whose encoder the config gives more blocks per stage (`grow_into`: more capacity without starting over);
+    one whose encoder the config gives more blocks per stage (`grow_into`: more capacity without starting over), or
+    one with another trunk (`transplant`: the denoiser and the encoder's heads carry over; see `distill`);
     a resumed run restores its own weights and keeps recording the checkpoint its first call started from.
     """
     distributed = "RANK" in os.environ and "WORLD_SIZE" in os.environ
@@ -248,7 +249,7 @@ def train_agm(
         teacher = Estimator.load(init).agm.to(dev)
     if init and not run.resume:
         start_from = Estimator.load(init)
-        if start_from.agm.config.denoiser.encoder.trunk.kind != cfg.agm.denoiser.encoder.trunk.kind:
+        if not grows(start_from.agm.config.denoiser.encoder.trunk, cfg.agm.denoiser.encoder.trunk):
             fresh = transplant(model, start_from.agm)
             print(f"started from {init} with a new trunk: {len(fresh)} tensors start fresh or pretrained")
         elif grown := grow_into(model, start_from.agm):  # the same network: a plain copy, nothing grown
