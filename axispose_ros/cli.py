@@ -32,6 +32,8 @@ def _replay(args: argparse.Namespace) -> int:
     params: dict[str, object] = {"num_threads": args.threads}
     if args.steps is not None:
         params["ddim_steps"] = args.steps
+    if args.hypotheses is not None:
+        params["hypotheses"] = args.hypotheses
     if args.guidance is not None:
         params["guidance_scale"] = args.guidance
     if args.precision is not None:
@@ -92,6 +94,7 @@ def build_ros_parser() -> argparse.ArgumentParser:
     rp.add_argument("--report", default=None, help="metrics JSON (as `axispose eval`, plus latency and node counters)")
     rp.add_argument("--overlays", default=None, help="folder for a few debug overlay PNGs")
     rp.add_argument("--steps", type=int, default=None, help="ddim_steps parameter of the node")
+    rp.add_argument("--hypotheses", type=int, default=None, help="hypotheses parameter of the node (AGM samples per object)")
     rp.add_argument("--guidance", type=float, default=None, help="guidance_scale parameter of the node")
     rp.add_argument("--precision", choices=["auto", "float32", "bfloat16"], default=None,
                     help="precision parameter of the node (default: auto, bfloat16 where the CPU has it natively)")  # fmt: skip

@@ -399,7 +399,8 @@ def _report(node, gt, poses, cameras, boxes, points, arrays, latency, counts, co
                     )
                 )
     objects = [o for o in node.estimator.config.objects if o.name in node.published.values()]
-    report = summarize(records, objects, config | {"ddim_steps": node.get_parameter("ddim_steps").value, "precision": node.precision})
+    used = {"ddim_steps": node.get_parameter("ddim_steps").value, "hypotheses": node.hypotheses(), "precision": node.precision}
+    report = summarize(records, objects, config | used)
     lat = np.array(list(latency.values())) if latency else np.zeros(1)
     report["frame_latency_ms"] = {"median": float(np.median(lat)), "p90": float(np.percentile(lat, 90))}
     report["counts"] = counts

@@ -220,7 +220,10 @@ def test_pose_cov_carries_the_covariance_of_the_samples(harness):
     sent = harness.frame(sec=6)
     assert harness.spin_until(lambda: harness.got["cov"])
     got = harness.got["cov"][0]
-    assert calls == [4]  # the node's default hypotheses
+    assert calls == [3 if harness.node.estimator.bf16 else 2]  # the node's default: 0, what fits the precision
+    for bf16, k in ((True, 3), (False, 2)):
+        harness.node.estimator.bf16 = bf16
+        assert harness.node.hypotheses() == k
     assert got.header.stamp.sec == sent.header.stamp.sec and got.pose.pose.position.z == pytest.approx(0.8)
     np.testing.assert_allclose(np.reshape(got.pose.covariance, (6, 6)), cov)
     assert harness.spin_until(lambda: harness.got["det"])
