@@ -22,7 +22,7 @@ from axispose_core.localiser.scoring import detection_scores, frame_outcome
 from axispose_core.localiser.weights import KIND, load_localiser, warm_start
 from axispose_core.tbm.reader import SHIPPED_READER, load_reader
 from axispose_core.train.dataset import AxisCropDataset
-from axispose_core.train.localiser import LocaliserDataset, LocaliserTrainConfig, train_localiser
+from axispose_core.train.localiser import LocaliserDataset, LocaliserTrainConfig, localiser_loss, train_localiser
 from axispose_core.train.loop import OptimConfig, RunOptions
 from axispose_core.train.resume import state_path
 from axispose_core.trunks import ResidualBNConfig
@@ -80,6 +80,21 @@ def test_occluded_instances_weigh_by_their_hidden_fraction(frames):
     visib = [info.visib_fract for g, info in zip(scene.gt[im_id], scene.gt_info[im_id], strict=True) if g.obj_id in (1, 5)]
     assert [w for _, _, w in plain.boxes(0)] == [1.0] * len(visib)
     assert [w for _, _, w in weighted.boxes(0)] == pytest.approx([1 + 2 * (1 - v) for v in visib])
+
+
+def test_the_loss_is_finite_under_bfloat16_autocast(frames):
+    """The trunk may train in bfloat16; the heads' sigmoid and the focal loss stay in float32 (in bfloat16 the
+    heatmap rounds to 1 and the loss is NaN from the first step)."""
+    data = LocaliserDataset([frames], TINY, min_visib=0.0)
+    batch = {k: torch.stack([data[i][k] for i in range(2)]) for k in data[0]}
+    torch.manual_seed(0)
+    model = Localiser(TINY)
+    for p in model.heat[-1].parameters():  # a confident heatmap: the case bfloat16 cannot represent
+        p.data.fill_(5.0)
+    with torch.autocast("cpu", dtype=torch.bfloat16):
+        heat, _, _ = model(batch["image"])
+        loss = localiser_loss(model, batch, LocaliserTrainConfig(localiser=TINY))
+    assert heat.dtype == torch.float32 and torch.isfinite(loss)
 
 
 def test_match_takes_detections_by_score_and_iou():

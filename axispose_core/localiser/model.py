@@ -80,7 +80,9 @@ class Localiser(nn.Module):
         if len(feats) == 5:
             f16 = self.fuse32(torch.cat([f16, F.interpolate(feats[4], size=f16.shape[-2:], mode="nearest")], dim=1))
         f = self.fuse(torch.cat([f8, F.interpolate(f16, size=f8.shape[-2:], mode="nearest")], dim=1))
-        return torch.sigmoid(self.heat(f)), self.size(f), self.offset(f)
+        with torch.autocast(f.device.type, enabled=False):  # bfloat16 rounds the heatmap to 1, and the focal loss's log to -inf
+            f = f.float()
+            return torch.sigmoid(self.heat(f)), self.size(f), self.offset(f)
 
     @staticmethod
     def upgrade_state(state: dict[str, torch.Tensor], prefix: str) -> None:
