@@ -242,13 +242,11 @@ def train_agm(
     model = AxisGenerator(cfg.agm)
     if not run.resume:
         start_pretrained(model)
-    teacher = None
-    if cfg.distill > 0:
-        if not init:
-            raise ValueError("distill needs init: the checkpoint whose encoder teaches the new one")
-        teacher = Estimator.load(init).agm.to(dev)
-    if init and not run.resume:
-        start_from = Estimator.load(init)
+    if cfg.distill > 0 and not init:
+        raise ValueError("distill needs init: the checkpoint whose encoder teaches the new one")
+    start_from = Estimator.load(init) if init and (cfg.distill > 0 or not run.resume) else None
+    teacher = start_from.agm.to(dev) if cfg.distill > 0 else None
+    if start_from is not None and not run.resume:
         if not grows(start_from.agm.config.denoiser.encoder.trunk, cfg.agm.denoiser.encoder.trunk):
             fresh = transplant(model, start_from.agm)
             print(f"started from {init} with a new trunk: {len(fresh)} tensors start fresh or pretrained")
