@@ -27,6 +27,7 @@ from axispose_core.localiser.decode import Detection
 from axispose_core.localiser.model import Localiser, LocaliserConfig, build_localiser
 from axispose_core.objects import ObjectSpec
 from axispose_core.tbm.backproject import backproject_readings
+from axispose_core.tbm.dense import DenseFusion, dense_correspondences, fuse_pose
 from axispose_core.tbm.reader import KeypointReader, ReaderConfig
 
 KIND = ESTIMATOR
@@ -57,7 +58,11 @@ class EstimatorConfig:
     head_depth_weight: float = 0.9
     """Weight of the encoder's depth in the fused log depth (0: the TBM's from the drawn axis lengths alone, 1: the
     encoder's alone); the translation keeps the TBM's ray. The encoder's depth is the more precise of the two
-    (bench/agm_error_sources.py measures the weights on held-out frames)."""
+    (bench/agm_error_sources.py measures the weights on held-out frames). This is the pose `dense_fusion` starts
+    from."""
+    dense_fusion: DenseFusion = field(default_factory=DenseFusion)
+    """How the final pose is solved from the encoder's dense points with the TBM's rotation and the encoder's depth
+    as priors (`tbm/dense.py`'s `fuse_pose`; points 0: the consensus of the TBM's poses as it is)."""
     mode_sample: bool = True
     """Start each crop's first hypothesis from x_T = 0, the mode of the prior, and the others from N(0, I): one
     sample is then the network's most likely axis image instead of a random draw, and the others still give the
@@ -113,7 +118,8 @@ class PoseEstimate:
     covariance: np.ndarray | None = None
     """(6, 6) pose covariance (x, y, z, rx, ry, rz; camera frame) from the samples' scatter; see consensus.py."""
     head_depth: float = float("nan")
-    """The encoder's depth for this crop (m, linear in λ_O); t already fuses it with the TBM's (head_depth_weight)."""
+    """The encoder's depth for this crop (m, linear in λ_O); t already fuses it with the TBM's (head_depth_weight)
+    and with the dense points (dense_fusion)."""
 
 
 class Estimator:
@@ -246,6 +252,7 @@ class Estimator:
         images = ((axes.float() + 1) * 0.5).clamp(0, 1)
         readings = self.reader.read(images)
         results = backproject_readings(Kp_all, readings, lengths_all)  # every box's hypotheses in one refinement
+        dense = dense_correspondences(enc, np.array([L[0] for L in lengths])) if self.config.dense_fusion.points > 0 else None
         out = []
         for i, ((obj_id, _), cut, L) in enumerate(zip(boxes, cuts, lengths, strict=True)):
             poses, reasons = [], []
@@ -265,5 +272,8 @@ class Estimator:
             c = consensus(np.stack([p[1] for p in poses]), np.stack([p[2] for p in poses]), float(L.max()))
             axis_image = images[poses[c.medoid][0]].permute(1, 2, 0).cpu().numpy()
             spread = dict(spread_deg=c.spread_deg, spread_m=c.spread_m, covariance=c.covariance) if len(poses) > 1 else {}
-            out.append(PoseEstimate(R=c.R, t=c.t, ok=True, reason="", axis_image=axis_image, **pick, **spread))
+            R, t = c.R, c.t
+            if dense is not None and (fused := fuse_pose(cut.K_patch, R, t, *dense[i], z_head, self.config.dense_fusion)) is not None:
+                R, t = fused
+            out.append(PoseEstimate(R=R, t=t, ok=True, reason="", axis_image=axis_image, **pick, **spread))
         return out

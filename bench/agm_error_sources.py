@@ -11,8 +11,10 @@ and each instance's encoder depth (`PoseEstimate.head_depth`) is kept, so one ru
 encoder's, and their fusion at every weight in `--weights` on the same rotations: the table that sets the
 checkpoint's head_depth_weight (choose it on validation frames, not on the test set). Two more sources read the
 encoder's dense surface points (model coordinates in λ_O units at half the crop's resolution, where its mask is
-above 0.5): "dense", t solved from them with the TBM's rotation (`tbm/dense.py`), and "PnP", rotation and
-translation from the same correspondences by OpenCV's EPnP in RANSAC (its rotation error is printed too).
+above 0.5): "dense", t solved from them with the TBM's rotation (`tbm/dense.py`); "PnP", rotation and
+translation from the same correspondences by OpenCV's EPnP in RANSAC; and "fused", the estimator's own pose
+(`fuse_pose` with the checkpoint's dense_fusion: R and t from the points with the TBM's rotation and the encoder's
+depth as priors). Their rotation errors and the fused pose's ADD(-S)@0.1d are printed too.
 
     python bench/agm_error_sources.py --checkpoint axispose_core/models/axispose_lmo.safetensors \\
         --data data/lmo_val --models ../shared/data/lmo/models_eval --json bench/results/agm_error_sources.json
@@ -36,7 +38,7 @@ from axispose_core.data.meshes import load_ply
 from axispose_core.estimator import Estimator, crop_batch, fuse_depth
 from axispose_core.evaluate import Prediction, evaluate
 from axispose_core.metrics import add_or_adi, re
-from axispose_core.tbm.dense import translation_from_points
+from axispose_core.tbm.dense import dense_correspondences, fuse_pose, translation_from_points
 
 BANDS = ((0.1, 0.5), (0.5, 0.8), (0.8, 1.0))
 """Visible-fraction bands the depth errors are split by."""
@@ -70,12 +72,13 @@ def main() -> None:
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
     est = Estimator.load(args.checkpoint)
-    est.config = dataclasses.replace(est.config, head_depth_weight=0.0)  # t is the TBM's; the encoder's depth rides along
+    shipped = est.config
+    # t is the TBM's (the encoder's depth rides along), R the TBM's consensus: each source is scored on the same poses
+    est.config = dataclasses.replace(est.config, head_depth_weight=0.0, dense_fusion=dataclasses.replace(shipped.dense_fusion, points=0.0))
     objects = list(est.config.objects)
     head_depths: list[float] = []
-    dense: list[tuple[float, float, np.ndarray | None]] = []  # per record: dense z, PnP z, PnP rotation
+    dense: list[tuple] = []  # per record: dense z, PnP z, PnP rotation, the dense fusion's z and rotation
     S = est.size
-    grid = np.stack(np.meshgrid(np.arange(S // 2) * 2 + 0.5, np.arange(S // 2) * 2 + 0.5), axis=-1).reshape(-1, 2)
 
     def predict(image: np.ndarray, K: np.ndarray, boxes: list) -> list[Prediction]:
         poses = est.estimate(image, K, boxes, steps=args.steps)
@@ -83,18 +86,21 @@ def main() -> None:
         cuts, x = crop_batch(image, K, boxes, est.objects, S, est.config.crop_pad)
         with torch.inference_mode():
             enc = est.agm.encode(x, torch.tensor([est.index[o] for o, _ in boxes], dtype=torch.long))
-        pts = enc.points.float().numpy().reshape(len(boxes), 3, -1).transpose(0, 2, 1)
-        prob = torch.sigmoid(enc.mask.float()).numpy().reshape(len(boxes), -1)
-        for p, cut, (obj_id, _), X, w in zip(poses, cuts, boxes, pts, prob, strict=True):
-            X, vis = X * est.objects[obj_id].scale, w > 0.5
-            t_dense = translation_from_points(cut.K_patch, p.R, grid, X, np.where(vis, w, 0.0)) if p.ok else None
+        scales = np.array([est.objects[o].scale for o, _ in boxes])
+        for p, cut, (uv, X, w) in zip(poses, cuts, dense_correspondences(enc, scales), strict=True):
+            t_dense = translation_from_points(cut.K_patch, p.R, uv, X, w) if p.ok else None
             z_pnp, R_pnp = float("nan"), None
-            if vis.sum() >= 6:
-                ok, rvec, tvec, _ = cv2.solvePnPRansac(X[vis], grid[vis], cut.K_patch, None, flags=cv2.SOLVEPNP_EPNP,
+            if len(uv) >= 6:
+                ok, rvec, tvec, _ = cv2.solvePnPRansac(X, uv, cut.K_patch, None, flags=cv2.SOLVEPNP_EPNP,
                                                        reprojectionError=2.0, iterationsCount=200)  # fmt: skip
                 if ok and tvec[2, 0] > 0:
                     z_pnp, R_pnp = float(tvec[2, 0]), cv2.Rodrigues(rvec)[0]
-            dense.append((float(t_dense[2]) if t_dense is not None and t_dense[2] > 0 else float("nan"), z_pnp, R_pnp))
+            # The estimator's pose: from the TBM's and the fused depth, solved with the dense points and both as priors
+            # (the crop's frame is the image's: K_patch only moves and scales the pixels).
+            start = fuse_depth(p.t, p.head_depth, shipped.head_depth_weight)
+            fused = fuse_pose(cut.K_patch, p.R, start, uv, X, w, p.head_depth, shipped.dense_fusion) if p.ok else None
+            z_fus, R_fus = (float(fused[1][2]), fused[0]) if fused is not None else (float("nan"), None)
+            dense.append((float(t_dense[2]) if t_dense is not None and t_dense[2] > 0 else float("nan"), z_pnp, R_pnp, z_fus, R_fus))
         return [Prediction(p.R, p.t, p.ok) for p in poses]
 
     records = evaluate(predict, args.data, args.models, objects)
@@ -103,7 +109,8 @@ def main() -> None:
     specs = {o.obj_id: o for o in objects}
     points = {i: load_ply(model_path(args.models, i)).vertices for i in specs}
     rows = []
-    for r, z_head, (z_dense, z_pnp, R_pnp) in ((r, z, d) for r, z, d in zip(records, head_depths, dense, strict=True) if r.ok):
+    posed = ((r, z, d) for r, z, d in zip(records, head_depths, dense, strict=True) if r.ok)
+    for r, z_head, (z_dense, z_pnp, R_pnp, z_fus, R_fus) in posed:
         spec, pts = specs[r.obj_id], points[r.obj_id]
         d = r.t - r.t_gt
         thr = 0.1 * spec.diameter
@@ -121,12 +128,19 @@ def main() -> None:
             "log_depth_err_dense": float(np.log(z_dense / r.t_gt[2])),
             "log_depth_err_pnp": float(np.log(z_pnp / r.t_gt[2])),
             "rot_err_pnp_deg": re(R_pnp, r.R_gt) if R_pnp is not None else 180.0,
+            "log_depth_err_fused": float(np.log(z_fus / r.t_gt[2])),
+            "rot_err_fused_deg": re(R_fus, r.R_gt) if R_fus is not None else 180.0,
             "visib_fract": r.visib_fract,
         })  # fmt: skip
         for w in weights:
             t_w = fuse_depth(r.t, z_head, w)
             rows[-1][f"add_ok_w{w:g}"] = add_or_adi(r.R, t_w, r.R_gt, r.t_gt, pts, spec.symmetric) < thr
-        for name, z in (("dense", z_dense), ("pnp", z_pnp)):  # that depth on the TBM's ray, as the head's is used
+        if R_fus is not None:  # the dense fusion's pose as it is, rotation and translation
+            t_ref = r.t * (z_fus / r.t[2])
+            rows[-1]["add_ok_fused_pose"] = add_or_adi(R_fus, t_ref, r.R_gt, r.t_gt, pts, spec.symmetric) < thr
+        else:
+            rows[-1]["add_ok_fused_pose"] = False
+        for name, z in (("dense", z_dense), ("pnp", z_pnp), ("fused", z_fus)):  # that depth on the TBM's ray, as the head's is used
             rows[-1][f"add_ok_{name}"] = (
                 bool(np.isfinite(z)) and add_or_adi(r.R, fuse_depth(r.t, z, 1.0), r.R_gt, r.t_gt, pts, spec.symmetric) < thr
             )
@@ -186,7 +200,7 @@ def main() -> None:
         label = {0.0: "0 (TBM alone)", 1.0: "1 (encoder alone)"}.get(w, f"{w:g}")
         cells = "".join(f"{v:>9.3f}" if v is not None else f"{'-':>9}" for v in bands.values())
         print(f"{label:<20}{q[0]:>8.3f}{q[1]:>8.3f}{q[2]:>8.3f}{bias:>8.3f}{add:>9.3f}{cells}")
-    for name, label in (("dense", "dense points + R"), ("pnp", "PnP (EPnP, RANSAC)")):
+    for name, label in (("dense", "dense points + R"), ("pnp", "PnP (EPnP, RANSAC)"), ("fused", "dense fusion (R, t)")):
         log_err = np.array([s[f"log_depth_err_{name}"] for s in rows])
         found = np.isfinite(log_err)
         e = np.abs(np.expm1(log_err[found]))
@@ -201,8 +215,12 @@ def main() -> None:
         cells = "".join(f"{v:>9.3f}" if v is not None else f"{'-':>9}" for v in bands.values())
         print(f"{label:<20}{q[0]:>8.3f}{q[1]:>8.3f}{q[2]:>8.3f}{bias:>8.3f}{add:>9.3f}{cells}   ({int(found.sum())} solved)")
     out["rot_err_pnp_median_deg"] = float(np.median([s["rot_err_pnp_deg"] for s in rows]))
-    print(f"PnP's own rotation: median error {out['rot_err_pnp_median_deg']:.1f} deg (the TBM's: "
-          f"{np.median([s['rot_err_deg'] for s in rows]):.1f} deg)")  # fmt: skip
+    out["rot_err_fused_median_deg"] = float(np.median([s["rot_err_fused_deg"] for s in rows]))
+    out["add_0.1d_fused_pose"] = sum(s["add_ok_fused_pose"] for s in rows) / n
+    print(f"own rotations: PnP median error {out['rot_err_pnp_median_deg']:.1f} deg, dense fusion "
+          f"{out['rot_err_fused_median_deg']:.1f} deg (the TBM's: {np.median([s['rot_err_deg'] for s in rows]):.1f} deg); "
+          f"the dense fusion pose's ADD(-S)@0.1d "
+          f"{out['add_0.1d_fused_pose']:.3f}")  # fmt: skip
     out["log_depth_err_std"] = {"tbm": float(np.std(e_tbm)), "head": float(np.std(e_head)),
                                 "correlation": float(np.corrcoef(e_tbm, e_head)[0, 1])}  # fmt: skip
     print("log depth error std: TBM {tbm:.3f}, encoder {head:.3f}, correlation {correlation:.2f}".format(**out["log_depth_err_std"]))

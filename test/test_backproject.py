@@ -173,3 +173,38 @@ def test_translation_from_dense_points_is_exact_and_robust():
     assert abs(translation_from_points(LMO_K, R, bad + rng.normal(0, 0.3, bad.shape), X, np.ones(300))[2] / t[2] - 1) < 0.005
     assert translation_from_points(LMO_K, R, uv[:5], X[:5], np.ones(5)) is None
     assert translation_from_points(LMO_K, R, uv, X, np.zeros(300)) is None
+
+
+def test_the_dense_fusion_weighs_points_against_its_priors():
+    """Exact points and priors at the truth give the true pose from a start 10 degrees and 5 % off; priors off the
+    truth give way to many points and hold against few; a fifth of the points moved far off do not pull it (IRLS);
+    too few points, or a start behind the camera, give None."""
+    from axispose_core.tbm.dense import DenseFusion, fuse_pose
+
+    rng = np.random.default_rng(4)
+    R = Rotation.from_euler("xyz", [20, -35, 50], degrees=True).as_matrix()
+    t = np.array([0.05, -0.03, 0.8])
+    X = rng.uniform(-0.05, 0.05, (300, 3))
+    cam = X @ R.T + t
+    uv = (cam @ LMO_K.T)[:, :2] / cam[:, 2:]
+    off = Rotation.from_rotvec(np.radians(10) * np.array([0.6, -0.8, 0.0])).as_matrix() @ R
+
+    def angle(A: np.ndarray, B: np.ndarray) -> float:
+        return float(np.degrees(np.arccos(np.clip((np.trace(A.T @ B) - 1) / 2, -1, 1))))
+
+    fusion = DenseFusion(points=30, rotation_sigma=0.1, depth_sigma=0.02)
+    R1, t1 = fuse_pose(LMO_K, R, 1.05 * t, uv, X, np.ones(300), t[2], fusion)  # the start is off, the priors are not
+    np.testing.assert_allclose(R1, R, atol=1e-8)
+    np.testing.assert_allclose(t1, t, atol=1e-8)
+    many = fuse_pose(LMO_K, off, 1.05 * t, uv, X, np.ones(300), 1.05 * t[2], DenseFusion(points=1e6))
+    few = fuse_pose(LMO_K, off, 1.05 * t, uv, X, np.ones(300), 1.05 * t[2], DenseFusion(points=1e-4))
+    assert angle(many[0], R) < 0.05 and abs(many[1][2] / t[2] - 1) < 1e-3
+    assert angle(few[0], off) < 0.05 and abs(few[1][2] / t[2] - 1.05) < 1e-3
+    between = fuse_pose(LMO_K, off, 1.05 * t, uv, X, np.ones(300), 1.05 * t[2], fusion)
+    assert angle(between[0], R) < angle(off, R) and abs(between[1][2] / t[2] - 1) < 0.05
+    bad = uv.copy()
+    bad[:60] += rng.uniform(20, 40, (60, 2))
+    R2, t2 = fuse_pose(LMO_K, R, 1.05 * t, bad + rng.normal(0, 0.3, bad.shape), X, np.ones(300), t[2], fusion)
+    assert abs(t2[2] / t[2] - 1) < 0.005 and angle(R2, R) < 0.5
+    assert fuse_pose(LMO_K, R, t, uv[:5], X[:5], np.ones(5), t[2], fusion) is None
+    assert fuse_pose(LMO_K, R, -t, uv, X, np.ones(300), t[2], fusion) is None

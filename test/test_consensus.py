@@ -8,6 +8,7 @@ import torch
 from conftest import TINY_AGM
 from scipy.spatial.transform import Rotation
 
+from axispose_core.agm.denoiser import Encoding
 from axispose_core.agm.model import AxisGenerator
 from axispose_core.axis_image import render_axis_image
 from axispose_core.camera import instance_crop, project
@@ -15,6 +16,7 @@ from axispose_core.consensus import ROT_FLOOR_RAD, TRANS_FLOOR_M, consensus
 from axispose_core.estimator import Estimator, EstimatorConfig
 from axispose_core.metrics import re
 from axispose_core.objects import lmo_objects
+from axispose_core.tbm.dense import DenseFusion
 from axispose_core.tbm.reader import SHIPPED_READER, load_reader
 
 FLOOR = np.diag([TRANS_FLOOR_M**2] * 3 + [ROT_FLOOR_RAD**2] * 3)
@@ -116,12 +118,15 @@ def oracle_setup():
     S = reader.config.size
     K_patch = instance_crop(image, K, box, S, pad=1.25).K_patch
     agm = replace(TINY_AGM, denoiser=replace(TINY_AGM.denoiser, size=S))
-    # The oracle draws exact axis images; the untrained encoder's depth would only move the TBM's translation.
-    cfg = EstimatorConfig(agm=agm, reader=reader.config, objects=(spec,), ddim_steps=1, head_depth_weight=0.0)
+    # The oracle draws exact axis images; the untrained encoder's depth and points would only move the TBM's pose.
+    cfg = EstimatorConfig(
+        agm=agm, reader=reader.config, objects=(spec,), ddim_steps=1, head_depth_weight=0.0, dense_fusion=DenseFusion(points=0)
+    )
 
-    def make(sigma_deg: float) -> Estimator:
+    def make(sigma_deg: float, drawn: np.ndarray | None = None) -> Estimator:
+        """The oracle's estimator; its axis images drawn at rotation `drawn` (default: the true one)."""
         est = Estimator(cfg, AxisGenerator(cfg.agm), reader)
-        est.sampler = _OracleSampler(K_patch, R, t, spec.axes.lengths, sigma_deg, cfg.agm.denoiser.size)
+        est.sampler = _OracleSampler(K_patch, R if drawn is None else drawn, t, spec.axes.lengths, sigma_deg, cfg.agm.denoiser.size)
         return est
 
     return make, image, K, box, spec, R, t
@@ -179,3 +184,36 @@ def test_the_encoders_depth_is_reported_and_fused_along_the_tbms_ray(oracle_setu
     (fused,) = encoder.estimate(image, K, [(spec.obj_id, box)])
     assert fused.head_depth == pytest.approx(alone.head_depth)
     np.testing.assert_allclose(fused.t, alone.t * alone.head_depth / alone.t[2])  # the encoder's depth, the TBM's ray
+
+
+def test_the_dense_fusion_corrects_the_tbms_rotation_and_depth_with_exact_points(oracle_setup):
+    """An encoder that sees a flat square (side 1.2 λ_O in the model's z = 0 plane) exactly: its points, mask and
+    depth are the truth, while the axis images are drawn 8 degrees off. The TBM's pose keeps the tilt; the dense
+    fusion moves it to the truth (the points outweigh the TBM's rotation prior), and points 0 leaves it alone."""
+    make, image, K, box, spec, R, t = oracle_setup
+    tilted = Rotation.from_rotvec(np.radians(8) * np.array([0.6, 0.8, 0.0])).as_matrix() @ R
+    est = make(0.0, drawn=tilted)
+    S, lam = est.size, spec.scale
+    cut = instance_crop(image, K, box, S, pad=est.config.crop_pad)
+
+    def encode(crops: torch.Tensor, objects: torch.Tensor) -> Encoding:
+        cells = np.arange(S // 2) * 2 + 0.5
+        uv = np.stack(np.meshgrid(cells, cells), axis=-1).reshape(-1, 2)
+        ray = np.column_stack([uv, np.ones(len(uv))]) @ np.linalg.inv(cut.K_patch).T
+        # the ray's point on the square's plane n . (x - t) = 0, n = R e_z, in model coordinates
+        n = R[:, 2]
+        X = ((ray * (n @ t / (ray @ n))[:, None]) - t) @ R
+        inside = (np.abs(X[:, :2]) < 0.6 * lam).all(axis=1)
+        points = torch.from_numpy(X.T.reshape(1, 3, S // 2, S // 2) / lam).float()
+        mask = torch.from_numpy(np.where(inside, 10.0, -10.0).reshape(1, 1, S // 2, S // 2)).float()
+        f = 0.5 * (cut.K_patch[0, 0] + cut.K_patch[1, 1])
+        log_depth = torch.tensor([np.log(t[2] * S / (f * lam))], dtype=torch.float32)
+        return Encoding([torch.zeros(1, 1, S // 2, S // 2)], torch.zeros(1, 1), points, mask, log_depth)
+
+    est.agm.encode = encode
+    (tbm,) = est.estimate(image, K, [(spec.obj_id, box)])
+    assert tbm.ok and re(tbm.R, R) > 6.0
+    assert tbm.head_depth == pytest.approx(t[2], rel=1e-5)
+    est.config = replace(est.config, dense_fusion=DenseFusion())
+    (fused,) = est.estimate(image, K, [(spec.obj_id, box)])
+    assert re(fused.R, R) < 1.0 and abs(fused.t[2] / t[2] - 1) < 0.002 and np.linalg.norm(fused.t - t) < 0.002

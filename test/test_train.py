@@ -81,7 +81,6 @@ def test_short_run_then_resume(data, tmp_path):
     assert resumed and all(1000 < t < 1600 for t in resumed)  # the CSV's clock goes on from the saved time
 
 
-
 def test_a_new_trunk_starts_from_a_checkpoints_denoiser_and_learns_what_its_encoder_gave(data, tmp_path):
     """init with another trunk: the denoiser and the encoder's heads carry over, the trunk starts from ImageNet, and
     the distillation loss against init's encoder falls."""
@@ -119,6 +118,7 @@ def test_a_new_trunk_starts_from_a_checkpoints_denoiser_and_learns_what_its_enco
         opt.step()
         losses.append(loss.item())
     assert losses[-1] < 0.5 * losses[0]
+
 
 @pytest.mark.slow
 def test_torchrun_two_cpu_processes_with_gloo(data, tmp_path):

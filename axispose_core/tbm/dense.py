@@ -1,17 +1,43 @@
-"""Translation from the encoder's dense surface points, given the rotation from the axes.
+"""The pose from the encoder's dense surface points, with the rotation from the axes and the depth head.
 
-Each visible pixel u of the encoder's surface-point map says which model point X it shows; with R from the TBM,
-u ≃ K (R X + t) is linear in t: (R X + t) × K⁻¹[u, 1] = 0 gives two equations per pixel. Hundreds of pixels
-measure the object's image extent, hence its depth, more finely than one regressed scalar can, as far as the
-points themselves are precise. No CAD model is needed: the points are the network's, in λ_O units.
+Each visible pixel u of the encoder's surface-point map says which model point X it shows, u ≃ K (R X + t). With
+R from the TBM that is linear in t (`translation_from_points`); `fuse_pose` solves R and t together, with the
+TBM's rotation and the encoder's depth as priors. No CAD model is needed: the points are the network's, in λ_O
+units.
 """
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+from typing import TYPE_CHECKING
+
+import cv2
 import numpy as np
+import torch
+
+if TYPE_CHECKING:
+    from axispose_core.agm.denoiser import Encoding
 
 MIN_POINTS = 8
 """Fewer usable correspondences than this give no translation."""
+
+MASK_THRESHOLD = 0.5
+"""Mask probability from which a cell of the dense map counts as showing the object."""
+
+
+def dense_correspondences(enc: Encoding, scales: np.ndarray) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
+    """Per crop of an encoding: the dense map's cells that show the object, as crop pixels uv (N,2) (a cell's
+    centre: pixel centres at integers), model points X (N,3) in metres (the network's, in object radii, times the
+    crop's λ_O in `scales` (B,)) and weights (N,): the mask probability."""
+    cells = np.arange(enc.points.shape[-1]) * 2 + 0.5  # a cell of the half-resolution map covers 2 x 2 pixels
+    uv = np.stack(np.meshgrid(cells, cells), axis=-1).reshape(-1, 2)
+    points = enc.points.detach().float().cpu().numpy().reshape(len(scales), 3, -1).transpose(0, 2, 1)
+    prob = torch.sigmoid(enc.mask.detach().float()).cpu().numpy().reshape(len(scales), -1)
+    out = []
+    for X, p, scale in zip(points, prob, scales, strict=True):
+        keep = p > MASK_THRESHOLD
+        out.append((uv[keep], X[keep] * float(scale), p[keep]))
+    return out
 
 
 def translation_from_points(
@@ -41,13 +67,94 @@ def translation_from_points(
         if rank < 3:
             return None
         t = sol
-        r = np.abs(A @ t - b)
-        scale = 1.4826 * np.median(r) + 1e-12
-        if k < 3:
-            robust = np.minimum(1.0, 1.345 * scale / np.maximum(r, 1e-15))
-        else:
-            robust = np.clip(1 - (r / (4.685 * scale)) ** 2, 0, None) ** 2
-        w = np.concatenate([prior, prior]) * robust
+        w = np.concatenate([prior, prior]) * _robust(np.abs(A @ t - b), k)
         if w.sum() <= 0:
             return None
     return t
+
+
+def _robust(r: np.ndarray, k: int) -> np.ndarray:
+    """IRLS weights of residual magnitudes r at iteration k: Huber for the first three (a start far off must not
+    lose its inliers), then Tukey's biweight, both on the residual's MAD scale."""
+    scale = 1.4826 * np.median(r) + 1e-12
+    if k < 3:
+        return np.minimum(1.0, 1.345 * scale / np.maximum(r, 1e-15))
+    return np.clip(1 - (r / (4.685 * scale)) ** 2, 0, None) ** 2
+
+
+@dataclass(frozen=True)
+class DenseFusion:
+    """How `fuse_pose` weighs the dense points against the TBM's rotation and the encoder's depth: Gaussian priors
+    whose widths are those sources' errors, and the points' total weight as a number of independent points
+    (the network's point errors are correlated across a crop: hundreds of pixels say about as much as a few
+    dozen independent measurements)."""
+
+    points: float = 30.0
+    """Effective number of independent points the dense map counts as; 0 leaves the pose as the TBM and the
+    depth fusion give it."""
+    rotation_sigma: float = 0.1
+    """Width of the prior on the rotation, around the TBM's (radians)."""
+    depth_sigma: float = 0.02
+    """Width of the prior on log depth, around the encoder's depth head."""
+
+
+def fuse_pose(
+    K: np.ndarray,
+    R: np.ndarray,
+    t: np.ndarray,
+    uv: np.ndarray,
+    X: np.ndarray,
+    weight: np.ndarray,
+    depth: float,
+    fusion: DenseFusion,
+    iters: int = 8,
+) -> tuple[np.ndarray, np.ndarray] | None:
+    """The pose most probable given the dense points, the TBM's rotation R and the encoder's `depth` (m), from the
+    start (R, t): robust Gauss-Newton (R perturbed on the left, R ← exp([ω]×) R) on the points' reprojection
+    errors (in units of their median absolute size; prior `weight` (N,) scaled to sum to `fusion.points`, IRLS
+    weights as in `translation_from_points`) with the two priors as further residuals. A tilted object's
+    apparent size trades its tilt against its distance; the points see its shape, the head its size, the TBM its
+    axes: solving for both together lets each settle what the others leave open.
+    None when fewer than MIN_POINTS have weight, or the pose falls behind the camera."""
+    keep = weight > 0
+    if keep.sum() < MIN_POINTS or t[2] <= 0 or not depth > 0:
+        return None
+    uv, X, prior = uv[keep], X[keep], weight[keep].astype(np.float64)
+    prior *= fusion.points / prior.sum()
+    R0, R, t = np.asarray(R, dtype=np.float64), np.asarray(R, dtype=np.float64), np.asarray(t, dtype=np.float64)
+    w = prior
+    # Small products by einsum, not BLAS: beside PyTorch's threads in the node, OpenBLAS's own thread pool, woken for
+    # every product, cost ~10 ms per object.
+    for k in range(iters):
+        p = np.einsum("nj,ij->ni", X, R) + t
+        q = np.einsum("nj,ij->ni", p, K)
+        if np.any(q[:, 2] <= 0):
+            return None
+        proj = q[:, :2] / q[:, 2:3]
+        res = proj - uv  # (N,2) px
+        r = np.linalg.norm(res, axis=1)
+        sigma = max(1.4826 * float(np.median(r)), 0.3)  # px; a floor so that exact points do not swamp the priors
+        if k > 0:
+            w = prior * _robust(r, k)
+            if w.sum() <= 0:
+                return None
+        # d proj / d p (N,2,3); through dp/dω = -[R X]x each row a gives a^T (-[R X]x) = (R X) × a, and dp/dt = I.
+        dproj = (K[None, :2, :] - proj[:, :, None] * K[None, 2:3, :]) / q[:, 2, None, None]
+        J = np.concatenate([np.cross((p - t)[:, None, :], dproj), dproj], axis=2).reshape(-1, 6)
+        sw = np.repeat(w, 2) / sigma**2
+        H = np.einsum("ni,nj->ij", J, J * sw[:, None])
+        g = np.einsum("ni,n->i", J, -res.reshape(-1) * sw)
+        # Priors: the rotation's offset from the TBM's (its log map; Jacobian ~ I near it) and the log depth's.
+        H[:3, :3] += np.eye(3) / fusion.rotation_sigma**2
+        g[:3] -= cv2.Rodrigues(R @ R0.T)[0][:, 0] / fusion.rotation_sigma**2
+        dz = 1 / (t[2] * fusion.depth_sigma)
+        H[5, 5] += dz**2
+        g[5] -= dz * np.log(t[2] / depth) / fusion.depth_sigma
+        step = np.linalg.solve(H, g)
+        R = cv2.Rodrigues(step[:3])[0] @ R
+        t = t + step[3:]
+        if t[2] <= 0:
+            return None
+        if np.abs(step).max() < 1e-9:
+            break
+    return R, t

@@ -34,6 +34,7 @@ from axispose_core.data.synth.stream import CropStream, stream_loader
 from axispose_core.estimator import Estimator, EstimatorConfig
 from axispose_core.metrics import re
 from axispose_core.tbm.backproject import backproject_readings
+from axispose_core.tbm.dense import dense_correspondences, translation_from_points
 from axispose_core.tbm.reader import SHIPPED_READER, KeypointReader, load_reader
 from axispose_core.train.dataset import AxisCropDataset
 from axispose_core.train.loop import (
@@ -47,7 +48,7 @@ from axispose_core.train.loop import (
     training_record,
     world,
 )
-from axispose_core.train.losses import AGMObjective, agm_losses, log_depth_target
+from axispose_core.train.losses import AGMObjective, agm_losses, dense_targets, log_depth_target
 from axispose_core.train.sources import CropSources
 
 
@@ -119,7 +120,8 @@ def validate(
     rotation error and the share within 15° of the sample started from the prior's mode (the estimator's first
     hypothesis); the reader's median keypoint error (px, mean over origin and
     endpoints) on the generated axis images; the median relative depth error of the TBM (from the drawn axis
-    lengths) and of the encoder's depth head; the encoder's median surface-point error (object radii)."""
+    lengths) and of the encoder's depth head; the encoder's median surface-point error (object radii), and the
+    median relative depth error of t solved from its points with the true rotation (what its points know of depth)."""
     with torch.no_grad():
         loss = float(np.mean([agm_losses(agm, batch, torch.Generator().manual_seed(k))["diffusion"].item() for k in range(4)]))
         enc = agm.encode(batch["crop"], batch["object"])
@@ -139,11 +141,16 @@ def validate(
             tbm_depth.append(abs(res.t[2] / t[2] - 1))
         if kp.ok:
             kp_errs.append(float(np.linalg.norm(kp.array - axis_keypoints(K, R, t, lengths[i]), axis=1).mean()))
-    point_err = float("nan")
+    point_err, points_depth = float("nan"), []
     if "points" in batch:  # crop-stream samples know their surface points
-        m = batch["mask_visib"]
-        err = ((enc.points - batch["points"]).abs().mean(dim=1, keepdim=True) * m).sum(dim=(1, 2, 3)) / m.sum(dim=(1, 2, 3)).clamp(min=1)
+        stride = size // enc.points.shape[-1]
+        target, m = dense_targets(batch["points"], batch["mask_visib"], stride)
+        err = ((enc.points - target).abs().mean(dim=1, keepdim=True) * m).sum(dim=(1, 2, 3)) / m.sum(dim=(1, 2, 3)).clamp(min=1)
         point_err = float(err.median())
+        # The points' depth with the true rotation: what the dense head alone says about the object's extent.
+        for i, (uv, X, w) in enumerate(dense_correspondences(enc, lengths[:, 0])):
+            t_pts = translation_from_points(K_all[i], R_all[i], uv, X, w)
+            points_depth.append(abs(t_pts[2] / t_all[i][2] - 1) if t_pts is not None else 1.0)
     errs_a = np.array(errs)
 
     def median(v: list[float]) -> float:
@@ -151,7 +158,7 @@ def validate(
 
     return {"val_loss": loss, "val_rot_median_deg": float(np.median(errs_a)), "val_rot_within_15deg": float(np.mean(errs_a < 15.0)),
             "val_kp_err_px": median(kp_errs), "val_depth_tbm": median(tbm_depth), "val_depth_head": median(head_depth),
-            "val_points_err": point_err}  # fmt: skip
+            "val_points_err": point_err, "val_depth_points": median(points_depth)}  # fmt: skip
 
 
 VAL_COLUMNS = (
@@ -162,6 +169,7 @@ VAL_COLUMNS = (
     "val_depth_tbm",
     "val_depth_head",
     "val_points_err",
+    "val_depth_points",
 )
 
 

@@ -356,8 +356,8 @@ class CropStream:
 
 class CropStreamDataset(Dataset):
     """The stream as training tensors (crop uint8 and axes in [-1, 1], channels first; object index; K', R, t; visible
-    fraction; keypoints; surface points in units of the object's radius and the visible mask, both at half the
-    crop's resolution, where the AGM's encoder predicts them). Index i is sample i; `stream_loader` batches it in
+    fraction; keypoints; surface points in units of the object's radius and the visible mask, at the crop's
+    resolution: `train/losses.py`'s `dense_targets` brings them to the encoder's). Index i is sample i; `stream_loader` batches it in
     worker processes."""
 
     def __init__(self, stream: CropStream) -> None:
@@ -373,11 +373,7 @@ class CropStreamDataset(Dataset):
 
     def __getitem__(self, i: int) -> dict[str, torch.Tensor]:
         s = self.stream[i]
-        S = s.crop.shape[0]
-        # Half resolution: each 2 x 2 block's mean point over its visible pixels; a block is visible where most are.
-        m = s.mask_visib.reshape(S // 2, 2, S // 2, 2).astype(np.float32).sum(axis=(1, 3))
-        pts = s.points.reshape(S // 2, 2, S // 2, 2, 3).sum(axis=(1, 3)) / np.maximum(m, 1)[..., None]
-        pts /= 0.5 * self.stream.models[s.obj_id].spec.diameter
+        pts = s.points / np.float32(0.5 * self.stream.models[s.obj_id].spec.diameter)
         return {
             "crop": torch.from_numpy(s.crop).permute(2, 0, 1),
             "axes": torch.from_numpy(s.axes * 2 - 1).permute(2, 0, 1),
@@ -388,7 +384,7 @@ class CropStreamDataset(Dataset):
             "visib": torch.tensor(s.visib),
             "keypoints": torch.from_numpy(s.keypoints),
             "points": torch.from_numpy(pts.astype(np.float32)).permute(2, 0, 1),
-            "mask_visib": torch.from_numpy((m >= 2).astype(np.float32))[None],
+            "mask_visib": torch.from_numpy(s.mask_visib.astype(np.float32))[None],
         }
 
 
