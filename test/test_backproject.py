@@ -177,8 +177,8 @@ def test_translation_from_dense_points_is_exact_and_robust():
 
 def test_the_dense_fusion_weighs_points_against_its_priors():
     """Exact points and priors at the truth give the true pose from a start 10 degrees and 5 % off; priors off the
-    truth give way to many points and hold against few; a fifth of the points moved far off do not pull it (IRLS);
-    too few points, or a start behind the camera, give None."""
+    truth (rotation, depth, the origin's projection) give way to many points and hold against few; a fifth of the
+    points moved far off do not pull it (IRLS); too few points, or a start behind the camera, give None."""
     from axispose_core.tbm.dense import DenseFusion, fuse_pose
 
     rng = np.random.default_rng(4)
@@ -200,6 +200,12 @@ def test_the_dense_fusion_weighs_points_against_its_priors():
     few = fuse_pose(LMO_K, off, 1.05 * t, uv, X, np.ones(300), 1.05 * t[2], DenseFusion(points=1e-4))
     assert angle(many[0], R) < 0.05 and abs(many[1][2] / t[2] - 1) < 1e-3
     assert angle(few[0], off) < 0.05 and abs(few[1][2] / t[2] - 1.05) < 1e-3
+    # the origin's prior: a start 1 cm to the side stays there against few points and gives way to many
+    side = t + np.array([0.01, 0.0, 0.0])
+    few = fuse_pose(LMO_K, R, side, uv, X, np.ones(300), t[2], DenseFusion(points=1e-4))
+    many = fuse_pose(LMO_K, R, side, uv, X, np.ones(300), t[2], DenseFusion(points=1e6))
+    np.testing.assert_allclose(few[1][:2] / few[1][2], side[:2] / side[2], atol=1e-5)
+    np.testing.assert_allclose(many[1], t, atol=1e-4)
     between = fuse_pose(LMO_K, off, 1.05 * t, uv, X, np.ones(300), 1.05 * t[2], fusion)
     assert angle(between[0], R) < angle(off, R) and abs(between[1][2] / t[2] - 1) < 0.05
     bad = uv.copy()

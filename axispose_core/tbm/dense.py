@@ -96,6 +96,9 @@ class DenseFusion:
     """Width of the prior on the rotation, around the TBM's (radians)."""
     depth_sigma: float = 0.02
     """Width of the prior on log depth, around the encoder's depth head."""
+    origin_sigma: float = 2.0
+    """Width of the prior on where the object's origin projects, around the TBM's (crop pixels): the reader finds
+    the drawn origin to a pixel or two, while the visible points' centre moves with occlusion."""
 
 
 def fuse_pose(
@@ -109,10 +112,10 @@ def fuse_pose(
     fusion: DenseFusion,
     iters: int = 8,
 ) -> tuple[np.ndarray, np.ndarray] | None:
-    """The pose most probable given the dense points, the TBM's rotation R and the encoder's `depth` (m), from the
-    start (R, t): robust Gauss-Newton (R perturbed on the left, R ← exp([ω]×) R) on the points' reprojection
+    """The pose most probable given the dense points, the TBM's rotation R and origin (where t projects) and the
+    encoder's `depth` (m), from the start (R, t): robust Gauss-Newton (R perturbed on the left, R ← exp([ω]×) R) on the points' reprojection
     errors (in units of their median absolute size; prior `weight` (N,) scaled to sum to `fusion.points`, IRLS
-    weights as in `translation_from_points`) with the two priors as further residuals. A tilted object's
+    weights as in `translation_from_points`) with the three priors as further residuals. A tilted object's
     apparent size trades its tilt against its distance; the points see its shape, the head its size, the TBM its
     axes: solving for both together lets each settle what the others leave open.
     None when fewer than MIN_POINTS have weight, or the pose falls behind the camera."""
@@ -122,6 +125,7 @@ def fuse_pose(
     uv, X, prior = uv[keep], X[keep], weight[keep].astype(np.float64)
     prior *= fusion.points / prior.sum()
     R0, R, t = np.asarray(R, dtype=np.float64), np.asarray(R, dtype=np.float64), np.asarray(t, dtype=np.float64)
+    origin = (K @ t)[:2] / (K @ t)[2]
     w = prior
     # Small products by einsum, not BLAS: beside PyTorch's threads in the node, OpenBLAS's own thread pool, woken for
     # every product, cost ~10 ms per object.
@@ -144,12 +148,17 @@ def fuse_pose(
         sw = np.repeat(w, 2) / sigma**2
         H = np.einsum("ni,nj->ij", J, J * sw[:, None])
         g = np.einsum("ni,n->i", J, -res.reshape(-1) * sw)
-        # Priors: the rotation's offset from the TBM's (its log map; Jacobian ~ I near it) and the log depth's.
+        # Priors: the rotation's offset from the TBM's (its log map; Jacobian ~ I near it), the log depth's and the
+        # origin's projection.
         H[:3, :3] += np.eye(3) / fusion.rotation_sigma**2
         g[:3] -= cv2.Rodrigues(R @ R0.T)[0][:, 0] / fusion.rotation_sigma**2
         dz = 1 / (t[2] * fusion.depth_sigma)
         H[5, 5] += dz**2
         g[5] -= dz * np.log(t[2] / depth) / fusion.depth_sigma
+        qt = K @ t
+        Jo = (K[:2] - np.outer(qt[:2] / qt[2], K[2])) / qt[2]  # d (origin's projection) / d t
+        H[3:, 3:] += Jo.T @ Jo / fusion.origin_sigma**2
+        g[3:] -= Jo.T @ (qt[:2] / qt[2] - origin) / fusion.origin_sigma**2
         step = np.linalg.solve(H, g)
         R = cv2.Rodrigues(step[:3])[0] @ R
         t = t + step[3:]
