@@ -156,17 +156,22 @@ def test_nearest_rotation_projects_onto_so3(rng):
     assert np.linalg.det(R) == pytest.approx(1.0)
 
 
+def _exact_points(rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """A pose (R, t) 0.8 m away, 300 model points X in a 10 cm cube and their exact projections uv."""
+    R = Rotation.from_euler("xyz", [20, -35, 50], degrees=True).as_matrix()
+    t = np.array([0.05, -0.03, 0.8])
+    X = rng.uniform(-0.05, 0.05, (300, 3))
+    cam = X @ R.T + t
+    return R, t, X, (cam @ LMO_K.T)[:, :2] / cam[:, 2:]
+
+
 def test_translation_from_dense_points_is_exact_and_robust():
     """Model points seen at their exact projections give the true t; a fifth of them moved far off do not pull it
     (Huber IRLS); too few points, or none weighted, give None."""
     from axispose_core.tbm.dense import translation_from_points
 
     rng = np.random.default_rng(3)
-    R = Rotation.from_euler("xyz", [20, -35, 50], degrees=True).as_matrix()
-    t = np.array([0.05, -0.03, 0.8])
-    X = rng.uniform(-0.05, 0.05, (300, 3))
-    cam = X @ R.T + t
-    uv = (cam @ LMO_K.T)[:, :2] / cam[:, 2:]
+    R, t, X, uv = _exact_points(rng)
     np.testing.assert_allclose(translation_from_points(LMO_K, R, uv, X, np.ones(300)), t, atol=1e-9)
     bad = uv.copy()
     bad[:60] += rng.uniform(20, 40, (60, 2))
@@ -182,11 +187,7 @@ def test_the_dense_fusion_weighs_points_against_its_priors():
     from axispose_core.tbm.dense import DenseFusion, fuse_pose
 
     rng = np.random.default_rng(4)
-    R = Rotation.from_euler("xyz", [20, -35, 50], degrees=True).as_matrix()
-    t = np.array([0.05, -0.03, 0.8])
-    X = rng.uniform(-0.05, 0.05, (300, 3))
-    cam = X @ R.T + t
-    uv = (cam @ LMO_K.T)[:, :2] / cam[:, 2:]
+    R, t, X, uv = _exact_points(rng)
     off = Rotation.from_rotvec(np.radians(10) * np.array([0.6, -0.8, 0.0])).as_matrix() @ R
 
     def angle(A: np.ndarray, B: np.ndarray) -> float:
