@@ -61,8 +61,8 @@ class EstimatorConfig:
     (bench/agm_error_sources.py measures the weights on held-out frames). This is the pose `dense_fusion` starts
     from."""
     dense_fusion: DenseFusion = field(default_factory=DenseFusion)
-    """How the final pose is solved from the encoder's dense points with the TBM's rotation and the encoder's depth
-    as priors (`tbm/dense.py`'s `fuse_pose`; points 0: the consensus of the TBM's poses as it is)."""
+    """How the final pose is solved from the encoder's dense points with the TBM's rotation and origin and the
+    encoder's depth as priors (`tbm/dense.py`'s `fuse_pose`; points 0: the consensus of the TBM's poses as it is)."""
     mode_sample: bool = True
     """Start each crop's first hypothesis from x_T = 0, the mode of the prior, and the others from N(0, I): one
     sample is then the network's most likely axis image instead of a random draw, and the others still give the

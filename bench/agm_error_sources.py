@@ -13,8 +13,8 @@ checkpoint's head_depth_weight (choose it on validation frames, not on the test 
 encoder's dense surface points (model coordinates in λ_O units at half the crop's resolution, where its mask is
 above 0.5): "dense", t solved from them with the TBM's rotation (`tbm/dense.py`); "PnP", rotation and
 translation from the same correspondences by OpenCV's EPnP in RANSAC; and "fused", the estimator's own pose
-(`fuse_pose` with the checkpoint's dense_fusion: R and t from the points with the TBM's rotation and the encoder's
-depth as priors). Their rotation errors and the fused pose's ADD(-S)@0.1d are printed too.
+(`fuse_pose` with the checkpoint's dense_fusion: R and t from the points with the TBM's rotation and origin and
+the encoder's depth as priors). Their rotation errors and the fused pose's ADD(-S)@0.1d are printed too.
 
     python bench/agm_error_sources.py --checkpoint axispose_core/models/axispose_lmo.safetensors \\
         --data data/lmo_val --models ../shared/data/lmo/models_eval --json bench/results/agm_error_sources.json
@@ -136,8 +136,8 @@ def main() -> None:
             t_w = fuse_depth(r.t, z_head, w)
             rows[-1][f"add_ok_w{w:g}"] = add_or_adi(r.R, t_w, r.R_gt, r.t_gt, pts, spec.symmetric) < thr
         if R_fus is not None:  # the dense fusion's pose as it is, rotation and translation
-            t_ref = r.t * (z_fus / r.t[2])
-            rows[-1]["add_ok_fused_pose"] = add_or_adi(R_fus, t_ref, r.R_gt, r.t_gt, pts, spec.symmetric) < thr
+            t_fus = r.t * (z_fus / r.t[2])
+            rows[-1]["add_ok_fused_pose"] = add_or_adi(R_fus, t_fus, r.R_gt, r.t_gt, pts, spec.symmetric) < thr
         else:
             rows[-1]["add_ok_fused_pose"] = False
         for name, z in (("dense", z_dense), ("pnp", z_pnp), ("fused", z_fus)):  # that depth on the TBM's ray, as the head's is used

@@ -2,7 +2,7 @@
 
 Each visible pixel u of the encoder's surface-point map says which model point X it shows, u ≃ K (R X + t). With
 R from the TBM that is linear in t (`translation_from_points`); `fuse_pose` solves R and t together, with the
-TBM's rotation and the encoder's depth as priors. No CAD model is needed: the points are the network's, in λ_O
+TBM's rotation and origin and the encoder's depth as priors. No CAD model is needed: the points are the network's, in λ_O
 units.
 """
 
@@ -14,6 +14,8 @@ from typing import TYPE_CHECKING
 import cv2
 import numpy as np
 import torch
+
+from axispose_core.camera import project
 
 if TYPE_CHECKING:
     from axispose_core.agm.denoiser import Encoding
@@ -84,8 +86,8 @@ def _robust(r: np.ndarray, k: int) -> np.ndarray:
 
 @dataclass(frozen=True)
 class DenseFusion:
-    """How `fuse_pose` weighs the dense points against the TBM's rotation and the encoder's depth: Gaussian priors
-    whose widths are those sources' errors, and the points' total weight as a number of independent points
+    """How `fuse_pose` weighs the dense points against the TBM's rotation and origin and the encoder's depth:
+    Gaussian priors whose widths are those sources' errors, and the points' total weight as a number of independent points
     (the network's point errors are correlated across a crop: hundreds of pixels say about as much as a few
     dozen independent measurements)."""
 
@@ -113,9 +115,9 @@ def fuse_pose(
     iters: int = 8,
 ) -> tuple[np.ndarray, np.ndarray] | None:
     """The pose most probable given the dense points, the TBM's rotation R and origin (where t projects) and the
-    encoder's `depth` (m), from the start (R, t): robust Gauss-Newton (R perturbed on the left, R ← exp([ω]×) R) on the points' reprojection
-    errors (in units of their median absolute size; prior `weight` (N,) scaled to sum to `fusion.points`, IRLS
-    weights as in `translation_from_points`) with the three priors as further residuals. A tilted object's
+    encoder's `depth` (m), from the start (R, t): robust Gauss-Newton (R perturbed on the left, R ← exp([ω]×) R)
+    on the points' reprojection errors (in units of their median absolute size; prior `weight` (N,) scaled to sum
+    to `fusion.points`, IRLS weights as in `translation_from_points`) with the three priors as further residuals. A tilted object's
     apparent size trades its tilt against its distance; the points see its shape, the head its size, the TBM its
     axes: solving for both together lets each settle what the others leave open.
     None when fewer than MIN_POINTS have weight, or the pose falls behind the camera."""
@@ -125,7 +127,7 @@ def fuse_pose(
     uv, X, prior = uv[keep], X[keep], weight[keep].astype(np.float64)
     prior *= fusion.points / prior.sum()
     R0, R, t = np.asarray(R, dtype=np.float64), np.asarray(R, dtype=np.float64), np.asarray(t, dtype=np.float64)
-    origin = (K @ t)[:2] / (K @ t)[2]
+    origin = project(K, t[None])[0]
     w = prior
     # Small products by einsum, not BLAS: beside PyTorch's threads in the node, OpenBLAS's own thread pool, woken for
     # every product, cost ~10 ms per object.

@@ -143,8 +143,7 @@ def validate(
             kp_errs.append(float(np.linalg.norm(kp.array - axis_keypoints(K, R, t, lengths[i]), axis=1).mean()))
     point_err, points_depth = float("nan"), []
     if "points" in batch:  # crop-stream samples know their surface points
-        stride = size // enc.points.shape[-1]
-        target, m = dense_targets(batch["points"], batch["mask_visib"], stride)
+        target, m = dense_targets(batch["points"], batch["mask_visib"], enc.points.shape[-1])
         err = ((enc.points - target).abs().mean(dim=1, keepdim=True) * m).sum(dim=(1, 2, 3)) / m.sum(dim=(1, 2, 3)).clamp(min=1)
         point_err = float(err.median())
         # The points' depth with the true rotation: what the dense head alone says about the object's extent.

@@ -24,10 +24,12 @@ def log_depth_target(K: torch.Tensor, t: torch.Tensor, scale: torch.Tensor, size
     return torch.log(t[:, 2] * size / (f * scale)).float()
 
 
-def dense_targets(points: torch.Tensor, mask: torch.Tensor, stride: int) -> tuple[torch.Tensor, torch.Tensor]:
-    """Full-resolution surface points (B,3,S,S) and visible mask (B,1,S,S) at the encoder's dense stride: as they
-    are for 1; for 2, each 2 x 2 block's mean point over its visible pixels, visible where most of them are (the
-    block mean lies at the block's centre only where all four are: the half-resolution head's boundary bias)."""
+def dense_targets(points: torch.Tensor, mask: torch.Tensor, size: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """Full-resolution surface points (B,3,S,S) and visible mask (B,1,S,S) at the encoder's dense map's side `size`:
+    as they are at S; at S / 2, each 2 x 2 block's mean point over its visible pixels, visible where most of them
+    are (the block mean lies at the block's centre only where all four are: the half-resolution head's boundary
+    bias)."""
+    stride = points.shape[-1] // size
     if stride == 1:
         return points, mask
     m = F.avg_pool2d(mask, stride) * stride**2
@@ -41,7 +43,7 @@ def encoder_losses(enc: Encoding, batch: Batch) -> dict[str, torch.Tensor]:
     (DistributedDataParallel wants every parameter used)."""
     parts = {"unused": 0.0 * (enc.points.sum() + enc.mask.sum() + enc.log_depth.sum()).float()}
     if "points" in batch:
-        target, m = dense_targets(batch["points"], batch["mask_visib"], batch["points"].shape[-1] // enc.points.shape[-1])
+        target, m = dense_targets(batch["points"], batch["mask_visib"], enc.points.shape[-1])
         parts["points"] = (m * (enc.points.float() - target).abs()).sum() / (3 * m.sum() + 1)
         parts["mask"] = F.binary_cross_entropy_with_logits(enc.mask.float(), m)
     if "log_depth" in batch:

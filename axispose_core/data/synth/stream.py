@@ -357,8 +357,8 @@ class CropStream:
 class CropStreamDataset(Dataset):
     """The stream as training tensors (crop uint8 and axes in [-1, 1], channels first; object index; K', R, t; visible
     fraction; keypoints; surface points in units of the object's radius and the visible mask, at the crop's
-    resolution: `train/losses.py`'s `dense_targets` brings them to the encoder's). Index i is sample i; `stream_loader` batches it in
-    worker processes."""
+    resolution: `train/losses.py`'s `dense_targets` brings them to the encoder's). Index i is sample i;
+    `stream_loader` batches it in worker processes."""
 
     def __init__(self, stream: CropStream) -> None:
         self.stream = stream
