@@ -4,6 +4,9 @@ training wall time, for one run or several side by side.
 A resumed run appends to the same CSV and restarts its clock, so wall time is summed over the calls.
 
     python bench/learning_curve.py runs/agm.csv --out docs/agm_learning_curve.png --json bench/results/agm_learning_curve.json
+
+`--at-hours H` summarises every run at the same wall time (linear between its validations) instead of at its
+last validation: the equal-time comparison of designs.
 """
 
 from __future__ import annotations
@@ -13,12 +16,15 @@ import csv
 from pathlib import Path
 
 import matplotlib
+import numpy as np
 
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt
 from write_results import write_results
 
 PANELS = (
+    ("val_loss", "diffusion loss"),
+    ("val_points_err", "surface-point error (object radii)"),
     ("val_rot_median_deg", "median rotation error (°)"),
     ("val_rot_within_15deg", "share within 15°"),
     ("val_kp_err_px", "reader keypoint error (px)"),
@@ -53,6 +59,7 @@ def main() -> None:
     ap.add_argument("csv", nargs="+", help="trainer CSVs (OUT.csv of `axispose train`)")
     ap.add_argument("--out", required=True, help="PNG to write")
     ap.add_argument("--json", default=None, help="JSON with the last validation row of each run")
+    ap.add_argument("--at-hours", type=float, default=None, help="summarise every run at this wall time instead")
     args = ap.parse_args()
     curves = {Path(p).stem: read_curve(p) for p in args.csv}
     fig, axes = plt.subplots(2, len(PANELS), figsize=(4 * len(PANELS), 6.5), squeeze=False)
@@ -69,11 +76,16 @@ def main() -> None:
     fig.tight_layout()
     Path(args.out).parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(args.out, dpi=90)
-    summary = {name: {k: v[-1] for k, v in c.items() if v} for name, c in curves.items()}
+    if args.at_hours is None:
+        summary = {name: {k: v[-1] for k, v in c.items() if v} for name, c in curves.items()}
+    else:  # runs that never reached that time have no row
+        h = args.at_hours
+        reached = {name: c for name, c in curves.items() if c["hours"] and c["hours"][-1] >= h}
+        summary = {name: {k: float(np.interp(h, c["hours"], v)) for k, v in c.items() if v} for name, c in reached.items()}
     print(f"{'run':<16}{'step':>8}{'hours':>8}" + "".join(f"{k[4:]:>20}" for k, _ in PANELS))
     for name, last in summary.items():
         cells = "".join(f"{last.get(k, float('nan')):>20.3f}" for k, _ in PANELS)
-        print(f"{name:<16}{last['step']:>8}{last['hours']:>8.2f}{cells}")
+        print(f"{name:<16}{last['step']:>8.0f}{last['hours']:>8.2f}{cells}")
     if args.json:
         write_results(args.json, summary)
     print(f"wrote {args.out}")

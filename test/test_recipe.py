@@ -115,3 +115,37 @@ def test_the_shipped_recipe_resolves_and_is_the_shipped_models():
     needed = {s.name for s in recipe.needed()}
     assert {recipe.estimator[k] for k in ("agm", "reader", "localiser")} <= needed
     assert all(s.trainer != "agm" or s.config["agm"]["denoiser"]["size"] == 64 for s in recipe.stages)
+
+
+def test_a_change_that_names_another_kind_replaces_the_slot(tmp_path):
+    """A stage that puts another trunk under its network keeps none of the old trunk's fields (which the new
+    trunk's config would refuse); a change of the same kind merges field by field."""
+    recipe = _recipe(tmp_path)
+    lite = {"kind": "efficientnet_lite0"}
+    recipe["stages"] += [
+        {"name": "b", "trainer": "agm", "init": "agm", "changes": {"agm": {"denoiser": {"encoder": {"trunk": lite}}}}},
+        {"name": "c", "trainer": "agm", "changes": {"agm": {"denoiser": {"encoder": {"trunk": {**lite, "stages": 3}}}}}},
+        {"name": "d", "trainer": "agm", "changes": {"agm": {"denoiser": {"encoder": {"trunk": {"weights": "none"}}}}}},
+    ]  # fmt: skip
+    stages = load_recipe(_write(tmp_path, recipe)).stages
+    trunks = {s.name: s.config["agm"]["denoiser"]["encoder"]["trunk"] for s in stages if s.trainer == "agm"}
+    assert trunks["agm"] == TINY_AGM_YAML["denoiser"]["encoder"]["trunk"] and "widths" in trunks["agm"]
+    assert trunks["b"] == {"kind": "efficientnet_lite0"}
+    assert trunks["d"] == {"kind": "efficientnet_lite0", "stages": 3, "weights": "none"}
+
+
+def test_the_pretrained_variant_recipe_differs_from_the_shipped_one_in_its_trunks_only():
+    """config/recipes/axispose_lmo_lite0.yaml (the networks on ImageNet-pretrained Lite0 trunks, kept to be
+    compared with the shipped ones on real frames) resolves, and its AGM is the shipped recipe's but for the trunk."""
+    variant, shipped = load_recipe(SHIPPED_RECIPE.with_name("axispose_lmo_lite0.yaml")), load_recipe(SHIPPED_RECIPE)
+
+    def networks(recipe):
+        stages = {s.name: s.config for s in recipe.stages}
+        return stages[recipe.estimator["agm"]]["agm"], stages[recipe.estimator["localiser"]]["localiser"]
+
+    (agm, localiser), (agm0, localiser0) = networks(variant), networks(shipped)
+    for trunk in (agm["denoiser"]["encoder"].pop("trunk"), localiser["trunk"]):
+        assert trunk["kind"] == "efficientnet_lite0" and trunk.get("weights", "imagenet") == "imagenet"
+    assert agm0["denoiser"]["encoder"].pop("trunk")["kind"] == "residual_gn" and localiser0["trunk"]["kind"] == "residual_bn"
+    assert agm == agm0
+    assert variant.estimator["config"] == shipped.estimator["config"]

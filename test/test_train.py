@@ -14,8 +14,6 @@ from axispose_core.cli import main
 from axispose_core.data.synth.config import SynthConfig
 from axispose_core.data.synth.generate import generate
 from axispose_core.estimator import Estimator
-from axispose_core.train.losses import distill_loss
-from axispose_core.trunks.efficientnet_lite import imagenet_state
 
 OPTIM = {"steps": 4, "batch": 2, "workers": 0, "warmup": 1, "save_every": 2, "val_every": 2}
 TINY = {
@@ -79,45 +77,6 @@ def test_short_run_then_resume(data, tmp_path):
     assert 1000 < training["seconds"] == state["seconds"] < 1000 + 600
     resumed = [float(r.split(",")[4]) for r in (tmp_path / "agm.csv").read_text().splitlines()[1:] if int(r.split(",")[0]) > 4]
     assert resumed and all(1000 < t < 1600 for t in resumed)  # the CSV's clock goes on from the saved time
-
-
-def test_a_new_trunk_starts_from_a_checkpoints_denoiser_and_learns_what_its_encoder_gave(data, tmp_path):
-    """init with another trunk: the denoiser and the encoder's heads carry over, the trunk starts from ImageNet, and
-    the distillation loss against init's encoder falls."""
-    first = tmp_path / "first.safetensors"
-    assert main(["train", "--data", str(data), "--out", str(first), "--config", _config(tmp_path), "--threads", "1"]) == 0
-    teacher = Estimator.load(first).agm
-    encoder = {**TINY_AGM_YAML["denoiser"]["encoder"], "trunk": {"kind": "efficientnet_lite0"}}
-    lite = {**TINY_AGM_YAML, "denoiser": {**TINY_AGM_YAML["denoiser"], "encoder": encoder}}
-    out = tmp_path / "lite.safetensors"
-    cfg = _config(tmp_path, steps=0, agm=lite, distill=1.0)
-    assert main(["train", "--data", str(data), "--out", str(out), "--config", cfg, "--init", str(first)]) == 0
-    student = Estimator.load(out).agm
-    own, old = student.state_dict(), teacher.state_dict()
-    kept = [k for k, v in own.items() if not k.startswith("denoiser.encoder.") and v.shape == old[k].shape]
-    assert all(torch.equal(own[k], old[k]) for k in kept)
-    fresh = {k for k in own if not k.startswith("denoiser.encoder.")} - set(kept)
-    assert fresh <= {f"denoiser.inject.1.{p}" for p in ("weight", "bias")}  # it reads the trunk's stride-4 map
-    assert torch.equal(own["denoiser.encoder.dense_out.2.weight"], old["denoiser.encoder.dense_out.2.weight"])
-    pretrained = imagenet_state()["stages.1.0.project.0.weight"]
-    assert torch.equal(own["denoiser.encoder.trunk.stages.1.0.project.0.weight"], pretrained)
-    with pytest.raises(ValueError, match="distill needs init"):
-        main(["train", "--data", str(data), "--out", str(tmp_path / "no.safetensors"),
-              "--config", _config(tmp_path, agm=lite, distill=1.0)])  # fmt: skip
-
-    crops = torch.randint(0, 256, (4, 3, 64, 64), dtype=torch.uint8, generator=torch.Generator().manual_seed(0))
-    objects = torch.tensor([0, 1, 2, 0])
-    with torch.no_grad():
-        target = teacher.encode(crops, objects)
-    opt = torch.optim.Adam(student.parameters(), lr=1e-3)
-    losses = []
-    for _ in range(30):
-        loss = distill_loss(student, student.encode(crops, objects), teacher, target)
-        opt.zero_grad()
-        loss.backward()
-        opt.step()
-        losses.append(loss.item())
-    assert losses[-1] < 0.5 * losses[0]
 
 
 @pytest.mark.slow

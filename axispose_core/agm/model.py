@@ -119,19 +119,3 @@ def grow_into(model: AxisGenerator, start: AxisGenerator) -> list[str]:
         nn.init.zeros_(conv.weight)
         nn.init.zeros_(conv.bias)
     return added
-
-
-def transplant(model: AxisGenerator, start: AxisGenerator) -> list[str]:
-    """Load into `model`, whose encoder has another trunk than `start`'s, every weight of `start` outside the trunk
-    whose name and shape match (the denoiser, and the encoder's heads where the trunk's widths allow); returns the
-    names left at their fresh (or the trunk's pretrained) initialisation. The denoiser must be the same network."""
-    old, new = start.config.denoiser, model.config.denoiser
-    if replace(new, encoder=old.encoder) != old:
-        raise ValueError(f"cannot transplant a denoiser {old} into {new}: only the encoder may differ")
-    own = model.state_dict()
-    take = {k: v for k, v in start.state_dict().items()
-            if k in own and v.shape == own[k].shape and not k.startswith("denoiser.encoder.trunk.")}  # fmt: skip
-    if "denoiser.encoder.embedding.weight" not in take:
-        raise ValueError("the object embeddings differ in width: nothing of the encoder would carry over")
-    model.load_state_dict(take, strict=False)
-    return sorted(set(own) - set(take))

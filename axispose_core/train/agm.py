@@ -26,7 +26,7 @@ import numpy as np
 import torch
 import torch.distributed as dist
 
-from axispose_core.agm.model import AGMConfig, AxisGenerator, depth_from_log, grow_into, grows, transplant
+from axispose_core.agm.model import AGMConfig, AxisGenerator, depth_from_log, grow_into
 from axispose_core.agm.sampler import sample
 from axispose_core.axis_image import axis_keypoints
 from axispose_core.data.synth.config import StreamConfig
@@ -85,10 +85,6 @@ class TrainConfig:
     stream: StreamConfig = field(default_factory=lambda: StreamConfig(occluded_prob=0.0, clutter_prob=0.0, neighbours=(0, 0)))
     """The crop stream trained on when no BOP folders are given; its crop size must be the denoiser's. One object
     per crop, nothing in front or behind: pose is learned about twice as fast per step on these."""
-    distill: float = 0.0
-    """Weight of the distillation loss (`train/losses.py`) against the init checkpoint's encoder, for a run whose
-    encoder has another trunk than init's: the denoiser starts from init's weights and the new encoder learns what
-    it reads. 0: off."""
     val_seed: int = 1_000_000
     """Seed of the held-out stream samples: fixed, so that the curves of different runs read the same crops."""
     curriculum: tuple[CurriculumStage, ...] = ()
@@ -211,8 +207,7 @@ def train_agm(
     Without BOP folders in `sources` the samples come from the crop stream of `cfg.stream` over its models
     folder; with them, from their annotated crops. `init`: an estimator checkpoint whose (EMA) weights a new
     run starts from, with a fresh optimiser and schedule, e.g. to train the shipped model on: the same AGM network,
-    one whose encoder the config gives more blocks per stage (`grow_into`: more capacity without starting over), or
-    one with another trunk (`transplant`: the denoiser and the encoder's heads carry over; see `distill`);
+    or one whose encoder the config gives more blocks per stage (`grow_into`: more capacity without starting over);
     a resumed run restores its own weights and keeps recording the checkpoint its first call started from.
     """
     distributed = "RANK" in os.environ and "WORLD_SIZE" in os.environ
@@ -249,15 +244,9 @@ def train_agm(
     model = AxisGenerator(cfg.agm)
     if not run.resume:
         start_pretrained(model)
-    if cfg.distill > 0 and not init:
-        raise ValueError("distill needs init: the checkpoint whose encoder teaches the new one")
-    start_from = Estimator.load(init) if init and (cfg.distill > 0 or not run.resume) else None
-    teacher = start_from.agm.to(dev) if cfg.distill > 0 else None
-    if start_from is not None and not run.resume:
-        if not grows(start_from.agm.config.denoiser.encoder.trunk, cfg.agm.denoiser.encoder.trunk):
-            fresh = transplant(model, start_from.agm)
-            print(f"started from {init} with a new trunk: {len(fresh)} tensors start fresh or pretrained")
-        elif grown := grow_into(model, start_from.agm):  # the same network: a plain copy, nothing grown
+    if init and not run.resume:
+        start_from = Estimator.load(init)
+        if grown := grow_into(model, start_from.agm):  # the same network: a plain copy, nothing grown
             print(f"started from {init}, its encoder grown by {len(grown)} block(s), each starting as the identity")
     scales = torch.tensor([o.scale for o in objects], dtype=torch.float64)
     validate_ema = None
@@ -281,5 +270,5 @@ def train_agm(
     return fit(
         cfg, model, batches, loss, out, save, validate_ema, VAL_COLUMNS, run, dev, "train agm",
         str(init) if init else None, ("stream", "curriculum"), lambda saved, at: same_stream_before(saved, cfg, at),
-        lambda agm: AGMObjective(agm, teacher, cfg.distill),
+        AGMObjective,
     )  # fmt: skip

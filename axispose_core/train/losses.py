@@ -51,19 +51,17 @@ def encoder_losses(enc: Encoding, batch: Batch) -> dict[str, torch.Tensor]:
     return parts
 
 
-def agm_losses(
-    agm: AxisGenerator, batch: Batch, generator: torch.Generator | None = None, enc: Encoding | None = None
-) -> dict[str, torch.Tensor]:
+def agm_losses(agm: AxisGenerator, batch: Batch, generator: torch.Generator | None = None) -> dict[str, torch.Tensor]:
     """The AGM's training losses on a batch (crop, object, axes; points + mask_visib and log_depth where known):
     "diffusion" at random timesteps (with train_guidance, the guided estimate ε' is what it sees), the encoder's
-    "points", "mask" and "depth", and their weighted "total". `enc`: the batch's encoding, where already computed."""
+    "points", "mask" and "depth", and their weighted "total"."""
     crops, x0 = batch["crop"], batch["axes"]
     cfg, sched = agm.config, agm.scheduler
     b = x0.shape[0]
     t = torch.randint(0, sched.config.num_train_timesteps, (b,), generator=generator).to(x0.device)
     noise = torch.randn(x0.shape, generator=generator).to(x0.device)
     x_t = sched.add_noise(x0, noise, t)
-    enc = agm.encode(crops, batch["object"]) if enc is None else enc
+    enc = agm.encode(crops, batch["object"])
     out = agm.denoiser(x_t, t, enc)
     if cfg.train_guidance:
         abar = sched.alphas_cumprod.to(x0.device)[t].to(x0.dtype).view(-1, 1, 1, 1)
@@ -89,34 +87,15 @@ def direct_losses(model: DirectRegressor, batch: Batch) -> dict[str, torch.Tenso
     return parts
 
 
-def distill_loss(student: AxisGenerator, enc: Encoding, teacher: AxisGenerator, target: Encoding) -> torch.Tensor:
-    """How far an encoding is from a teacher's in what each denoiser reads of it: the maps as its levels inject
-    them (so that trunks of other widths compare) and the context; each tensor's mean squared difference relative
-    to the teacher's mean square, summed."""
-    pairs = [(enc.context, target.context)]
-    for i, (inject_s, inject_t) in enumerate(zip(student.denoiser.inject, teacher.denoiser.inject, strict=True)):
-        with torch.no_grad():
-            t = inject_t(target.maps[i])
-        pairs.append((inject_s(enc.maps[i]), t))
-    return sum(((s.float() - t.float()) ** 2).mean() / (t.float() ** 2).mean().clamp(min=1e-6) for s, t in pairs)
-
-
 class AGMObjective(nn.Module):
-    """`forward(batch, generator)`: the AGM's total training loss, plus `distill` times `distill_loss` against a
-    frozen `teacher` AGM's encoder where one is given (a new encoder learning what the trained denoiser reads)."""
+    """`forward(batch, generator)`: the AGM's total training loss."""
 
-    def __init__(self, agm: AxisGenerator, teacher: AxisGenerator | None = None, distill: float = 0.0) -> None:
+    def __init__(self, agm: AxisGenerator) -> None:
         super().__init__()
-        self.agm, self.distill = agm, distill
-        self.teacher = teacher.eval().requires_grad_(False) if teacher is not None and distill > 0 else None
+        self.agm = agm
 
     def forward(self, batch: Batch, generator: torch.Generator | None = None) -> torch.Tensor:
-        if self.teacher is None:
-            return agm_losses(self.agm, batch, generator)["total"]
-        enc = self.agm.encode(batch["crop"], batch["object"])
-        with torch.no_grad():
-            target = self.teacher.encode(batch["crop"], batch["object"])
-        return agm_losses(self.agm, batch, generator, enc)["total"] + self.distill * distill_loss(self.agm, enc, self.teacher, target)
+        return agm_losses(self.agm, batch, generator)["total"]
 
 
 class DirectObjective(nn.Module):

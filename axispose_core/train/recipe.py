@@ -142,10 +142,12 @@ def _sha256(data: Any) -> str:
 
 
 def _merge(base: dict[str, Any], changes: dict[str, Any]) -> dict[str, Any]:
-    """`base` with `changes` merged in at every depth (a mapping merges into a mapping; anything else replaces)."""
+    """`base` with `changes` merged in at every depth (a mapping merges into a mapping, unless it names another
+    `kind`: another class fills that slot, and none of the old one's fields carry over; anything else replaces)."""
     out = copy.deepcopy(base)
     for k, v in changes.items():
-        out[k] = _merge(out[k], v) if isinstance(v, dict) and isinstance(out.get(k), dict) else copy.deepcopy(v)
+        merges = isinstance(v, dict) and isinstance(out.get(k), dict) and v.get("kind", out[k].get("kind")) == out[k].get("kind")
+        out[k] = _merge(out[k], v) if merges else copy.deepcopy(v)
     return out
 
 
