@@ -58,7 +58,7 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("csv", nargs="+", help="trainer CSVs (OUT.csv of `axispose train`)")
     ap.add_argument("--out", required=True, help="PNG to write")
-    ap.add_argument("--json", default=None, help="JSON with the last validation row of each run")
+    ap.add_argument("--json", default=None, help="JSON with each run's summary row (its last validation, or at --at-hours)")
     ap.add_argument("--at-hours", type=float, default=None, help="summarise every run at this wall time instead")
     args = ap.parse_args()
     curves = {Path(p).stem: read_curve(p) for p in args.csv}

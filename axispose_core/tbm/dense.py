@@ -2,8 +2,8 @@
 
 Each visible pixel u of the encoder's surface-point map says which model point X it shows, u ≃ K (R X + t). With
 R from the TBM that is linear in t (`translation_from_points`); `fuse_pose` solves R and t together, with the
-TBM's rotation and origin and the encoder's depth as priors. No CAD model is needed: the points are the network's, in λ_O
-units.
+TBM's rotation and origin and the encoder's depth as priors. No CAD model is needed: the points are the network's,
+in λ_O units.
 """
 
 from __future__ import annotations
@@ -87,8 +87,8 @@ def _robust(r: np.ndarray, k: int) -> np.ndarray:
 @dataclass(frozen=True)
 class DenseFusion:
     """How `fuse_pose` weighs the dense points against the TBM's rotation and origin and the encoder's depth:
-    Gaussian priors whose widths are those sources' errors, and the points' total weight as a number of independent points
-    (the network's point errors are correlated across a crop: hundreds of pixels say about as much as a few
+    Gaussian priors whose widths are those sources' errors, and the points' total weight as a number of independent
+    points (the network's point errors are correlated across a crop: hundreds of pixels say about as much as a few
     dozen independent measurements)."""
 
     points: float = 30.0
@@ -101,6 +101,12 @@ class DenseFusion:
     origin_sigma: float = 2.0
     """Width of the prior on where the object's origin projects, around the TBM's (crop pixels): the reader finds
     the drawn origin to a pixel or two, while the visible points' centre moves with occlusion."""
+
+
+def _projection_jacobian(K: np.ndarray, proj: np.ndarray, z: np.ndarray) -> np.ndarray:
+    """d (image point) / d (camera-frame point) (N,2,3) at image points proj (N,2) of homogeneous depth z = (K p)_z
+    (N,)."""
+    return (K[None, :2, :] - proj[:, :, None] * K[None, 2:3, :]) / z[:, None, None]
 
 
 def fuse_pose(
@@ -117,9 +123,9 @@ def fuse_pose(
     """The pose most probable given the dense points, the TBM's rotation R and origin (where t projects) and the
     encoder's `depth` (m), from the start (R, t): robust Gauss-Newton (R perturbed on the left, R ← exp([ω]×) R)
     on the points' reprojection errors (in units of their median absolute size; prior `weight` (N,) scaled to sum
-    to `fusion.points`, IRLS weights as in `translation_from_points`) with the three priors as further residuals. A tilted object's
-    apparent size trades its tilt against its distance; the points see its shape, the head its size, the TBM its
-    axes: solving for both together lets each settle what the others leave open.
+    to `fusion.points`, IRLS weights as in `translation_from_points`) with the three priors as further residuals.
+    A tilted object's apparent size trades its tilt against its distance; the points see its shape, the head its
+    size, the TBM its axes: solving for both together lets each settle what the others leave open.
     None when fewer than MIN_POINTS have weight, or the pose falls behind the camera."""
     keep = weight > 0
     if keep.sum() < MIN_POINTS or t[2] <= 0 or not depth > 0:
@@ -145,7 +151,7 @@ def fuse_pose(
             if w.sum() <= 0:
                 return None
         # d proj / d p (N,2,3); through dp/dω = -[R X]x each row a gives a^T (-[R X]x) = (R X) × a, and dp/dt = I.
-        dproj = (K[None, :2, :] - proj[:, :, None] * K[None, 2:3, :]) / q[:, 2, None, None]
+        dproj = _projection_jacobian(K, proj, q[:, 2])
         J = np.concatenate([np.cross((p - t)[:, None, :], dproj), dproj], axis=2).reshape(-1, 6)
         sw = np.repeat(w, 2) / sigma**2
         H = np.einsum("ni,nj->ij", J, J * sw[:, None])
@@ -157,10 +163,11 @@ def fuse_pose(
         dz = 1 / (t[2] * fusion.depth_sigma)
         H[5, 5] += dz**2
         g[5] -= dz * np.log(t[2] / depth) / fusion.depth_sigma
-        qt = K @ t
-        Jo = (K[:2] - np.outer(qt[:2] / qt[2], K[2])) / qt[2]  # d (origin's projection) / d t
-        H[3:, 3:] += Jo.T @ Jo / fusion.origin_sigma**2
-        g[3:] -= Jo.T @ (qt[:2] / qt[2] - origin) / fusion.origin_sigma**2
+        qt = np.einsum("ij,j->i", K, t)
+        at = qt[:2] / qt[2]  # where the origin projects now
+        Jo = _projection_jacobian(K, at[None], qt[2:])[0]  # it moves with t as any point does
+        H[3:, 3:] += np.einsum("ki,kj->ij", Jo, Jo) / fusion.origin_sigma**2
+        g[3:] -= np.einsum("ki,k->i", Jo, at - origin) / fusion.origin_sigma**2
         step = np.linalg.solve(H, g)
         R = cv2.Rodrigues(step[:3])[0] @ R
         t = t + step[3:]
