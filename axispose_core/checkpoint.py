@@ -181,7 +181,7 @@ def read_checkpoint(
             raw = raw.get(section)
         config = None if raw is None else config_from_dict(config_cls, raw, f"{path}: config" + (f".{section}" if section else ""))
         extra = json.loads(meta.get("extra", "{}"))
-    except (KeyError, json.JSONDecodeError, TypeError) as err:
+    except (KeyError, ValueError, TypeError) as err:  # ValueError: JSON, or a config that refuses its values
         raise CheckpointError(f"{path}: config metadata unreadable ({err})") from err
     states: dict[str, dict[str, torch.Tensor]] = {}
     for key, value in tensors.items():

@@ -258,7 +258,7 @@ def _eval(args: argparse.Namespace) -> int:
     def predict(image, K, boxes):
         poses = est.estimate(image, K, boxes, steps=args.steps, guidance_scale=args.guidance, hypotheses=args.hypotheses,
                              mode_sample=args.mode_sample)  # fmt: skip
-        return [Prediction(p.R, p.t, p.ok, p.spread_deg) for p in poses]
+        return [Prediction(p.R, p.t, p.ok, p.spread_deg, p.covariance) for p in poses]
 
     detector, counts = None, None
     if args.crops == "detect":
@@ -295,7 +295,16 @@ def _bop_targets(args: argparse.Namespace) -> tuple[dict | None, str | None]:
 def _report(args: argparse.Namespace, records, objects, config: dict, counts: dict | None, bop: list) -> int:
     """Write, print and plot an eval's results."""
     from axispose_core.data.bop import write_bop_results
-    from axispose_core.evaluate import format_average_recall, format_table, plot_cdfs, plot_grid, plot_spread, summarize, write_report
+    from axispose_core.evaluate import (
+        UNCERTAINTY,
+        format_average_recall,
+        format_table,
+        plot_cdfs,
+        plot_grid,
+        plot_uncertainty,
+        summarize,
+        write_report,
+    )
 
     report = summarize(records, objects, config, counts, bop)
     write_report(report, args.report)
@@ -312,13 +321,19 @@ def _report(args: argparse.Namespace, records, objects, config: dict, counts: di
         )
     if config.get("gt_rotations_projected"):
         print(f"{config['gt_rotations_projected']} GT rotations were not orthonormal and were projected to the nearest rotation")
-    if "spread" in report:
-        q = report["spread"]
-        print(f"spread vs rotation error: Spearman {q['spearman_spread_vs_rot_err']:.2f}; Reproj@15px {q['reproj_15px_all_posed']:.3f} "
-              f"for all posed, {q['reproj_15px_least_spread_half']:.3f} for the least-spread half")  # fmt: skip
+    for name in (n for n in UNCERTAINTY if n in report):
+        q = report[name]
+        print(f"{name} vs rotation error: Spearman {q['spearman_vs_rot_err']:.2f}; Reproj@15px {q['reproj_15px_all_posed']:.3f} "
+              f"for all posed, {q['reproj_15px_least_half']:.3f} for the least uncertain half")  # fmt: skip
+    if "calibration" in report:
+        q = report["calibration"]
+        print(f"covariance calibration ({q['n']} posed, symmetric objects left out; a right one gives 2.37, 0.68, 0.95): "
+              + "; ".join(f"{part} median d² {q[f'{part}_median_d2']:.2f}, within 68 / 95 % {q[f'{part}_within_68']:.2f} / "
+                          f"{q[f'{part}_within_95']:.2f}" for part in ("translation", "rotation")))  # fmt: skip
     if args.plots:
         plots = [plot_cdfs(records, objects, args.plots), plot_grid(records, objects, args.models, args.plots)]
-        print("plots: " + ", ".join(str(p) for p in [*plots, plot_spread(records, args.plots)] if p))
+        plots += [plot_uncertainty(records, args.plots, key) for key in UNCERTAINTY.values()]
+        print("plots: " + ", ".join(str(p) for p in plots if p))
     print(f"report: {args.report}")
     return 0
 

@@ -7,7 +7,7 @@ spread is measured over every sample, wrong ones included, so disagreement is re
 
 The covariance follows geometry_msgs/PoseWithCovariance: order (x, y, z, rotation about X, Y, Z), all in the
 camera frame, the rotation part from the rotation vectors of R_i R_cᵀ. It is the mean outer product of the
-samples' deviations from the consensus plus a small floor, so it stays positive definite for any K.
+samples' deviations from the consensus (`scatter`) plus a small floor, so it stays positive definite for any K.
 
 Symmetric objects: samples that differ by one of the object's symmetries count as disagreeing (the object specs
 carry a symmetry flag, not the symmetry transforms), so their spread over-states the uncertainty.
@@ -38,8 +38,10 @@ class Consensus:
     """RMS rotation angle of all samples from the consensus."""
     spread_m: float
     """RMS distance of all samples' translations from the consensus."""
+    scatter: np.ndarray
+    """(6, 6) mean outer product of all samples' deviations, in the order x, y, z, rx, ry, rz (m², rad²)."""
     covariance: np.ndarray
-    """(6, 6) in the order x, y, z, rx, ry, rz (m², rad²)."""
+    """`scatter` plus the floor."""
 
 
 def _angles(Ra: np.ndarray, Rb: np.ndarray) -> np.ndarray:
@@ -67,7 +69,7 @@ def consensus(Rs: np.ndarray, ts: np.ndarray, length: float, inlier_deg: float =
     t = ts[inliers].mean(axis=0)
     dev = np.hstack([ts - t, Rotation.from_matrix(Rs @ R.T).as_rotvec()])
     floor = np.diag([TRANS_FLOOR_M**2] * 3 + [ROT_FLOOR_RAD**2] * 3)
-    cov = dev.T @ dev / len(dev) + floor
+    scatter = dev.T @ dev / len(dev)
     return Consensus(
         R=R,
         t=t,
@@ -75,5 +77,6 @@ def consensus(Rs: np.ndarray, ts: np.ndarray, length: float, inlier_deg: float =
         inliers=inliers,
         spread_deg=float(np.degrees(np.sqrt(np.mean(np.sum(dev[:, 3:] ** 2, axis=1))))),
         spread_m=float(np.sqrt(np.mean(np.sum(dev[:, :3] ** 2, axis=1)))),
-        covariance=cov,
+        scatter=scatter,
+        covariance=scatter + floor,
     )

@@ -112,11 +112,13 @@ class PoseEstimate:
     samples: int = 1
     """AGM samples drawn for this box (`hypotheses`)."""
     samples_ok: int = 1
-    """Samples that gave a pose; with two or more, spread and covariance are filled in."""
+    """Samples that gave a pose; with two or more, the spread is filled in."""
     spread_deg: float = float("nan")
     spread_m: float = float("nan")
     covariance: np.ndarray | None = None
-    """(6, 6) pose covariance (x, y, z, rx, ry, rz; camera frame) from the samples' scatter; see consensus.py."""
+    """(6, 6) pose covariance (x, y, z, rx, ry, rz; camera frame; m², rad²): the dense fusion's (`FusedPose`) plus
+    the samples' scatter about their consensus (consensus.py); without the fusion the scatter alone, with a floor
+    (None for a single sample)."""
     head_depth: float = float("nan")
     """The encoder's depth for this crop (m, linear in λ_O); t already fuses it with the TBM's (head_depth_weight)
     and with the dense points (dense_fusion)."""
@@ -271,9 +273,10 @@ class Estimator:
                 continue
             c = consensus(np.stack([p[1] for p in poses]), np.stack([p[2] for p in poses]), float(L.max()))
             axis_image = images[poses[c.medoid][0]].permute(1, 2, 0).cpu().numpy()
-            spread = dict(spread_deg=c.spread_deg, spread_m=c.spread_m, covariance=c.covariance) if len(poses) > 1 else {}
-            R, t = c.R, c.t
+            spread = dict(spread_deg=c.spread_deg, spread_m=c.spread_m) if len(poses) > 1 else {}
+            R, t, cov = c.R, c.t, (c.covariance if len(poses) > 1 else None)
             if dense is not None and (fused := fuse_pose(cut.K_patch, R, t, *dense[i], z_head, self.config.dense_fusion)) is not None:
-                R, t = fused
-            out.append(PoseEstimate(R=R, t=t, ok=True, reason="", axis_image=axis_image, **pick, **spread))
+                # The law of total covariance: the fusion's own (given the consensus) plus the samples' scatter about it.
+                R, t, cov = fused.R, fused.t, fused.covariance + (c.scatter if len(poses) > 1 else 0.0)
+            out.append(PoseEstimate(R=R, t=t, ok=True, reason="", axis_image=axis_image, covariance=cov, **pick, **spread))
         return out

@@ -30,7 +30,7 @@ from axispose_core.data.meshes import load_ply
 from axispose_core.data.visibility import gt_info_from_models
 from axispose_core.localiser.decode import Detection, match
 from axispose_core.localiser.scoring import false_alarms
-from axispose_core.metrics import ADD_THRESHOLDS, REPROJ_THRESHOLDS, pose_scores
+from axispose_core.metrics import ADD_THRESHOLDS, REPROJ_THRESHOLDS, mahalanobis_sq, pose_scores
 from axispose_core.objects import ObjectSpec
 
 MIN_VISIB = 0.1
@@ -44,6 +44,8 @@ class Prediction:
     ok: bool
     spread_deg: float = float("nan")
     """Rotation spread of the estimator's samples (multi-hypothesis), NaN for a single sample."""
+    covariance: np.ndarray | None = None
+    """(6, 6) pose covariance the estimator reports (x, y, z, rotation about X, Y, Z; camera frame), if any."""
 
 
 Predictor = Callable[[np.ndarray, np.ndarray, list[tuple[int, tuple[float, float, float, float]]]], list[Prediction]]
@@ -67,6 +69,12 @@ class Record:
     box: tuple[int, int, int, int]
     spread_deg: float = float("nan")
     visib_fract: float = float("nan")
+    covariance: np.ndarray | None = None
+
+    @property
+    def sigma_deg(self) -> float:
+        """The covariance's rotation standard deviation (`rotation_sigma_deg`)."""
+        return rotation_sigma_deg(self.covariance)
 
 
 def instance_scores(
@@ -191,6 +199,7 @@ def evaluate(
                     info.bbox_obj,
                     p.spread_deg,
                     info.visib_fract,
+                    p.covariance,
                 )
             )
     return records
@@ -254,37 +263,72 @@ def summarize(
         names = {o.obj_id: o.name for o in objects}
         ar["objects"] = {str(i): {"name": names.get(i, str(i))} | e for i, e in ar["objects"].items()}
         report["bop19"] = ar
-    quality = spread_quality(records)
-    return report | ({"spread": quality} if quality else {})
+    measures = {name: q for name, key in UNCERTAINTY.items() if (q := uncertainty_quality(records, key))}
+    calibration = covariance_calibration(records, objects)
+    return report | measures | ({"calibration": calibration} if calibration else {})
 
 
-def _certain(records: list[Record]) -> tuple[list[Record], np.ndarray]:
-    """Records with a pose and a spread, and their spreads."""
-    rs = [r for r in records if r.ok and np.isfinite(r.spread_deg)]
-    return rs, np.array([r.spread_deg for r in rs])
+CHI2_3 = {"median": 2.366, "68": 3.527, "95": 7.815}
+"""Quantiles of χ²(3), the law of a right covariance's squared Mahalanobis lengths of 3D errors."""
 
 
-def spread_quality(records: list[Record]) -> dict | None:
-    """Does the multi-hypothesis spread predict the error? Rank correlation of spread and rotation error, and
-    the accuracy of all poses against that of the half with the smallest spread (None without spreads)."""
-    from scipy.stats import spearmanr
-
-    rs, spread = _certain(records)
-    if len(rs) < 4:
+def covariance_calibration(records: list[Record], objects: list[ObjectSpec]) -> dict | None:
+    """Is the reported covariance the size of the errors? Per part (translation, rotation), the median squared
+    Mahalanobis length of the posed instances' errors (`metrics.mahalanobis_sq`; χ²(3)'s median 2.37 if right,
+    more where the covariance is too narrow) and the fractions within χ²(3)'s 68 and 95 % quantiles. Symmetric
+    objects are left out: their rotation error has no one direction. None without covariances."""
+    symmetric = {o.obj_id for o in objects if o.symmetric}
+    d2 = np.array([mahalanobis_sq(r.R, r.t, r.R_gt, r.t_gt, r.covariance) for r in records
+                   if r.ok and r.covariance is not None and r.obj_id not in symmetric])  # fmt: skip
+    if len(d2) < 4:
         return None
-    rot = np.array([r.scores["rot_err_deg"] for r in rs])
-    half = np.argsort(spread, kind="stable")[: len(rs) // 2]
-    out: dict[str, float] = {"n": len(rs), "spearman_spread_vs_rot_err": float(spearmanr(spread, rot).statistic)}
-    for key in ("add_0.2d", "reproj_15px"):
-        score = np.array([r.scores[key] for r in rs])
-        out[f"{key}_all_posed"] = float(score.mean())
-        out[f"{key}_least_spread_half"] = float(score[half].mean())
+    out: dict[str, float] = {"n": len(d2)}
+    for k, part in enumerate(("translation", "rotation")):
+        out[f"{part}_median_d2"] = float(np.median(d2[:, k]))
+        for q in ("68", "95"):
+            out[f"{part}_within_{q}"] = float(np.mean(d2[:, k] <= CHI2_3[q]))
     return out
 
 
-def plot_spread(records: list[Record], out_dir: str | Path) -> Path | None:
-    """Rotation error against the samples' spread, and accuracy when only the least-spread fraction is kept."""
-    rs, spread = _certain(records)
+UNCERTAINTY = {"spread": "spread_deg", "sigma": "sigma_deg"}
+"""A report's uncertainty measures: the samples' spread and the covariance's rotation sigma, by Record field."""
+
+_LABELS = {"spread_deg": "spread of the samples (deg, RMS)", "sigma_deg": "rotation sigma of the covariance (deg)"}
+
+
+def rotation_sigma_deg(covariance: np.ndarray | None) -> float:
+    """A pose covariance's (x, y, z, rx, ry, rz) rotation standard deviation: √(trace of its rotation block), in
+    degrees; NaN without one."""
+    return float(np.degrees(np.sqrt(np.trace(covariance[3:, 3:])))) if covariance is not None else float("nan")
+
+
+def _certain(records: list[Record], key: str) -> tuple[list[Record], np.ndarray]:
+    """Records with a pose and a finite `key` (a Record field), and its values."""
+    rs = [r for r in records if r.ok and np.isfinite(getattr(r, key))]
+    return rs, np.array([getattr(r, key) for r in rs])
+
+
+def uncertainty_quality(records: list[Record], key: str) -> dict | None:
+    """Does an uncertainty (`key`: spread_deg or sigma_deg) predict the error? Its rank correlation with the rotation
+    error, and the accuracy of all poses against that of the half with the least uncertainty (None without it)."""
+    from scipy.stats import spearmanr
+
+    rs, u = _certain(records, key)
+    if len(rs) < 4:
+        return None
+    rot = np.array([r.scores["rot_err_deg"] for r in rs])
+    half = np.argsort(u, kind="stable")[: len(rs) // 2]
+    out: dict[str, float] = {"n": len(rs), "spearman_vs_rot_err": float(spearmanr(u, rot).statistic)}
+    for score_key in ("add_0.2d", "reproj_15px"):
+        score = np.array([r.scores[score_key] for r in rs])
+        out[f"{score_key}_all_posed"] = float(score.mean())
+        out[f"{score_key}_least_half"] = float(score[half].mean())
+    return out
+
+
+def plot_uncertainty(records: list[Record], out_dir: str | Path, key: str) -> Path | None:
+    """Rotation error against an uncertainty (`key`), and accuracy when only the least uncertain fraction is kept."""
+    rs, u = _certain(records, key)
     if len(rs) < 4:
         return None
     import matplotlib
@@ -293,18 +337,17 @@ def plot_spread(records: list[Record], out_dir: str | Path) -> Path | None:
     import matplotlib.pyplot as plt
 
     rot = np.array([r.scores["rot_err_deg"] for r in rs])
-    order = np.argsort(spread, kind="stable")
+    order = np.argsort(u, kind="stable")
     kept = np.arange(1, len(rs) + 1) / len(rs)
-    out = Path(out_dir) / "error_vs_spread.png"
+    out = Path(out_dir) / f"error_vs_{key.removesuffix('_deg')}.png"
     out.parent.mkdir(parents=True, exist_ok=True)
     fig, (a1, a2) = plt.subplots(1, 2, figsize=(11, 4))
-    a1.scatter(np.maximum(spread, 1e-2), rot, s=6, alpha=0.5)
-    a1.set(xscale="log", xlabel="spread of the samples (deg, RMS)", ylabel="rotation error (deg)", ylim=(0, 180),
-           title="error vs spread")  # fmt: skip
-    for key, label in (("reproj_15px", "Reproj@15px"), ("add_0.2d", "ADD(-S)@0.2d")):
-        score = np.array([r.scores[key] for r in rs])[order]
+    a1.scatter(np.maximum(u, 1e-2), rot, s=6, alpha=0.5)
+    a1.set(xscale="log", xlabel=_LABELS[key], ylabel="rotation error (deg)", ylim=(0, 180), title="error vs uncertainty")
+    for score_key, label in (("reproj_15px", "Reproj@15px"), ("add_0.2d", "ADD(-S)@0.2d")):
+        score = np.array([r.scores[score_key] for r in rs])[order]
         a2.plot(kept, np.cumsum(score) / np.arange(1, len(rs) + 1), label=label)
-    a2.set(xlabel="fraction kept (least spread first)", ylabel="accuracy of the kept poses", xlim=(0, 1), title="sparsification")
+    a2.set(xlabel="fraction kept (least uncertain first)", ylabel="accuracy of the kept poses", xlim=(0, 1), title="sparsification")
     a2.legend()
     fig.tight_layout()
     fig.savefig(out, dpi=100)

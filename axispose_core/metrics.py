@@ -49,6 +49,16 @@ def add_or_adi(R_est: np.ndarray, t_est: np.ndarray, R_gt: np.ndarray, t_gt: np.
     return (adi if symmetric else add)(R_est, t_est, R_gt, t_gt, pts)
 
 
+def mahalanobis_sq(R_est: np.ndarray, t_est: np.ndarray, R_gt: np.ndarray, t_gt: np.ndarray, covariance: np.ndarray) -> tuple[float, float]:
+    """Squared Mahalanobis lengths of an estimate's translation error t_est - t_gt and rotation error (the
+    rotation vector of R_est R_gtᵀ, camera frame) under its (6, 6) covariance in geometry_msgs' order (x, y, z,
+    rotation about X, Y, Z): each is χ²(3)-distributed if the covariance is right and the error Gaussian."""
+    e_t = np.asarray(t_est, dtype=float) - np.asarray(t_gt, dtype=float)
+    e_r = Rotation.from_matrix(np.asarray(R_est) @ np.asarray(R_gt).T).as_rotvec()
+    C = np.asarray(covariance, dtype=float)
+    return float(e_t @ np.linalg.solve(C[:3, :3], e_t)), float(e_r @ np.linalg.solve(C[3:, 3:], e_r))
+
+
 ADD_THRESHOLDS = (0.1, 0.2)
 """Fractions of the object diameter at which ADD(-S) counts a pose as correct."""
 REPROJ_THRESHOLDS = (5.0, 15.0)

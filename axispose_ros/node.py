@@ -5,8 +5,8 @@ estimate come from `~/roi/<object_name>` (sensor_msgs/RegionOfInterest, the late
 `roi_timeout` seconds), for users with their own detector. Outputs keep the image header:
 - `~/detections` (axispose_msgs/DetectionArray, every processed frame): each posed instance with its object id
   and name, score, pose with covariance and image box; the message for a robot stack;
-- `~/pose` (each object's pose in turn, for simple consumers), `~/pose_cov` (the same poses with the covariance
-  of the AGM's `hypotheses` samples, when two or more of them gave a pose), `~/poses/<object_name>`,
+- `~/pose` (each object's pose in turn, for simple consumers), `~/pose_cov` (the same poses with their
+  covariance: the dense fusion's, plus the scatter of the AGM's samples when `hypotheses` >= 2), `~/poses/<object_name>`,
   `~/pose_array` (every frame, empty when nothing was estimated);
 - `~/markers` (every frame: a DELETEALL, then three arrows per estimated instance with ids of their own and
   `marker_lifetime`), `~/debug/axis_image` (only built while subscribed), `/diagnostics`.
@@ -133,7 +133,7 @@ class AxisPoseNode(Node):
         self.declare_parameter("checkpoint", str(DEFAULT_CHECKPOINT), desc("AxisPose estimator checkpoint (.safetensors)"))
         self.declare_parameter("ddim_steps", 3, desc("DDIM steps per estimate", ints=(1, 1000)))
         self.declare_parameter(
-            "hypotheses", 0, desc("AGM samples per object (0: 3 under bfloat16, 2 in float32); >= 2 fills ~/pose_cov", ints=(0, 64))
+            "hypotheses", 1, desc("AGM samples per object; >= 2: their consensus, their scatter added to the covariance", ints=(1, 64))
         )
         self.declare_parameter("guidance_scale", 0.0, desc("run-time geometric guidance (0: off)", floats=(0.0, 100.0)))
         self.declare_parameter("object_scale", 0.0, desc("λ_O in m for every object (0: checkpoint's)", floats=(0.0, 10.0)))
@@ -264,10 +264,8 @@ class AxisPoseNode(Node):
         return self.worker.idle()
 
     def hypotheses(self) -> int:
-        """AGM samples per object: the parameter, or for 0 what fits a 2-core CPU's 200 ms frame at the AGM's
-        precision (3 samples under bfloat16; 2 in float32, about half the time of bfloat16's 3 x 3 crop-steps)."""
-        k = int(self.get_parameter("hypotheses").value)
-        return k if k > 0 else (3 if self.estimator.bf16 else 2)
+        """AGM samples per object."""
+        return int(self.get_parameter("hypotheses").value)
 
     def _scales(self) -> dict[int, float]:
         common = float(self.get_parameter("object_scale").value)

@@ -79,7 +79,7 @@ def _pose(R: np.ndarray, t: np.ndarray) -> Pose:
 
 
 def _detection(est: PoseEstimate, name: str, score: float, pose: Pose, box: Box) -> Detection:
-    """One posed instance as axispose_msgs/Detection; covariance all zeros (unknown) for a single sample."""
+    """One posed instance as axispose_msgs/Detection; covariance all zeros (unknown) where the estimator gave none."""
     msg = Detection(obj_id=int(est.obj_id), name=name, score=float(score), box=[float(v) for v in box])
     msg.pose.pose = pose
     if est.covariance is not None:

@@ -265,6 +265,20 @@ def test_a_checkpoint_of_the_earlier_agm_is_refused_in_one_line(tmp_path):
     assert "\n" not in str(err.value)
 
 
+def test_a_checkpoint_whose_config_refuses_its_values_is_refused_in_one_line(tmp_path):
+    path = tmp_path / "bad.safetensors"
+    reader = load_reader(SHIPPED_READER)
+    cfg = EstimatorConfig(agm=AGMConfig(denoiser=TINY), reader=reader.config, objects=tuple(lmo_objects()[:1]))
+    Estimator(cfg, AxisGenerator(cfg.agm), reader).save(path)
+    meta = dict(safe_open(str(path), framework="pt").metadata())
+    config = json.loads(meta["config"])
+    config["dense_fusion"]["covariance_scale"] = [-1.0, 1.0]
+    save_file(load_file(str(path)), str(path), metadata=meta | {"config": json.dumps(config)})
+    with pytest.raises(CheckpointError, match="covariance_scale must be two positive factors") as err:
+        Estimator.load(path)
+    assert "\n" not in str(err.value)
+
+
 def test_depth_target_round_trip_and_fusion_scale_with_the_object_size():
     K = torch.tensor([[[300.0, 0, 32], [0, 310.0, 30], [0, 0, 1]]], dtype=torch.float64)
     t = torch.tensor([[0.05, -0.02, 0.8]], dtype=torch.float64)

@@ -1,3 +1,5 @@
+from dataclasses import replace
+
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
@@ -193,8 +195,8 @@ def test_the_dense_fusion_weighs_points_against_its_priors():
     def angle(A: np.ndarray, B: np.ndarray) -> float:
         return float(np.degrees(np.arccos(np.clip((np.trace(A.T @ B) - 1) / 2, -1, 1))))
 
-    fusion = DenseFusion(points=30, rotation_sigma=0.1, depth_sigma=0.02)
-    R1, t1 = fuse_pose(LMO_K, R, 1.05 * t, uv, X, np.ones(300), t[2], fusion)  # the start is off, the priors are not
+    fusion = DenseFusion(points=10, rotation_sigma=0.1, depth_sigma=0.02)
+    R1, t1, _ = fuse_pose(LMO_K, R, 1.05 * t, uv, X, np.ones(300), t[2], fusion)  # the start is off, the priors are not
     np.testing.assert_allclose(R1, R, atol=1e-8)
     np.testing.assert_allclose(t1, t, atol=1e-8)
     many = fuse_pose(LMO_K, off, 1.05 * t, uv, X, np.ones(300), 1.05 * t[2], DenseFusion(points=1e6))
@@ -211,7 +213,41 @@ def test_the_dense_fusion_weighs_points_against_its_priors():
     assert angle(between[0], R) < angle(off, R) and abs(between[1][2] / t[2] - 1) < 0.05
     bad = uv.copy()
     bad[:60] += rng.uniform(20, 40, (60, 2))
-    R2, t2 = fuse_pose(LMO_K, R, 1.05 * t, bad + rng.normal(0, 0.3, bad.shape), X, np.ones(300), t[2], fusion)
+    R2, t2, _ = fuse_pose(LMO_K, R, 1.05 * t, bad + rng.normal(0, 0.3, bad.shape), X, np.ones(300), t[2], fusion)
     assert abs(t2[2] / t[2] - 1) < 0.005 and angle(R2, R) < 0.5
     assert fuse_pose(LMO_K, R, t, uv[:5], X[:5], np.ones(5), t[2], fusion) is None
     assert fuse_pose(LMO_K, R, -t, uv, X, np.ones(300), t[2], fusion) is None
+
+
+def test_the_dense_fusions_covariance_is_the_scatter_of_its_solutions():
+    """Points with Gaussian pixel noise (1 px per coordinate), each an independent point (points = their number) and
+    priors too wide to matter: over many noise draws the solutions scatter as the reported covariance says (its
+    Laplace approximation), in geometry_msgs' order (x, y, z,
+    rotation about X, Y, Z; the rotation error as the rotation vector of R_est R_trueᵀ); `covariance_scale`
+    scales its translation and rotation blocks."""
+    from axispose_core.metrics import mahalanobis_sq
+    from axispose_core.tbm.dense import DenseFusion, fuse_pose
+
+    rng = np.random.default_rng(11)
+    R, t, X, uv = _exact_points(rng)
+    n = 60
+    X, uv = X[:n], uv[:n]
+    wide = DenseFusion(points=n, rotation_sigma=10.0, depth_sigma=10.0, origin_sigma=1e4)
+    errors, covs, d2 = [], [], []
+    for _ in range(1000):
+        f = fuse_pose(LMO_K, R, t, uv + rng.normal(0, 1.0, uv.shape), X, np.ones(n), t[2], wide)
+        errors.append(np.concatenate([f.t - t, Rotation.from_matrix(f.R @ R.T).as_rotvec()]))
+        covs.append(f.covariance)
+        d2.append(mahalanobis_sq(f.R, f.t, R, t, f.covariance))
+    scatter, cov = np.cov(np.array(errors).T), np.mean(covs, axis=0)
+    ratio = np.diag(cov) / np.diag(scatter)
+    assert np.all((ratio > 0.85) & (ratio < 1.2)), ratio
+    corr = scatter / np.sqrt(np.outer(np.diag(scatter), np.diag(scatter)))
+    corr_cov = cov / np.sqrt(np.outer(np.diag(cov), np.diag(cov)))
+    assert np.abs(corr - corr_cov).max() < 0.1  # the cross terms too: depth against tilt, x against rotation about y
+    assert 1.5 < np.median(np.array(d2)[:, 0]) < 2.5 and 1.5 < np.median(np.array(d2)[:, 1]) < 2.5  # χ²(3): 2.37
+    scaled = fuse_pose(LMO_K, R, t, uv + 0.5, X, np.ones(n), t[2], replace(wide, covariance_scale=(2.0, 3.0)))
+    plain = fuse_pose(LMO_K, R, t, uv + 0.5, X, np.ones(n), t[2], wide)
+    np.testing.assert_allclose(scaled.covariance, plain.covariance * np.outer(*2 * [np.sqrt([2, 2, 2, 3, 3, 3])]), rtol=1e-9)
+    with pytest.raises(ValueError, match="covariance_scale"):
+        DenseFusion(covariance_scale=(0.0, 1.0))

@@ -214,6 +214,15 @@ def test_the_dense_fusion_corrects_the_tbms_rotation_and_depth_with_exact_points
     (tbm,) = est.estimate(image, K, [(spec.obj_id, box)])
     assert tbm.ok and re(tbm.R, R) > 6.0
     assert tbm.head_depth == pytest.approx(t[2], rel=1e-5)
+    assert tbm.covariance is None  # one sample, no fusion: nothing to say how wrong it is
     est.config = replace(est.config, dense_fusion=DenseFusion())
     (fused,) = est.estimate(image, K, [(spec.obj_id, box)])
     assert re(fused.R, R) < 1.0 and abs(fused.t[2] / t[2] - 1) < 0.002 and np.linalg.norm(fused.t - t) < 0.002
+    # one sample has the fusion's covariance; samples that scatter add theirs (the law of total covariance)
+    assert fused.covariance.shape == (6, 6) and np.all(np.linalg.eigvalsh(fused.covariance) > 0)
+    (same,) = est.estimate(image, K, [(spec.obj_id, box)], hypotheses=4)  # the oracle's samples agree
+    np.testing.assert_allclose(same.covariance, fused.covariance, rtol=1e-6, atol=1e-15)
+    est.sampler.sigma = np.radians(4.0)
+    (scattered,) = est.estimate(image, K, [(spec.obj_id, box)], hypotheses=4, seed=2)
+    assert scattered.spread_deg > 1.0
+    assert np.trace(scattered.covariance[3:, 3:]) > np.trace(fused.covariance[3:, 3:]) + np.radians(1.0) ** 2

@@ -14,7 +14,7 @@ from axispose_core.data.objects import objects_from_models
 from axispose_core.data.synth.config import SynthConfig
 from axispose_core.data.synth.generate import generate
 from axispose_core.data.synth.preview import contact_sheet
-from axispose_core.evaluate import Prediction, evaluate, plot_cdfs, plot_grid, plot_spread, summarize, write_report
+from axispose_core.evaluate import Prediction, evaluate, plot_cdfs, plot_grid, plot_uncertainty, summarize, write_report
 from axispose_core.stress import low_light, motion_blur
 
 KEYS = {"n", "name", "add_0.1d", "add_0.2d", "reproj_5px", "reproj_15px", "rot_err_median_deg", "trans_err_median_mm"}
@@ -173,10 +173,38 @@ def test_spread_that_tracks_the_error_is_reported_as_predictive(scenes, lmo_dir,
     records = evaluate(predict, scenes, lmo_dir / "models_eval", objects, progress=False)
     assert len(records) >= 4
     q = summarize(records, objects, {})["spread"]
-    assert q["spearman_spread_vs_rot_err"] == pytest.approx(1.0)
-    assert q["reproj_15px_least_spread_half"] >= q["reproj_15px_all_posed"]
-    assert plot_spread(records, tmp_path).stat().st_size > 5000
+    assert q["spearman_vs_rot_err"] == pytest.approx(1.0)
+    assert q["reproj_15px_least_half"] >= q["reproj_15px_all_posed"]
+    assert plot_uncertainty(records, tmp_path, "spread_deg").stat().st_size > 5000
     assert "spread" not in summarize([r for r in records if False], objects, {})  # no spreads, no entry
+    assert "sigma" not in summarize(records, objects, {}) and "calibration" not in summarize(records, objects, {})
+
+
+def test_covariance_is_checked_against_the_errors(scenes, lmo_dir, tmp_path):
+    """Poses tilted about the camera's X by a, reported with a rotation covariance of standard deviation a / 2 about
+    X and 100 a about Y and Z, and the translation exact: every rotation error is two standard deviations (squared
+    Mahalanobis length 4, between χ²(3)'s 68 and 95 % quantiles), whichever the object's own axes; the rotation
+    sigma ranks the poses by their error."""
+    objects = objects_from_models(scenes)
+    tilts = [1.0, 40.0, 3.0, 90.0, 2.0, 60.0]
+
+    def cov(a_deg: float) -> np.ndarray:
+        a = np.radians(a_deg)
+        return np.diag([1e-6] * 3 + [(a / 2) ** 2, (100 * a) ** 2, (100 * a) ** 2])
+
+    inner = _gt_predictor(scenes / "000000", tilt_deg=lambda k: tilts[k % 6] + 0.01 * k)
+
+    def predict(image, K, boxes):
+        return [Prediction(p.R, p.t, p.ok, covariance=cov(p.spread_deg)) for p in inner(image, K, boxes)]
+
+    records = evaluate(predict, scenes, lmo_dir / "models_eval", objects, progress=False)
+    report = summarize(records, objects, {})
+    q = report["calibration"]
+    assert q["n"] == sum(not o.symmetric for o in objects for r in records if r.obj_id == o.obj_id) >= 4
+    assert q["rotation_median_d2"] == pytest.approx(4.0, rel=1e-6) and q["translation_median_d2"] == pytest.approx(0.0, abs=1e-6)
+    assert (q["rotation_within_68"], q["rotation_within_95"], q["translation_within_68"]) == (0.0, 1.0, 1.0)
+    assert report["sigma"]["spearman_vs_rot_err"] == pytest.approx(1.0)
+    assert plot_uncertainty(records, tmp_path, "sigma_deg").name == "error_vs_sigma.png"
 
 
 def test_low_light_darkens_and_adds_noise():

@@ -9,7 +9,7 @@ in λ_O units.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, NamedTuple
 
 import cv2
 import numpy as np
@@ -22,6 +22,12 @@ if TYPE_CHECKING:
 
 MIN_POINTS = 8
 """Fewer usable correspondences than this give no translation."""
+
+RAYLEIGH_MEDIAN = float(np.sqrt(2 * np.log(2)))
+"""Median length of a 2D residual whose coordinates are N(0, 1)."""
+
+SIGMA_FLOOR_PX = 0.17
+"""Least residual scale (px per coordinate) `fuse_pose` assumes for the dense points."""
 
 MASK_THRESHOLD = 0.5
 """Mask probability from which a cell of the dense map counts as showing the object."""
@@ -88,10 +94,10 @@ def _robust(r: np.ndarray, k: int) -> np.ndarray:
 class DenseFusion:
     """How `fuse_pose` weighs the dense points against the TBM's rotation and origin and the encoder's depth:
     Gaussian priors whose widths are those sources' errors, and the points' total weight as a number of independent
-    points (the network's point errors are correlated across a crop: hundreds of pixels say about as much as a few
-    dozen independent measurements)."""
+    points (the network's point errors are correlated across a crop: hundreds of pixels say about as much as
+    ten independent measurements)."""
 
-    points: float = 30.0
+    points: float = 10.0
     """Effective number of independent points the dense map counts as; 0 leaves the pose as the TBM and the
     depth fusion give it."""
     rotation_sigma: float = 0.1
@@ -101,12 +107,34 @@ class DenseFusion:
     origin_sigma: float = 2.0
     """Width of the prior on where the object's origin projects, around the TBM's (crop pixels): the reader finds
     the drawn origin to a pixel or two, while the visible points' centre moves with occlusion."""
+    covariance_scale: tuple[float, float] = (1.0, 1.0)
+    """Factors on the variances of the fused pose's translation and rotation: the model above is made to place the
+    pose, and on held-out frames its Laplace covariance is narrower than the errors; these make the errors' median
+    squared Mahalanobis lengths χ²(3)'s (`axispose eval` reports them as `calibration`)."""
+
+    def __post_init__(self) -> None:
+        if len(self.covariance_scale) != 2 or not all(f > 0 for f in self.covariance_scale):
+            raise ValueError(f"dense_fusion.covariance_scale must be two positive factors, got {self.covariance_scale}")
 
 
 def _projection_jacobian(K: np.ndarray, proj: np.ndarray, z: np.ndarray) -> np.ndarray:
     """d (image point) / d (camera-frame point) (N,2,3) at image points proj (N,2) of homogeneous depth z = (K p)_z
     (N,)."""
     return (K[None, :2, :] - proj[:, :, None] * K[None, 2:3, :]) / z[:, None, None]
+
+
+class FusedPose(NamedTuple):
+    R: np.ndarray
+    t: np.ndarray
+    covariance: np.ndarray
+    """(6, 6) in geometry_msgs/PoseWithCovariance's order (x, y, z, rotation about X, Y, Z; camera frame; m², rad²):
+    the inverse of the Gauss-Newton normal matrix at the solution, i.e. the Laplace approximation of the posterior
+    that the points (at their measured residual scale and robust weights) and the priors define, its blocks scaled
+    by `DenseFusion.covariance_scale`."""
+
+
+_ROS_ORDER = [3, 4, 5, 0, 1, 2]
+"""The solver's state (ω, t) reordered to (t, ω)."""
 
 
 def fuse_pose(
@@ -119,13 +147,14 @@ def fuse_pose(
     depth: float,
     fusion: DenseFusion,
     iters: int = 8,
-) -> tuple[np.ndarray, np.ndarray] | None:
+) -> FusedPose | None:
     """The pose most probable given the dense points, the TBM's rotation R and origin (where t projects) and the
     encoder's `depth` (m), from the start (R, t): robust Gauss-Newton (R perturbed on the left, R ← exp([ω]×) R)
-    on the points' reprojection errors (in units of their median absolute size; prior `weight` (N,) scaled to sum
+    on the points' reprojection errors (in units of their robust scale per coordinate; prior `weight` (N,) scaled to sum
     to `fusion.points`, IRLS weights as in `translation_from_points`) with the three priors as further residuals.
     A tilted object's apparent size trades its tilt against its distance; the points see its shape, the head its
-    size, the TBM its axes: solving for both together lets each settle what the others leave open.
+    size, the TBM its axes: solving for both together lets each settle what the others leave open. With it, its
+    covariance: a crop whose points disagree with each other or with the priors gets a wide one.
     None when fewer than MIN_POINTS have weight, or the pose falls behind the camera."""
     keep = weight > 0
     if keep.sum() < MIN_POINTS or t[2] <= 0 or not depth > 0:
@@ -145,7 +174,9 @@ def fuse_pose(
         proj = q[:, :2] / q[:, 2:3]
         res = proj - uv  # (N,2) px
         r = np.linalg.norm(res, axis=1)
-        sigma = max(1.4826 * float(np.median(r)), 0.3)  # px; a floor so that exact points do not swamp the priors
+        # px per coordinate, from the median length of the 2D residuals (σ√(2 ln 2) for Gaussian ones); the floor
+        # keeps exact points from swamping the priors.
+        sigma = max(float(np.median(r)) / RAYLEIGH_MEDIAN, SIGMA_FLOOR_PX)
         if k > 0:
             w = prior * _robust(r, k)
             if w.sum() <= 0:
@@ -175,4 +206,6 @@ def fuse_pose(
             return None
         if np.abs(step).max() < 1e-9:
             break
-    return R, t
+    cov = np.linalg.inv(H)[np.ix_(_ROS_ORDER, _ROS_ORDER)]
+    d = np.sqrt(np.repeat(fusion.covariance_scale, 3))
+    return FusedPose(R, t, (cov + cov.T) / 2 * np.outer(d, d))
