@@ -2,7 +2,9 @@
 
 import json
 import math
+from collections.abc import Callable
 from dataclasses import replace
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -249,33 +251,36 @@ def test_guided_estimates_give_poses_with_the_encoders_depth():
     assert len(poses) == 2 and all(np.isfinite(p.head_depth) for p in poses)
 
 
-def test_a_checkpoint_of_the_earlier_agm_is_refused_in_one_line(tmp_path):
-    """An estimator saved before the AGM's version 2 (no `version`, the old denoiser fields) says what it is."""
-    path = tmp_path / "old.safetensors"
+def _saved_with_config_edited(path: Path, edit: Callable[[dict], None]) -> Path:
+    """A tiny estimator saved at `path`, its config metadata then changed in place by `edit`."""
     reader = load_reader(SHIPPED_READER)
     cfg = EstimatorConfig(agm=AGMConfig(denoiser=TINY), reader=reader.config, objects=tuple(lmo_objects()[:1]))
     Estimator(cfg, AxisGenerator(cfg.agm), reader).save(path)
     meta = dict(safe_open(str(path), framework="pt").metadata())
     config = json.loads(meta["config"])
-    del config["agm"]["version"]
-    config["agm"]["denoiser"] = {"size": 64, "channels": 32, "multipliers": [1, 2, 4], "blocks_per_level": 1, "conditioning": "encoder"}
+    edit(config)
     save_file(load_file(str(path)), str(path), metadata=meta | {"config": json.dumps(config)})
+    return path
+
+
+def test_a_checkpoint_of_the_earlier_agm_is_refused_in_one_line(tmp_path):
+    """An estimator saved before the AGM's version 2 (no `version`, the old denoiser fields) says what it is."""
+
+    def v1(config: dict) -> None:
+        del config["agm"]["version"]
+        config["agm"]["denoiser"] = {"size": 64, "channels": 32, "multipliers": [1, 2, 4], "blocks_per_level": 1, "conditioning": "encoder"}
+
     with pytest.raises(CheckpointError, match=r"made by an earlier AxisPose \(AGM version 1") as err:
-        Estimator.load(path)
+        Estimator.load(_saved_with_config_edited(tmp_path / "old.safetensors", v1))
     assert "\n" not in str(err.value)
 
 
 def test_a_checkpoint_whose_config_refuses_its_values_is_refused_in_one_line(tmp_path):
-    path = tmp_path / "bad.safetensors"
-    reader = load_reader(SHIPPED_READER)
-    cfg = EstimatorConfig(agm=AGMConfig(denoiser=TINY), reader=reader.config, objects=tuple(lmo_objects()[:1]))
-    Estimator(cfg, AxisGenerator(cfg.agm), reader).save(path)
-    meta = dict(safe_open(str(path), framework="pt").metadata())
-    config = json.loads(meta["config"])
-    config["dense_fusion"]["covariance_scale"] = [-1.0, 1.0]
-    save_file(load_file(str(path)), str(path), metadata=meta | {"config": json.dumps(config)})
+    def negative(config: dict) -> None:
+        config["dense_fusion"]["covariance_scale"] = [-1.0, 1.0]
+
     with pytest.raises(CheckpointError, match="covariance_scale must be two positive factors") as err:
-        Estimator.load(path)
+        Estimator.load(_saved_with_config_edited(tmp_path / "bad.safetensors", negative))
     assert "\n" not in str(err.value)
 
 

@@ -82,6 +82,17 @@ def test_a_short_recipe_builds_resumes_and_records_itself(lmo_dir, tmp_path):
     stages = Estimator.load(again).config.training["stages"]
     assert [s.get("adopted") for s in stages] == [adopted["reader"], adopted["agm_more"], adopted["localiser"]]
     assert not (tmp_path / "adopted" / "agm.safetensors").exists()
+    # Re-assembled from its own output, a stage keeps the record of the run that trained it: the record does not
+    # nest itself once more with every re-assembly.
+    records = [stages]
+    for k in (1, 2):
+        again = RecipeRunner(recipe, tmp_path / f"again{k}", RunOptions(progress=False), {**adopted, "agm_more": str(again)}).run_all()
+        records.append(Estimator.load(again).config.training["stages"])
+    assert records[1][1]["training"] == records[2][1]["training"] == stages[1]["training"]
+    provenance = ("adopted", "file_sha256")  # which file stood in: a new one each time
+    assert [{k: v for k, v in s.items() if k not in provenance} for s in records[1]] == [
+        {k: v for k, v in s.items() if k not in provenance} for s in records[2]
+    ]
 
 
 @pytest.mark.parametrize(

@@ -252,6 +252,18 @@ def _training_record(path: Path) -> dict[str, Any]:
     return dict(json.loads(meta.get("extra", "{}")).get("training", {}))
 
 
+def _stage_record(record: dict[str, Any], name: str) -> dict[str, Any]:
+    """What an adopted file's `training` record says of how stage `name` was made: where a recipe assembled the
+    file, the record of its stage of that name, followed through that stage's own adoptions to the run that trained
+    it (a checkpoint re-assembled from itself would otherwise nest its whole record once more each time); otherwise
+    the whole record."""
+    while "recipe" in record and (stage := next((s for s in record.get("stages", ()) if s.get("name") == name), None)):
+        if "training" not in stage:
+            return {k: v for k, v in stage.items() if k not in ("name", "config_sha256")}
+        record = stage["training"]
+    return record
+
+
 def _saved_step(state: Path) -> int:
     """The step a resume state was saved at (0: none yet), read without loading its tensors (memory-mapped)."""
     return int(torch.load(state, map_location="cpu", weights_only=False, mmap=True)["step"]) if state.is_file() else 0
@@ -332,11 +344,11 @@ class RecipeRunner:
         return True
 
     def _finish(self, stage: Stage, extra: dict[str, Any]) -> None:
-        """Mark the stage done with its record: the trainer's (steps, time, hardware), or an adopted file's whole
-        training record under "training" (which may itself list the stages that made it)."""
+        """Mark the stage done with its record: the trainer's (steps, time, hardware), or under "training" what an
+        adopted file's record says of this stage (`_stage_record`)."""
         record = _training_record(self.checkpoint(stage.name))
         if "adopted" in extra:
-            record = {"training": record} if record else {}
+            record = {"training": _stage_record(record, stage.name)} if record else {}
         else:
             record.pop("data", None)
         record = {"name": stage.name, "config_sha256": stage.sha256, **record, **extra}
