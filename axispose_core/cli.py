@@ -296,6 +296,7 @@ def _report(args: argparse.Namespace, records, objects, config: dict, counts: di
     """Write, print and plot an eval's results."""
     from axispose_core.data.bop import write_bop_results
     from axispose_core.evaluate import (
+        CHI2_3,
         UNCERTAINTY,
         format_average_recall,
         format_table,
@@ -327,7 +328,7 @@ def _report(args: argparse.Namespace, records, objects, config: dict, counts: di
               f"for all posed, {q['reproj_15px_least_half']:.3f} for the least uncertain half")  # fmt: skip
     if "calibration" in report:
         q = report["calibration"]
-        print(f"covariance calibration ({q['n']} posed, symmetric objects left out; a right one gives 2.37, 0.68, 0.95): "
+        print(f"covariance calibration ({q['n']} posed, symmetric objects left out; a right one gives {CHI2_3['median']:.2f}, 0.68, 0.95): "
               + "; ".join(f"{part} median d² {q[f'{part}_median_d2']:.2f}, within 68 / 95 % {q[f'{part}_within_68']:.2f} / "
                           f"{q[f'{part}_within_95']:.2f}" for part in ("translation", "rotation")))  # fmt: skip
     if args.plots:

@@ -40,8 +40,11 @@ class Consensus:
     """RMS distance of all samples' translations from the consensus."""
     scatter: np.ndarray
     """(6, 6) mean outer product of all samples' deviations, in the order x, y, z, rx, ry, rz (m², rad²)."""
-    covariance: np.ndarray
-    """`scatter` plus the floor."""
+
+    @property
+    def covariance(self) -> np.ndarray:
+        """`scatter` plus the floor."""
+        return self.scatter + np.diag([TRANS_FLOOR_M**2] * 3 + [ROT_FLOOR_RAD**2] * 3)
 
 
 def _angles(Ra: np.ndarray, Rb: np.ndarray) -> np.ndarray:
@@ -68,7 +71,6 @@ def consensus(Rs: np.ndarray, ts: np.ndarray, length: float, inlier_deg: float =
     R = Rotation.from_matrix(Rs[inliers]).mean().as_matrix()
     t = ts[inliers].mean(axis=0)
     dev = np.hstack([ts - t, Rotation.from_matrix(Rs @ R.T).as_rotvec()])
-    floor = np.diag([TRANS_FLOOR_M**2] * 3 + [ROT_FLOOR_RAD**2] * 3)
     scatter = dev.T @ dev / len(dev)
     return Consensus(
         R=R,
@@ -78,5 +80,4 @@ def consensus(Rs: np.ndarray, ts: np.ndarray, length: float, inlier_deg: float =
         spread_deg=float(np.degrees(np.sqrt(np.mean(np.sum(dev[:, 3:] ** 2, axis=1))))),
         spread_m=float(np.sqrt(np.mean(np.sum(dev[:, :3] ** 2, axis=1)))),
         scatter=scatter,
-        covariance=scatter + floor,
     )

@@ -44,19 +44,19 @@ def depth_error(K: np.ndarray, R: np.ndarray, t: np.ndarray, uv: np.ndarray, X: 
     return abs(s[2] / t[2] - 1) if s is not None else 1.0
 
 
-def samples(models: str, size: int, n: int) -> tuple[CropStreamDataset, dict[str, torch.Tensor], np.ndarray]:
+def samples(models: str, size: int, n: int) -> tuple[dict[str, torch.Tensor], np.ndarray]:
     """n held-out stream crops of `size` px as one batch, with each crop's object radius (m)."""
     ds = CropStreamDataset(CropStream(StreamConfig(size=size, **STREAM), models))
     items = [ds[i] for i in tqdm(range(n), desc=f"{size} px crops")]
     batch = {k: torch.stack([it[k] for it in items]) for k in items[0]}
     obj = {v: k for k, v in ds.stream.index.items()}
     radius = np.array([0.5 * ds.stream.models[obj[int(o)]].spec.diameter for o in batch["object"]])
-    return ds, batch, radius
+    return batch, radius
 
 
 def grid_and_noise(models: str, size: int, n: int, noise: list[float], seed: int = 0) -> dict[str, float]:
     """Median depth error from the exact targets at the cells, and with each level of independent noise."""
-    _, b, radius = samples(models, size, n)
+    b, radius = samples(models, size, n)
     target, m = dense_targets(b["points"], b["mask_visib"], size // 2)
     uv = cells(size // 2)
     rng = np.random.default_rng(seed)
@@ -75,7 +75,7 @@ def grid_and_noise(models: str, size: int, n: int, noise: list[float], seed: int
 def network(checkpoint: str, models: str, n: int) -> dict[str, float]:
     """The checkpoint's points on the held-out crops: error, similarity scale, depth error and their correlation."""
     est = Estimator.load(checkpoint)
-    _, b, radius = samples(models, est.size, n)
+    b, radius = samples(models, est.size, n)
     with torch.inference_mode():
         enc = est.agm.encode(b["crop"], b["object"])
     target, m = dense_targets(b["points"], b["mask_visib"], enc.points.shape[-1])
