@@ -14,7 +14,9 @@ encoder's dense surface points (model coordinates in λ_O units at half the crop
 above 0.5): "dense", t solved from them with the TBM's rotation (`tbm/dense.py`); "PnP", rotation and
 translation from the same correspondences by OpenCV's EPnP in RANSAC; and "fused", the estimator's own pose
 (`fuse_pose` with the checkpoint's dense_fusion: R and t from the points with the TBM's rotation and origin and
-the encoder's depth as priors). Their rotation errors and the fused pose's ADD(-S)@0.1d are printed too.
+the encoder's depth as priors). Their rotation errors and the fused pose's ADD(-S)@0.1d are printed too. One more
+oracle, "exact, fused R": t solved from the model's vertices at their true projections with the fused rotation,
+scored as that pose: the depth a dense output as precise as the model would give with the estimator's rotation.
 
     python bench/agm_error_sources.py --checkpoint axispose_core/models/axispose_lmo.safetensors \\
         --data data/lmo_val --models ../shared/data/lmo/models_eval --json bench/results/agm_error_sources.json
@@ -140,6 +142,14 @@ def main() -> None:
             rows[-1]["add_ok_fused_pose"] = add_or_adi(R_fus, t_fus, r.R_gt, r.t_gt, pts, spec.symmetric) < thr
         else:
             rows[-1]["add_ok_fused_pose"] = False
+        # An oracle: t from exact correspondences (the model's vertices at their true projections) under the dense
+        # fusion's own rotation, as its pose: what a dense output as good as the model would give with that R.
+        t_con = None
+        if R_fus is not None:
+            cam = pts @ r.R_gt.T + r.t_gt
+            t_con = translation_from_points(r.K, R_fus, (cam @ r.K.T)[:, :2] / cam[:, 2:], pts, np.ones(len(pts)))
+        rows[-1]["log_depth_err_consistent"] = float(np.log(t_con[2] / r.t_gt[2])) if t_con is not None and t_con[2] > 0 else float("nan")
+        rows[-1]["add_ok_consistent"] = t_con is not None and add_or_adi(R_fus, t_con, r.R_gt, r.t_gt, pts, spec.symmetric) < thr
         for name, z in (("dense", z_dense), ("pnp", z_pnp), ("fused", z_fus)):  # that depth on the TBM's ray, as the head's is used
             rows[-1][f"add_ok_{name}"] = (
                 bool(np.isfinite(z)) and add_or_adi(r.R, fuse_depth(r.t, z, 1.0), r.R_gt, r.t_gt, pts, spec.symmetric) < thr
@@ -200,7 +210,12 @@ def main() -> None:
         label = {0.0: "0 (TBM alone)", 1.0: "1 (encoder alone)"}.get(w, f"{w:g}")
         cells = "".join(f"{v:>9.3f}" if v is not None else f"{'-':>9}" for v in bands.values())
         print(f"{label:<20}{q[0]:>8.3f}{q[1]:>8.3f}{q[2]:>8.3f}{bias:>8.3f}{add:>9.3f}{cells}")
-    for name, label in (("dense", "dense points + R"), ("pnp", "PnP (EPnP, RANSAC)"), ("fused", "dense fusion (R, t)")):
+    for name, label in (
+        ("dense", "dense points + R"),
+        ("pnp", "PnP (EPnP, RANSAC)"),
+        ("fused", "dense fusion (R, t)"),
+        ("consistent", "exact, fused R"),
+    ):
         log_err = np.array([s[f"log_depth_err_{name}"] for s in rows])
         found = np.isfinite(log_err)
         e = np.abs(np.expm1(log_err[found]))

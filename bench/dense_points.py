@@ -6,8 +6,10 @@ validation stream) it solves t with the true rotation (`tbm/dense.py`'s `transla
   `dense_targets`): what the grid allows, per crop size in `--sizes`;
 - those targets with independent Gaussian noise of `--noise` object radii: what per-point noise costs at each size;
 - the checkpoint's own points at its size, with their median error, their per-crop similarity scale to the targets
-  (least squares about both centroids: below 1 where the points are drawn toward the object's centre) and that
-  scale's correlation with the depth error.
+  (least squares about both centroids: below 1 where the points are drawn toward the object's centre), that
+  scale's correlation with the depth error, and the depth the points give once rescaled about their centroid by
+  the scale that best maps them onto the targets (an oracle: what is left is their shape's error, not their
+  extent's).
 
     python bench/dense_points.py --checkpoint axispose_core/models/axispose_lmo.safetensors \\
         --models ../shared/data/lmo/models --json bench/results/dense_points.json
@@ -90,9 +92,12 @@ def network(checkpoint: str, models: str, n: int) -> dict[str, float]:
         Pc, Tc = P - P.mean(0), T - T.mean(0)
         scale = float((Pc * Tc).sum() / (Tc * Tc).sum())
         K, R, t = (b[k][i].numpy() for k in ("K", "R", "t"))
-        s = translation_from_points(K, R, uv[keep], P * radius[i], np.ones(int(keep.sum())))
-        ratio = s[2] / t[2] if s is not None else np.nan
-        rows.append((float(np.median(np.abs(P - T).mean(1))), scale, ratio))
+        ratios = []
+        fit = float((Pc * Tc).sum() / (Pc * Pc).sum())  # the scale that best maps the points onto the targets
+        for X in (P, P.mean(0) + fit * Pc):  # as predicted; rescaled about their centroid by that oracle scale
+            s = translation_from_points(K, R, uv[keep], X * radius[i], np.ones(int(keep.sum())))
+            ratios.append(s[2] / t[2] if s is not None else np.nan)
+        rows.append((float(np.median(np.abs(P - T).mean(1))), scale, *ratios))
     a = np.array(rows)
     ok = np.isfinite(a[:, 2])
     return {
@@ -104,6 +109,7 @@ def network(checkpoint: str, models: str, n: int) -> dict[str, float]:
         "depth_error": float(np.median(np.abs(a[ok, 2] - 1))),
         "depth_bias": float(np.median(a[ok, 2])),
         "corr_depth_error_scale": float(np.corrcoef(a[ok, 2] - 1, a[ok, 1])[0, 1]),
+        "depth_error_rescaled": float(np.nanmedian(np.abs(a[:, 3] - 1))),
     }
 
 
@@ -125,7 +131,8 @@ def main() -> None:
     net = out["network"]
     print(f"the network's points ({net['n']} crops): error {net['point_error_radii']:.3f} radii, similarity scale "
           f"{net['scale_q25']:.2f} / {net['scale_median']:.2f} / {net['scale_q75']:.2f}, depth {100 * net['depth_error']:.2f} % "
-          f"(bias {net['depth_bias']:.3f}), correlation of depth error and scale {net['corr_depth_error_scale']:.2f}")  # fmt: skip
+          f"(bias {net['depth_bias']:.3f}), correlation of depth error and scale {net['corr_depth_error_scale']:.2f}; "
+          f"rescaled by the oracle {100 * net['depth_error_rescaled']:.2f} %")  # fmt: skip
     if args.json:
         write_results(args.json, {"command": vars(args)} | out)
 
