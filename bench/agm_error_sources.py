@@ -146,8 +146,7 @@ def main() -> None:
         # fusion's own rotation, as its pose: what a dense output as good as the model would give with that R.
         t_con = None
         if R_fus is not None:
-            cam = pts @ r.R_gt.T + r.t_gt
-            t_con = translation_from_points(r.K, R_fus, (cam @ r.K.T)[:, :2] / cam[:, 2:], pts, np.ones(len(pts)))
+            t_con = translation_from_points(r.K, R_fus, project_model(r.K, r.R_gt, r.t_gt, pts), pts, np.ones(len(pts)))
         rows[-1]["log_depth_err_consistent"] = float(np.log(t_con[2] / r.t_gt[2])) if t_con is not None and t_con[2] > 0 else float("nan")
         rows[-1]["add_ok_consistent"] = t_con is not None and add_or_adi(R_fus, t_con, r.R_gt, r.t_gt, pts, spec.symmetric) < thr
         for name, z in (("dense", z_dense), ("pnp", z_pnp), ("fused", z_fus)):  # that depth on the TBM's ray, as the head's is used

@@ -222,9 +222,8 @@ def test_the_dense_fusion_weighs_points_against_its_priors():
 def test_the_dense_fusions_covariance_is_the_scatter_of_its_solutions():
     """Points with Gaussian pixel noise (1 px per coordinate), each an independent point (points = their number) and
     priors too wide to matter: over many noise draws the solutions scatter as the reported covariance says (its
-    Laplace approximation), in geometry_msgs' order (x, y, z,
-    rotation about X, Y, Z; the rotation error as the rotation vector of R_est R_trueᵀ); `covariance_scale`
-    scales its translation and rotation blocks."""
+    Laplace approximation), in geometry_msgs' order (x, y, z, rotation about X, Y, Z; the rotation error as the
+    rotation vector of R_est R_trueᵀ); `covariance_scale` scales its translation and rotation blocks."""
     from axispose_core.metrics import mahalanobis_sq
     from axispose_core.tbm.dense import DenseFusion, fuse_pose
 
