@@ -17,6 +17,7 @@ translation from the same correspondences by OpenCV's EPnP in RANSAC; and "fused
 the encoder's depth as priors). Their rotation errors and the fused pose's ADD(-S)@0.1d are printed too. One more
 oracle, "exact, fused R": t solved from the model's vertices at their true projections with the fused rotation,
 scored as that pose: the depth a dense output as precise as the model would give with the estimator's rotation.
+Last, the correlation of the head's and the dense points' log depth errors and their best fixed blend.
 
     python bench/agm_error_sources.py --checkpoint axispose_core/models/axispose_lmo.safetensors \\
         --data data/lmo_val --models ../shared/data/lmo/models_eval --json bench/results/agm_error_sources.json
@@ -238,6 +239,18 @@ def main() -> None:
     out["log_depth_err_std"] = {"tbm": float(np.std(e_tbm)), "head": float(np.std(e_head)),
                                 "correlation": float(np.corrcoef(e_tbm, e_head)[0, 1])}  # fmt: skip
     print("log depth error std: TBM {tbm:.3f}, encoder {head:.3f}, correlation {correlation:.2f}".format(**out["log_depth_err_std"]))
+    # Whether the head and the dense points err independently, and what the best fixed blend of their log depths
+    # reads: how much any fusion of the two could gain over the head alone.
+    e_dense = np.array([s["log_depth_err_dense"] for s in rows])
+    both = np.isfinite(e_dense)
+    blends = {float(w): float(np.median(np.abs(np.expm1(w * e_head[both] + (1 - w) * e_dense[both])))) for w in np.linspace(0, 1, 21)}
+    w_best = min(blends, key=blends.__getitem__)
+    out["head_and_dense"] = {"correlation": float(np.corrcoef(e_head[both], e_dense[both])[0, 1]), "best_head_weight": w_best,
+                             "best_blend_median": blends[w_best], "head_median": blends[1.0]}  # fmt: skip
+    print(
+        "head and dense points: log error correlation {correlation:.2f}; their best fixed blend, head weight "
+        "{best_head_weight:.2f}, reads {best_blend_median:.3f} against the head's {head_median:.3f}".format(**out["head_and_dense"])
+    )
     write_results(args.json, out)
 
 
