@@ -84,6 +84,15 @@ def crop_intrinsics(K: np.ndarray, center: tuple[float, float], side: float, siz
     return crop_transform(center, side, size) @ np.asarray(K, dtype=np.float64)
 
 
+def off_axis(K_patch: np.ndarray, size: int) -> float:
+    """1 / cos θ - 1 for the angle θ between the optical axis and the ray through the centre of a size x size crop
+    with intrinsics K_patch: how far off the axis the crop was cut (0 on it). An object there is drawn stretched
+    along the radial direction by up to 1 / cos θ, which a network that sees the crop alone cannot tell apart from
+    nearness."""
+    ray = np.linalg.solve(np.asarray(K_patch, dtype=np.float64), [0.5 * (size - 1), 0.5 * (size - 1), 1.0])
+    return float(np.linalg.norm(ray / ray[2]) - 1.0)
+
+
 def crop_image(
     image: np.ndarray,
     center: tuple[float, float],

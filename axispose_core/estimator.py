@@ -9,6 +9,7 @@ The node, `axispose eval` and the demos all go through `Estimator`, so what is m
 from __future__ import annotations
 
 import json
+import math
 from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 from pathlib import Path
@@ -20,7 +21,7 @@ from axispose_core.agm.guidance import self_consistency_target
 from axispose_core.agm.model import VERSION, AGMConfig, AxisGenerator, depth_from_log
 from axispose_core.agm.sampler import sample
 from axispose_core.axis_image import AxisSpec
-from axispose_core.camera import InstanceCrop, instance_crop, validate_intrinsics
+from axispose_core.camera import InstanceCrop, instance_crop, off_axis, validate_intrinsics
 from axispose_core.checkpoint import ESTIMATOR, CheckpointError, load_state, read_checkpoint, read_metadata, save_checkpoint
 from axispose_core.consensus import consensus
 from axispose_core.localiser.decode import Detection
@@ -60,6 +61,12 @@ class EstimatorConfig:
     encoder's alone); the translation keeps the TBM's ray. The encoder's depth is the more precise of the two
     (bench/agm_error_sources.py measures the weights on held-out frames). This is the pose `dense_fusion` starts
     from."""
+    head_offaxis: tuple[float, float] = (0.0, 0.0)
+    """(c0, c1): the encoder's log depth's bias c0 + c1 (1 / cos θ - 1) against the crop centre's angle θ off the
+    optical axis (`camera.off_axis`), measured on held-out stream crops (bench/head_offaxis.py), which the estimator
+    takes off. The head sees the crop, not where in the frame it was cut: an object off the axis is drawn
+    stretched, reads nearer than one on it at the same depth, and the head learns the stream's average; frames
+    whose objects sit nearer the centre than the stream's would read too far."""
     dense_fusion: DenseFusion = field(default_factory=DenseFusion)
     """How the final pose is solved from the encoder's dense points with the TBM's rotation and origin and the
     encoder's depth as priors (`tbm/dense.py`'s `fuse_pose`; points 0: the consensus of the TBM's poses as it is)."""
@@ -71,6 +78,10 @@ class EstimatorConfig:
     """Provenance: data recipe, steps, wall time, hardware."""
     localiser: LocaliserConfig | None = None
     """The 2D localiser's config when the checkpoint carries one."""
+
+    def __post_init__(self) -> None:
+        if len(self.head_offaxis) != 2 or not all(math.isfinite(c) for c in self.head_offaxis):
+            raise ValueError(f"head_offaxis must be two finite numbers (c0, c1), got {self.head_offaxis}")
 
 
 def crop_batch(
@@ -178,6 +189,11 @@ class Estimator:
             raise ValueError("this checkpoint has no localiser: pass boxes, or attach one with `axispose train-localiser --attach`")
         return self._detector.detect(image_rgb, threshold)
 
+    def head_depth(self, log_depth: float, K_patch: np.ndarray, scale: float) -> float:
+        """The encoder's depth (m) for a crop with intrinsics K_patch, its off-axis bias (`head_offaxis`) taken off."""
+        c0, c1 = self.config.head_offaxis
+        return depth_from_log(log_depth - c0 - c1 * off_axis(K_patch, self.size), K_patch, scale, self.size)
+
     @classmethod
     def load(cls, path: str | Path, device: str = "cpu") -> Estimator:
         try:
@@ -258,7 +274,7 @@ class Estimator:
         out = []
         for i, ((obj_id, _), cut, L) in enumerate(zip(boxes, cuts, lengths, strict=True)):
             poses, reasons = [], []
-            z_head = depth_from_log(float(log_depth[i]), cut.K_patch, float(L[0]), self.size)
+            z_head = self.head_depth(float(log_depth[i]), cut.K_patch, float(L[0]))
             for k in range(i * hypotheses, (i + 1) * hypotheses):
                 res = results[k]
                 if res is not None and res.ok:

@@ -18,8 +18,10 @@ from axispose_core.agm.model import AGMConfig, AxisGenerator, EncoderLossConfig,
 from axispose_core.agm.sampler import sample
 from axispose_core.agm.scheduler import DDIMScheduler, SchedulerConfig
 from axispose_core.axis_image import axis_keypoints, render_axis_keypoints
+from axispose_core.camera import crop_intrinsics
 from axispose_core.checkpoint import CheckpointError, save_checkpoint
 from axispose_core.estimator import Estimator, EstimatorConfig, fuse_depth
+from axispose_core.lmo import LMO_K
 from axispose_core.objects import lmo_objects
 from axispose_core.pose_sampling import sample_patch
 from axispose_core.tbm.reader import SHIPPED_READER, load_reader
@@ -205,7 +207,9 @@ def test_loss_falls_on_a_tiny_set(guided, rng):
 
 def test_estimator_checkpoint_round_trip(tmp_path):
     reader = load_reader(SHIPPED_READER)
-    cfg = EstimatorConfig(agm=AGMConfig(denoiser=TINY), reader=reader.config, objects=tuple(lmo_objects()[:2]), ddim_steps=2)
+    cfg = EstimatorConfig(
+        agm=AGMConfig(denoiser=TINY), reader=reader.config, objects=tuple(lmo_objects()[:2]), ddim_steps=2, head_offaxis=(0.01, -0.2)
+    )
     est = Estimator(cfg, AxisGenerator(cfg.agm), reader)
     est.save(tmp_path / "est.safetensors")
     again = Estimator.load(tmp_path / "est.safetensors")
@@ -282,6 +286,31 @@ def test_a_checkpoint_whose_config_refuses_its_values_is_refused_in_one_line(tmp
     with pytest.raises(CheckpointError, match="covariance_scale must be two positive factors") as err:
         Estimator.load(_saved_with_config_edited(tmp_path / "bad.safetensors", negative))
     assert "\n" not in str(err.value)
+
+
+def test_a_checkpoint_with_an_unusable_off_axis_correction_is_refused_in_one_line(tmp_path):
+    def one_number(config: dict) -> None:
+        config["head_offaxis"] = [0.01]
+
+    with pytest.raises(CheckpointError, match="head_offaxis must be two finite numbers") as err:
+        Estimator.load(_saved_with_config_edited(tmp_path / "bad.safetensors", one_number))
+    assert "\n" not in str(err.value)
+
+
+def test_the_estimator_takes_the_off_axis_bias_off_the_encoders_depth():
+    reader = load_reader(SHIPPED_READER)
+    base = EstimatorConfig(agm=AGMConfig(denoiser=TINY), reader=reader.config, objects=tuple(lmo_objects()[:1]))
+    plain = Estimator(base, AxisGenerator(base.agm), reader)
+    c0, c1 = 0.0138, -0.2397
+    corrected = Estimator(replace(base, head_offaxis=(c0, c1)), AxisGenerator(base.agm), reader)
+    on_axis = crop_intrinsics(LMO_K, (LMO_K[0, 2], LMO_K[1, 2]), 100.0, 64)
+    off = crop_intrinsics(LMO_K, (LMO_K[0, 2] + LMO_K[0, 0] * math.tan(math.radians(25)), LMO_K[1, 2]), 100.0, 64)
+    for K in (on_axis, off):
+        assert plain.head_depth(0.3, K, 0.05) == pytest.approx(depth_from_log(0.3, K, 0.05, 64))  # (0, 0): as the head says
+    assert corrected.head_depth(0.3, on_axis, 0.05) == pytest.approx(plain.head_depth(0.3, on_axis, 0.05) * math.exp(-c0))
+    x = 1 / math.cos(math.radians(25)) - 1
+    assert corrected.head_depth(0.3, off, 0.05) == pytest.approx(plain.head_depth(0.3, off, 0.05) * math.exp(-c0 - c1 * x))
+    assert corrected.head_depth(0.3, off, 0.10) == pytest.approx(2 * corrected.head_depth(0.3, off, 0.05))  # linear in λ_O
 
 
 def test_depth_target_round_trip_and_fusion_scale_with_the_object_size():

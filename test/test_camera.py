@@ -7,6 +7,7 @@ from axispose_core.camera import (
     crop_image,
     crop_intrinsics,
     crop_transform,
+    off_axis,
     project,
     project_model,
     square_around_box,
@@ -28,6 +29,16 @@ def test_crop_intrinsics_match_projection_then_crop(rng):
         via_crop = np.column_stack([uv, np.ones(len(uv))]) @ A.T
         via_kp = project_model(crop_intrinsics(LMO_K, center, side, size), R, t, pts)
         np.testing.assert_allclose(via_kp, via_crop[:, :2], atol=1e-9)
+
+
+def test_off_axis_is_the_crop_centres_angle_from_the_optical_axis():
+    K = LMO_K
+    assert off_axis(crop_intrinsics(K, (K[0, 2], K[1, 2]), 120.0, 64), 64) == pytest.approx(0.0, abs=1e-12)
+    for deg in (5.0, 20.0, 35.0):
+        ray = np.tan(np.radians(deg)) * np.array([np.cos(0.7), np.sin(0.7)])  # a ray `deg` off the axis, diagonally
+        centre = (K[0, 2] + K[0, 0] * ray[0], K[1, 2] + K[1, 1] * ray[1])
+        for side, size in ((80.0, 64), (300.0, 128)):
+            assert off_axis(crop_intrinsics(K, centre, side, size), size) == pytest.approx(1 / np.cos(np.radians(deg)) - 1, rel=1e-9)
 
 
 def test_crop_centre_maps_to_patch_centre():

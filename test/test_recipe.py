@@ -159,4 +159,5 @@ def test_the_pretrained_variant_recipe_differs_from_the_shipped_one_in_its_trunk
         assert trunk["kind"] == "efficientnet_lite0" and trunk.get("weights", "imagenet") == "imagenet"
     assert agm0["denoiser"]["encoder"].pop("trunk")["kind"] == "residual_gn" and localiser0["trunk"]["kind"] == "residual_bn"
     assert agm == agm0
-    assert variant.estimator["config"] == shipped.estimator["config"]
+    # head_offaxis is measured on a trained network's depth head (bench/head_offaxis.py), so it is the shipped one's alone.
+    assert variant.estimator["config"] == {k: v for k, v in shipped.estimator["config"].items() if k != "head_offaxis"}
