@@ -24,6 +24,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt
 import numpy as np
 import torch
+from dense_points import STREAM
 from tqdm import tqdm
 from write_results import write_results
 
@@ -34,7 +35,7 @@ from axispose_core.estimator import Estimator
 from axispose_core.train.losses import log_depth_target
 
 STREAMS = {
-    "full": {"seed": 1_000_000, "occluded_prob": 0.4, "clutter_prob": 0.5, "neighbours": (0, 2)},
+    "full": STREAM,
     "unoccluded": {"seed": 1_000_001, "occluded_prob": 0.0, "clutter_prob": 0.0, "neighbours": (0, 0)},
 }
 """Held-out crops of the AGM's last stages' stream and of its first stage's, at validation seeds."""
@@ -67,9 +68,14 @@ def fit_lad(x: np.ndarray, y: np.ndarray, iters: int = 50) -> np.ndarray:
     return coef
 
 
+def degrees(x: np.ndarray) -> np.ndarray:
+    """θ in degrees from 1 / cos θ - 1 (`camera.off_axis`)."""
+    return np.degrees(np.arccos(1 / (1 + x)))
+
+
 def bands(x: np.ndarray, e: np.ndarray) -> list[dict]:
     """Median ratio of estimated to true depth per band of θ."""
-    theta = np.degrees(np.arccos(1 / (1 + x)))
+    theta = degrees(x)
     out = []
     for lo, hi in itertools.pairwise(BANDS_DEG):
         s = (theta >= lo) & (theta < hi)
@@ -100,7 +106,7 @@ def main() -> None:
             print(f"  θ {b0['deg'][0]:>2}-{b0['deg'][1]:<2} deg  n {b0['n']:>5}  bias {b0['bias']:.4f} -> {b1['bias']:.4f}")
     print(f"estimator config: head_offaxis: [{c0:.4f}, {c1:.4f}]")
     if args.plot:
-        theta = np.degrees(np.arccos(1 / (1 + x)))
+        theta = degrees(x)
         fig, ax = plt.subplots(figsize=(6, 4))
         ax.scatter(theta, 100 * np.expm1(e), s=3, alpha=0.25, label="head, per crop")
         grid = np.linspace(0, theta.max(), 100)
