@@ -9,10 +9,11 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import TypeVar
 
+from axispose_core.lmo import REAL_SLICE, SHARED_LMO
+
 C = TypeVar("C")
+DEFAULT_CHECKPOINT = Path(__file__).resolve().parent / "models" / "axispose_lmo.safetensors"
 TARGETS_FILE = "test_targets_bop19.json"
-SHARED_LMO = Path(__file__).resolve().parents[2] / "shared" / "data" / "lmo"
-"""The LM-O data beside a clone of the repository (as CI has it)."""
 
 
 def _demo(args: argparse.Namespace) -> int:
@@ -279,6 +280,30 @@ def _eval(args: argparse.Namespace) -> int:
     return _report(args, records, objects, config, counts, bop)
 
 
+def _validate(args: argparse.Namespace) -> int:
+    import torch
+
+    from axispose_core.checkpoint import CheckpointError
+    from axispose_core.evaluate import write_report
+    from axispose_core.validation import ValidationSettings, format_validation, validate
+
+    torch.set_num_threads(args.threads)
+    if not Path(args.data).is_dir():
+        print(f"axispose validate: no BOP scenes at {args.data}", file=sys.stderr)
+        return 2
+    settings = ValidationSettings(steps=args.steps, hypotheses=args.hypotheses, precision=args.precision,
+                                  score_threshold=args.score_threshold)  # fmt: skip
+    try:
+        report = validate(args.checkpoint, args.data, args.models, settings, plots=Path(args.out) / "plots")
+    except CheckpointError as err:
+        print(f"axispose validate: {err}", file=sys.stderr)
+        return 2
+    write_report(report, Path(args.out) / "validation.json")
+    print(format_validation(report))
+    print(f"report: {Path(args.out) / 'validation.json'}")
+    return 0
+
+
 def _bop_targets(args: argparse.Namespace) -> tuple[dict | None, str | None]:
     """The BOP targets to evaluate: --targets, else a test_targets_bop19.json in --data or the folder above it
     (where BOP keeps it beside the split), else none; with the file's path."""
@@ -477,6 +502,19 @@ def build_parser() -> argparse.ArgumentParser:
     ev.add_argument("--precision", choices=["auto", "float32", "bfloat16"], default="float32",
                     help="the AGM's arithmetic (auto: bfloat16 where the device has it natively, as the node does)")  # fmt: skip
     ev.set_defaults(func=_eval)
+
+    va = sub.add_parser("validate", help="a checkpoint on real frames: GT crops and the localiser's, per object (default: "
+                        "the real validation slice)")  # fmt: skip
+    va.add_argument("--checkpoint", default=str(DEFAULT_CHECKPOINT), help="estimator checkpoint (default: the shipped one)")
+    va.add_argument("--data", default=str(REAL_SLICE), help="BOP split folder (default: ../shared/data/lmo_real_val/test)")
+    va.add_argument("--models", default=str(SHARED_LMO / "models_eval"), help="models for the metrics and visibility")
+    va.add_argument("--out", default="out/validate", help="folder for validation.json and plots/")
+    va.add_argument("--steps", type=int, default=3, help="DDIM steps (the node's default)")
+    va.add_argument("--hypotheses", type=int, default=1, help="AGM samples per instance (the node's default)")
+    va.add_argument("--score-threshold", type=float, default=0.3, help="least localiser score (the node's default)")
+    va.add_argument("--precision", choices=["float32", "bfloat16", "auto"], default="float32")
+    va.add_argument("--threads", type=int, default=2)
+    va.set_defaults(func=_validate)
 
     gi = sub.add_parser("gt-info", help="write scene_gt_info.json (boxes, visible fractions) of BOP scenes that lack it, from the models")
     gi.add_argument("scenes", nargs="+", help="BOP scene folders, or folders of scenes")

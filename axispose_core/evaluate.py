@@ -242,15 +242,16 @@ def summarize(
             entry[k] = float(np.mean([r.scores[k] for r in rs]))
         entry["rot_err_median_deg"] = float(np.median([r.scores["rot_err_deg"] for r in rs]))
         entry["trans_err_median_mm"] = float(np.median([r.scores["trans_err_mm"] for r in rs]))
+        entry |= depth_errors(rs)
         if detection_counts is not None:
             c = detection_counts.get(o.obj_id, {"tp": 0, "fp": 0, "n": 0})
             entry["det_recall"] = c["tp"] / c["n"] if c["n"] else float("nan")
             entry["det_precision"] = c["tp"] / (c["tp"] + c["fp"]) if c["tp"] + c["fp"] else float("nan")
         per[str(o.obj_id)] = entry
-    keys = [*SUMMARY_KEYS, "rot_err_median_deg", "trans_err_median_mm"] + (
+    keys = [*SUMMARY_KEYS, "rot_err_median_deg", "trans_err_median_mm", *DEPTH_KEYS] + (
         ["det_recall", "det_precision"] if detection_counts is not None else []
     )
-    mean = {k: float(np.mean([e[k] for e in per.values()])) for k in keys} if per else {}
+    mean = {k: _mean_of_defined([e[k] for e in per.values()]) for k in keys} if per else {}
     ms = np.array([1000 * r.seconds for r in records]) if records else np.zeros(1)
     report = {
         "objects": per,
@@ -266,6 +267,24 @@ def summarize(
     measures = {name: q for name, key in UNCERTAINTY.items() if (q := uncertainty_quality(records, key))}
     calibration = covariance_calibration(records, objects)
     return report | measures | ({"calibration": calibration} if calibration else {})
+
+
+def _mean_of_defined(values: list[float]) -> float:
+    """The mean over the objects where a measure is defined (an object never posed has no depth error), NaN if none."""
+    defined = [v for v in values if not np.isnan(v)]
+    return float(np.mean(defined)) if defined else float("nan")
+
+
+DEPTH_KEYS = ("depth_log_abs_mean", "depth_ratio_median")
+
+
+def depth_errors(records: list[Record]) -> dict[str, float]:
+    """The posed instances' depth against the truth: the mean |log(z / z_gt)| (its spread, what ADD(-S) at small
+    thresholds needs within about 1 %) and the median z / z_gt (its bias); NaN without a posed instance."""
+    ratios = np.array([r.t[2] / r.t_gt[2] for r in records if r.ok and r.t[2] > 0 and r.t_gt[2] > 0])
+    if not len(ratios):
+        return dict.fromkeys(DEPTH_KEYS, float("nan"))
+    return {"depth_log_abs_mean": float(np.mean(np.abs(np.log(ratios)))), "depth_ratio_median": float(np.median(ratios))}
 
 
 CHI2_3 = {"median": 2.366, "68": 3.527, "95": 7.815}

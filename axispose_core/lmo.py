@@ -3,7 +3,14 @@ tests and the crop stream run without the dataset on disk."""
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
+
+SHARED_LMO = Path(__file__).resolve().parents[2] / "shared" / "data" / "lmo"
+"""LM-O in BOP layout (models, models_eval, camera) beside the clone, as CI lays it out."""
+REAL_SLICE = SHARED_LMO.parent / "lmo_real_val" / "test"
+"""The real validation slice: 40 real LM-O frames (scene 2), for choosing between designs only."""
 
 LMO_K = np.array([[572.4114, 0.0, 325.2611], [0.0, 573.57043, 242.04899], [0.0, 0.0, 1.0]])
 """The LM-O camera (640x480), embedded so that demos run without the dataset."""

@@ -17,10 +17,10 @@ import torch
 from tqdm import tqdm
 from write_results import write_results
 
-from axispose_core.cli import SHARED_LMO
 from axispose_core.data.synth.config import StreamConfig
 from axispose_core.data.synth.stream import CropStream, CropStreamDataset
 from axispose_core.estimator import Estimator
+from axispose_core.lmo import SHARED_LMO
 from axispose_core.train.agm import TrainConfig, validate, with_depth_target
 
 

@@ -17,9 +17,9 @@ import time
 import torch
 from write_results import write_results
 
-from axispose_core.cli import SHARED_LMO
 from axispose_core.data.synth.config import StreamConfig
 from axispose_core.data.synth.stream import CropStream, stream_loader
+from axispose_core.lmo import SHARED_LMO
 
 
 def main() -> None:

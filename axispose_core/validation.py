@@ -1,0 +1,121 @@
+"""Scoring a checkpoint on real camera frames: GT crops and the node's path, side by side, per object.
+
+Renders cannot show how a design transfers to a camera, so every design is also scored on the real validation
+slice (`../shared/data/lmo_real_val`: 40 real LM-O frames, validation only). One call runs `evaluate` twice on
+the same scenes: with the square around each GT box (the AGM and the TBM alone) and through the checkpoint's
+localiser at the node's defaults (what a robot gets). Visibility comes from the models (the slice ships no
+`scene_gt_info.json`). The report holds both, with the depth's spread and bias, BOP19 average recall and the
+covariance's calibration, and `format_validation` prints them as one table.
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import numpy as np
+
+from axispose_core.estimator import Estimator
+from axispose_core.evaluate import MIN_VISIB, Prediction, Record, evaluate, plot_cdfs, summarize
+
+CROPS = ("gt", "detect")
+
+
+@dataclass(frozen=True)
+class ValidationSettings:
+    """How the estimator runs: the node's defaults (config/axispose.yaml) in float32, a robot's CPU arithmetic."""
+
+    steps: int = 3
+    hypotheses: int = 1
+    precision: str = "float32"
+    score_threshold: float = 0.3
+    visib: tuple[float, float] = (MIN_VISIB, 1.0)
+
+
+def run_crops(
+    est: Estimator, crops: str, data: Path, models: Path, settings: ValidationSettings, progress: bool
+) -> tuple[list[Record], dict]:
+    """One pass over `data` with GT crops or the localiser's; the records and the summary report."""
+    objects = list(est.config.objects)
+
+    def predict(image, K, boxes):
+        poses = est.estimate(image, K, boxes, steps=settings.steps, hypotheses=settings.hypotheses)
+        return [Prediction(p.R, p.t, p.ok, p.spread_deg, p.covariance) for p in poses]
+
+    detector, counts = None, None
+    if crops == "detect":
+        detector, counts = (lambda rgb: est.detect(rgb, settings.score_threshold)), {}
+    bop: list = []
+    notes: dict = {}
+    records = evaluate(predict, data, models, objects, progress=progress, detector=detector, detection_counts=counts,
+                       visib=settings.visib, notes=notes, bop=bop)  # fmt: skip
+    return records, summarize(records, objects, {"crops": crops, **notes}, counts, bop)
+
+
+def validate(
+    checkpoint: str | Path,
+    data: str | Path,
+    models: str | Path,
+    settings: ValidationSettings,
+    plots: str | Path | None = None,
+    progress: bool = True,
+) -> dict:
+    """The checkpoint's report on `data` with GT crops and, where it carries a localiser, the localiser's."""
+    est = Estimator.load(checkpoint)
+    precision = est.set_precision(settings.precision)
+    report: dict = {"config": {"checkpoint": str(checkpoint), "data": str(data), **asdict(settings), "precision": precision}}
+    for crops in CROPS:
+        if crops == "detect" and est.localiser is None:
+            continue
+        records, report[crops] = run_crops(est, crops, Path(data), Path(models), settings, progress)
+        if plots is not None:
+            plot_cdfs(records, list(est.config.objects), Path(plots) / crops)
+    return report
+
+
+def _cell(value: float | None, fmt: str) -> str:
+    return "-" if value is None or np.isnan(value) else format(value, fmt)
+
+
+COLUMNS = (
+    ("det R", "detect", "det_recall", ".2f"),
+    ("det P", "detect", "det_precision", ".2f"),
+    ("node ADD", "detect", "add_0.1d", ".3f"),
+    ("node Rp15", "detect", "reproj_15px", ".3f"),
+    ("ADD.1d", "gt", "add_0.1d", ".3f"),
+    ("Rp15", "gt", "reproj_15px", ".3f"),
+    ("rot med", "gt", "rot_err_median_deg", ".1f"),
+    ("z|log|%", "gt", "depth_log_abs_mean", ".2%"),
+    ("z ratio", "gt", "depth_ratio_median", ".3f"),
+)
+"""The table's columns: header, which pass, report key, format. `node` is the localiser's path; the rest GT crops."""
+
+
+def format_validation(report: dict) -> str:
+    """Per object and mean: the localiser, the node's path and the GT-crop pose errors; AR and calibration below."""
+    gt = report["gt"]
+    names = {k: e["name"] for k, e in gt["objects"].items()}
+    head = f"{'object':<12} {'n':>4} " + " ".join(f"{c[0]:>9}" for c in COLUMNS) + f" {'AR gt':>6}"
+    lines = [head]
+    for key, name in [*names.items(), ("mean", "mean")]:
+        cells = []
+        for _, crops, field, fmt in COLUMNS:
+            part = report.get(crops)
+            entry = None if part is None else (part["mean"] if key == "mean" else part["objects"].get(key))
+            cells.append(f"{_cell(None if entry is None else entry.get(field), fmt):>9}")
+        ar = gt["bop19"]["ar"] if key == "mean" else gt["bop19"]["objects"].get(key, {}).get("ar")
+        n = "" if key == "mean" else str(gt["objects"][key]["n"])
+        lines.append(f"{name:<12} {n:>4} " + " ".join(cells) + f" {_cell(ar, '.3f'):>6}")
+    for crops in CROPS:
+        if crops not in report:
+            continue
+        ar = report[crops]["bop19"]
+        line = f"{crops} crops: AR {ar['ar']:.3f} (MSSD {ar.get('ar_mssd', float('nan')):.3f}, MSPD {ar.get('ar_mspd', float('nan')):.3f})"
+        if (cal := report[crops].get("calibration")) is not None:
+            line += (f"; covariance median d² translation {cal['translation_median_d2']:.1f}, rotation "
+                     f"{cal['rotation_median_d2']:.1f} (right: 2.37)")  # fmt: skip
+        lines.append(line)
+    c = report["config"]
+    lines.append(f"{c['steps']} DDIM steps, {c['hypotheses']} hypothesis/es, {c['precision']}, score threshold {c['score_threshold']}, "
+                 f"visib {c['visib'][0]}-{c['visib'][1]}; n: GT instances")  # fmt: skip
+    return "\n".join(lines)
