@@ -1,8 +1,9 @@
 """sensor_msgs Image and CameraInfo <-> NumPy, without cv_bridge (not installable from the wheels here).
 
 Every check a robot's camera driver can fail raises `InputError` with a message fit for a throttled log line:
-unsupported encodings, rows shorter than the declared step, a K that is zero or NaN, a CameraInfo whose size
-disagrees with the image other than by a uniform scale, a distortion model OpenCV cannot invert.
+unsupported encodings, rows shorter than the declared step, a K that is zero or NaN, a principal point far outside
+the image, a focal length no lens has or a skew no sensor has, a CameraInfo whose size disagrees with the image
+other than by a uniform scale, a distortion model OpenCV cannot invert.
 """
 
 from __future__ import annotations
@@ -66,15 +67,44 @@ def rgb_to_image(rgb: np.ndarray, header: Header) -> Image:
     return msg
 
 
+PRINCIPAL_POINT_RANGE = (-0.5, 1.5)
+"""Where the principal point may lie, as fractions of the image's width and height: off-centre lenses and crops keep
+it well inside; beyond, the K is not this image's."""
+FOCAL_LENGTH_RANGE = (0.05, 50.0)
+"""Plausible pixel focal lengths, as multiples of the image's larger side: a field of view from ~169 degrees (the
+pinhole K of a fisheye) down to ~1 degree (a long telephoto)."""
+FOCAL_ASPECT_RANGE = (0.2, 5.0)
+"""Plausible fx / fy (non-square pixels, anamorphic lenses)."""
+
+
 def camera_from_info(info: CameraInfo, use_rectified: bool = False) -> Camera:
-    """The pinhole camera of a CameraInfo: K, or P's left 3x3 for rectified images."""
+    """The pinhole camera of a CameraInfo: K, or P's left 3x3 for rectified images. Finite but absurd intrinsics
+    are refused here, each with its reason: they pass the pinhole checks yet overflow the crop arithmetic later."""
+    which = "P" if use_rectified else "K"
     K = np.asarray(info.p, dtype=np.float64).reshape(3, 4)[:, :3] if use_rectified else np.asarray(info.k, dtype=np.float64).reshape(3, 3)
     if info.width == 0 or info.height == 0:
         raise InputError("camera_info_size", "CameraInfo has zero width or height")
     try:
-        return Camera(K, int(info.width), int(info.height))
+        camera = Camera(K, int(info.width), int(info.height))
     except IntrinsicsError as err:
-        raise InputError("camera_info_k", f"CameraInfo {'P' if use_rectified else 'K'} is unusable: {err}") from err
+        raise InputError("camera_info_k", f"CameraInfo {which} is unusable: {err}") from err
+    w, h = camera.width, camera.height
+    (fx, skew, cx), (_, fy, cy) = camera.K[0], camera.K[1]
+    lo, hi = PRINCIPAL_POINT_RANGE
+    if not (lo * w <= cx <= hi * w and lo * h <= cy <= hi * h):
+        raise InputError(
+            "camera_info_principal_point", f"CameraInfo {which}'s principal point ({cx:.4g}, {cy:.4g}) lies far outside the {w}x{h} image"
+        )
+    lo, hi = FOCAL_LENGTH_RANGE[0] * max(w, h), FOCAL_LENGTH_RANGE[1] * max(w, h)
+    if not (lo <= fx <= hi and lo <= fy <= hi and FOCAL_ASPECT_RANGE[0] <= fx / fy <= FOCAL_ASPECT_RANGE[1]):
+        raise InputError(
+            "camera_info_focal_length",
+            f"CameraInfo {which}'s focal length (fx {fx:.4g}, fy {fy:.4g} px) is implausible for a {w}x{h} image "
+            f"(expected {lo:.4g}-{hi:.4g} px)",
+        )
+    if abs(skew) > fx:  # axes more than 45 degrees off perpendicular: no sensor; 1e300 fails in the back-projection
+        raise InputError("camera_info_k", f"CameraInfo {which}'s skew {skew:.4g} is implausible for fx {fx:.4g} px")
+    return camera
 
 
 def camera_for_image(camera: Camera, width: int, height: int, tolerance: float = 1e-3) -> Camera:

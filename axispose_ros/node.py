@@ -15,11 +15,13 @@ Only the objects of `objects` are looked for, estimated and published.
 Images with lens distortion (a non-zero CameraInfo D) are undistorted to the pinhole image of K first; with
 `use_rectified` the images are taken as rectified and P is used instead.
 
-The node composes three parts: its inputs (Image/CameraInfo pairing by stamp, transport gaps, the latest ROI per
-object: `sync.py`), the inference worker (`worker.py`: one thread fed by a latest-frame-wins slot, so the executor
-never blocks and stale frames are dropped and counted instead of queueing) and its outputs (`outputs.py`); it
-owns the parameters, the counters and the diagnostics. `image` and `camera_info` use the sensor-data QoS (best
-effort): frames the transport discards never arrive and are estimated from stamp gaps (`frames_lost_in_transport`).
+The node composes three parts: its inputs (Image/CameraInfo pairing by stamp, the stamps' audit, the latest ROI
+per object: `sync.py`), the inference worker (`worker.py`: one thread fed by a latest-frame-wins slot, so the
+executor never blocks and stale frames are dropped and counted instead of queueing) and its outputs
+(`outputs.py`); it owns the parameters, the counters and the diagnostics. `image` and `camera_info` use the
+sensor-data QoS (best effort): frames the transport discards never arrive and are estimated from stamp gaps
+(`frames_lost_in_transport`, at most one per frame seen); stamps that are zero, go back, lie in the future or jump
+are counted apart (`stamps_<anomaly>`), and such frames are still processed.
 """
 
 from __future__ import annotations
@@ -51,7 +53,7 @@ from axispose_core.lmo import LMO_K
 from axispose_ros.conversions import InputError, Undistorter, camera_for_image, camera_from_info, image_to_rgb
 from axispose_ros.health import Health, HealthConfig
 from axispose_ros.outputs import PoseOutputs
-from axispose_ros.sync import GapCounter, RoiStore, StampSynchronizer
+from axispose_ros.sync import RoiStore, StampAudit, StampSynchronizer
 from axispose_ros.worker import InferenceWorker
 
 DEFAULT_CHECKPOINT = Path(__file__).resolve().parents[1] / "axispose_core" / "models" / "axispose_lmo.safetensors"
@@ -107,7 +109,7 @@ class AxisPoseNode(Node):
         self._state_lock = threading.Lock()  # the counts: the executor and the inference thread share them
         self.health = Health(HealthConfig(latency_budget_s=float(self.get_parameter("latency_budget").value)), time.monotonic())
         self.sync = StampSynchronizer(float(self.get_parameter("sync_slop").value), self._on_pair, self._on_drop)
-        self.gaps = GapCounter()
+        self.stamps = StampAudit()
         self.worker: InferenceWorker[Frame] = InferenceWorker(self._process, self._warm_up, self._on_error, self.threads)
         self.worker.start()  # warmed up: frames are taken only from here on
         qos_opts = QoSOverridingOptions.with_default_policies()
@@ -188,12 +190,19 @@ class AxisPoseNode(Node):
         self._count("frames_in")
         self.health.image(time.monotonic())
         stamp = _stamp_seconds(msg.header)
-        lost = self.gaps.add(stamp)  # the sensor-data QoS is best effort: what DDS dropped never arrives
-        if lost:
-            self._count("frames_lost_in_transport", lost)
+        now = self.get_clock().now().nanoseconds * 1e-9  # a simulated clock reads 0 until /clock arrives: unknown
+        verdict = self.stamps.add(stamp, now if now > 0 else None)
+        if verdict.lost:  # the sensor-data QoS is best effort: what DDS dropped never arrives
+            self._count("frames_lost_in_transport", verdict.lost)
+        if verdict.anomaly:
+            self._count(f"stamps_{verdict.anomaly}")
+            self.get_logger().warning(f"image stamp {stamp:.9f}: {verdict.anomaly} (counted; the frame is still processed)",
+                                      throttle_duration_sec=5.0)  # fmt: skip
         self.sync.add_image(stamp, msg)
 
     def _on_info(self, msg: CameraInfo) -> None:
+        self._count("camera_info_in")
+        self.health.info(time.monotonic())
         self.sync.add_info(_stamp_seconds(msg.header), msg)
 
     def _on_roi(self, obj_id: int, msg: RegionOfInterest) -> None:

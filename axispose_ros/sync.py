@@ -1,5 +1,5 @@
 """Pairing Images with CameraInfos by stamp (message_filters' ApproximateTime is not installable here), and
-counting the frames a best-effort transport lost.
+auditing the image stamps: frames a best-effort transport lost, stamps that cannot be on the camera's timeline.
 
 An image is paired with the CameraInfo nearest in time within `slop` seconds, whichever of the two arrives
 first and in whatever order the CameraInfos come (within `reorder` seconds). Images wait (a few, bounded) for
@@ -14,6 +14,7 @@ from __future__ import annotations
 import threading
 from collections import deque
 from collections.abc import Callable
+from dataclasses import dataclass
 from typing import Any, Generic, TypeVar
 
 I = TypeVar("I")
@@ -99,29 +100,65 @@ class StampSynchronizer(Generic[I, C]):
         self.images = waiting
 
 
-class GapCounter:
-    """Frames a best-effort transport lost, estimated from the image stamps: the camera's period is the median of
-    the recent intervals, and an interval of n periods (n >= 2, rounded) means n - 1 frames never arrived.
-    Intervals that go back or are not positive are left out (time jumps, repeated stamps)."""
+STAMP_ANOMALIES = ("zero", "backwards", "future", "discontinuity")
+"""What `StampAudit` can find wrong with an image stamp (each its own `stamps_<anomaly>` counter in the node)."""
 
-    def __init__(self, window: int = 30) -> None:
+
+@dataclass(frozen=True)
+class StampVerdict:
+    lost: int = 0
+    """Frames estimated lost in transport just before this one."""
+    anomaly: str | None = None
+    """One of STAMP_ANOMALIES, or None for a stamp on the camera's timeline."""
+
+
+class StampAudit:
+    """Frames a best-effort transport lost, estimated from the image stamps, and the stamps that say nothing about
+    it. The camera's period is the median of the recent intervals; an interval of n periods (rounded) means n - 1
+    frames never arrived. A stamp is left off the timeline when it is zero or negative (`zero`: a driver that does
+    not stamp) or more than `future_s` ahead of `now` (`future`); one not later than the previous is `backwards` (a
+    bag that loops, a repeated stamp), and the interval after it is not read; an interval of more than `max_gap`
+    missing frames is a `discontinuity` (the camera paused, its clock stepped), not loss. Whatever the stamps, the
+    total lost never exceeds the frames seen: with more than half the frames lost it reads low, a lower bound."""
+
+    def __init__(self, window: int = 30, max_gap: int = 30, future_s: float = 10.0) -> None:
         self.intervals: deque[float] = deque(maxlen=window)
+        self.max_gap, self.future_s = max_gap, future_s
         self.last: float | None = None
+        """The last stamp on the timeline."""
+        self.seen = 0
         self.lost = 0
+        self._resync = False
 
-    def add(self, stamp: float) -> int:
-        """Record an image stamp; returns the frames estimated lost just before it."""
-        lost = 0
-        if self.last is not None and stamp > self.last:
-            dt = stamp - self.last
-            if len(self.intervals) >= 5:
-                period = sorted(self.intervals)[len(self.intervals) // 2]
-                lost = max(0, round(dt / period) - 1) if period > 0 else 0
-            if lost == 0:
-                self.intervals.append(dt)  # gaps do not teach the period
-        self.last = stamp
+    def add(self, stamp: float, now: float | None = None) -> StampVerdict:
+        """Record an image stamp (s); `now` is the receiver's clock in the stamps' time base (None: unknown, e.g. a
+        simulated clock not yet received), against which `future` is judged."""
+        self.seen += 1
+        if not stamp > 0:
+            return StampVerdict(anomaly="zero")
+        if now is not None and stamp > now + self.future_s:
+            return StampVerdict(anomaly="future")
+        last, self.last = self.last, stamp
+        if last is None:
+            return StampVerdict()
+        if stamp <= last:
+            self._resync = True
+            return StampVerdict(anomaly="backwards")
+        dt = stamp - last
+        if self._resync:  # from a stamp that stepped back: the interval tells neither period nor loss
+            self._resync = False
+            return StampVerdict()
+        period = sorted(self.intervals)[len(self.intervals) // 2] if len(self.intervals) >= 5 else None
+        ratio = dt / period if period else 1.0
+        if ratio >= self.max_gap + 1.5:  # compared before rounding: a ratio of 1e18 is a clock, not a count
+            return StampVerdict(anomaly="discontinuity")
+        missing = round(ratio) - 1
+        if missing <= 0:
+            self.intervals.append(dt)  # gaps do not teach the period
+            return StampVerdict()
+        lost = min(missing, self.seen - self.lost)
         self.lost += lost
-        return lost
+        return StampVerdict(lost=lost)
 
 
 Box = tuple[float, float, float, float]

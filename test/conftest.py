@@ -54,6 +54,20 @@ TINY_AGM_YAML = {
                              "embed": 8, "context": 16, "dense": 8, "groups": 4}}
 }  # fmt: skip
 
+
+def save_tiny_estimator(path: Path) -> Path:
+    """An estimator checkpoint of TINY_AGM, the shipped reader and LM-O's ape (1) and can (5): the node's plumbing."""
+    from axispose_core.agm.model import AxisGenerator
+    from axispose_core.estimator import Estimator, EstimatorConfig
+    from axispose_core.objects import lmo_objects
+    from axispose_core.tbm.reader import SHIPPED_READER, load_reader
+
+    reader = load_reader(SHIPPED_READER)
+    cfg = EstimatorConfig(agm=TINY_AGM, reader=reader.config, objects=tuple(lmo_objects()[:2]), ddim_steps=1)
+    Estimator(cfg, AxisGenerator(cfg.agm), reader).save(path)
+    return path
+
+
 OFF_ORTHONORMAL = np.array([[0.005, 0.003, 0.0], [0.003, 0.004, 0.002], [0.0, 0.002, 0.005]])
 """R (I + S) with this symmetric S is as far from a rotation as the official LM-O GT: |RR^T - I| 0.0093, det 1.014."""
 

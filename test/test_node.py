@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 import rclpy
 import torch
-from conftest import TINY_AGM
+from conftest import TINY_AGM, save_tiny_estimator
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 from geometry_msgs.msg import PoseArray, PoseStamped, PoseWithCovarianceStamped
 from rclpy.executors import SingleThreadedExecutor
@@ -32,16 +32,7 @@ from axispose_ros.node import AxisPoseNode
 
 @pytest.fixture(scope="module")
 def checkpoint(tmp_path_factory):
-    reader = load_reader(SHIPPED_READER)
-    cfg = EstimatorConfig(
-        agm=TINY_AGM,
-        reader=reader.config,
-        objects=tuple(lmo_objects()[:2]),  # ape (1), can (5)
-        ddim_steps=1,
-    )
-    path = tmp_path_factory.mktemp("ckpt") / "tiny.safetensors"
-    Estimator(cfg, AxisGenerator(cfg.agm), reader).save(path)
-    return path
+    return save_tiny_estimator(tmp_path_factory.mktemp("ckpt") / "tiny.safetensors")  # ape (1), can (5)
 
 
 class Harness:
@@ -244,11 +235,18 @@ def test_debug_image_only_when_subscribed(harness):
         ({"K": np.full((3, 3), np.nan)}, "dropped_camera_info_k"),
         ({"K": np.zeros((3, 3))}, "dropped_camera_info_k"),
         ({"info_size": (640, 400)}, "dropped_camera_info_mismatch"),
+        ({"K": [[572.4, 0, 1e9], [0, 573.6, 242.0], [0, 0, 1]]}, "dropped_camera_info_principal_point"),  # the fuzz run's
+        ({"K": [[1e-12, 0, 325.3], [0, 1e-12, 242.0], [0, 0, 1]]}, "dropped_camera_info_focal_length"),  # the fuzz run's
     ],
 )
 def test_bad_input_is_dropped_and_counted(harness, kwargs, counter):
+    """Refused at the check, under its own reason: no such frame reaches inference (the fuzz run's absurd but finite
+    K used to fail there, counted as dropped_error)."""
+    calls, real = [], harness.node.estimator.estimate
+    harness.node.estimator.estimate = lambda *a, **k: calls.append(1) or real(*a, **k)
     harness.frame(sec=9, **kwargs)
     assert harness.spin_until(lambda: harness.node.counts[counter] >= 1)
+    assert not calls and "dropped_error" not in harness.node.counters()
     harness.frame(sec=11)  # still alive and processing
     assert harness.spin_until(lambda: harness.node.counts["frames_processed"] >= 1)
 
@@ -474,8 +472,25 @@ def test_objects_not_asked_for_are_neither_estimated_nor_published(localised_che
 def test_frames_lost_in_transport_are_estimated_from_stamp_gaps(harness):
     for sec in (*range(70, 77), 79):  # a steady 1 s camera, then two frames that never arrived
         harness.frame(sec=sec)
-        assert harness.spin_until(lambda s=sec: harness.node.gaps.last == s, 5.0)
+        assert harness.spin_until(lambda s=sec: harness.node.stamps.last == s, 5.0)
     assert harness.node.counters().get("frames_lost_in_transport") == 2
+
+
+def test_stamps_that_say_nothing_about_loss_have_their_own_counters(harness):
+    """The fuzz run's stamps (zero, far future, back in time, a long pause) read 828,192,373,372 frames lost with
+    nothing lost. Each is counted under its own anomaly, the frames are still answered, and nothing is lost."""
+    future = int(time.time()) + 86_400
+    for sec in (*range(80, 86), 0, future, 83, *range(86, 90), 5000):
+        harness.frame(sec=sec)
+        harness.spin_until(lambda n=harness.node.counts["frames_in"]: harness.node.counts["frames_in"] > n, 5.0)
+    node = harness.node
+    assert harness.spin_until(lambda: node.frames_done() + len(node.sync.images) == node.counts["frames_in"] == 14, 20.0)
+    counts = node.counters()
+    assert counts.get("frames_lost_in_transport", 0) == 0
+    assert {k: v for k, v in counts.items() if k.startswith("stamps_")} == {
+        "stamps_zero": 1, "stamps_future": 1, "stamps_backwards": 1, "stamps_discontinuity": 1,
+    }  # fmt: skip
+    assert counts["camera_info_in"] == 14
 
 
 def test_an_unsupported_lens_model_drops_the_frame_with_a_reason(harness):

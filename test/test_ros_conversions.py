@@ -5,7 +5,7 @@ from std_msgs.msg import Header
 
 from axispose_core.lmo import LMO_K
 from axispose_ros.conversions import InputError, Undistorter, camera_for_image, camera_from_info, image_to_rgb, rgb_to_image
-from axispose_ros.sync import GapCounter, StampSynchronizer
+from axispose_ros.sync import STAMP_ANOMALIES, StampAudit, StampSynchronizer
 
 
 def _image(pixels: np.ndarray, encoding: str, pad: int = 0) -> Image:
@@ -79,6 +79,40 @@ def test_camera_info_checks():
     with pytest.raises(InputError) as err:
         camera_from_info(_info(w=0))
     assert err.value.reason == "camera_info_size"
+
+
+@pytest.mark.parametrize(
+    "fx, fy, cx, cy, reason",
+    [
+        (572.4, 573.6, 1e9, 242.0, "camera_info_principal_point"),  # the fuzz run's: finite, overflows the crops later
+        (572.4, 573.6, 325.3, -1e6, "camera_info_principal_point"),
+        (572.4, 573.6, -400.0, 242.0, "camera_info_principal_point"),
+        (1e-12, 1e-12, 325.3, 242.0, "camera_info_focal_length"),  # the fuzz run's
+        (1e9, 1e9, 325.3, 242.0, "camera_info_focal_length"),
+        (5.0, 5.0, 325.3, 242.0, "camera_info_focal_length"),
+        (572.4, 50.0, 325.3, 242.0, "camera_info_focal_length"),  # fx / fy 11: no lens
+        (572.4, 573.6, 325.3, 242.0, "camera_info_k"),  # with a skew of 1e300 (below)
+    ],
+)
+def test_absurd_but_finite_intrinsics_are_refused_with_their_reason(fx, fy, cx, cy, reason):
+    K = [[fx, 1e300 if reason == "camera_info_k" else 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]]
+    for rectified in (False, True):
+        with pytest.raises(InputError) as err:
+            camera_from_info(_info(K=K), use_rectified=rectified)
+        assert err.value.reason == reason and ("P" if rectified else "K") in str(err.value)
+
+
+@pytest.mark.parametrize(
+    "K",
+    [
+        [[200.0, 0, 320], [0, 200.0, 240], [0, 0, 1]],  # a wide lens (~116 degrees)
+        [[20000.0, 0, 320], [0, 20000.0, 240], [0, 0, 1]],  # a telephoto (~1.8 degrees)
+        [[572.4, 0, -100.0], [0, 573.6, 600.0], [0, 0, 1]],  # an off-centre crop of a larger sensor
+        [[600.0, 0, 320], [0, 300.0, 240], [0, 0, 1]],  # 2:1 pixels
+    ],
+)
+def test_unusual_but_real_intrinsics_pass(K):
+    np.testing.assert_allclose(camera_from_info(_info(K=np.asarray(K))).K, K)
 
 
 def test_image_size_against_camera_info():
@@ -168,9 +202,58 @@ def test_synchroniser_starts_over_when_time_jumps_back():
     assert drops == [("img50.1", "time_jump")] and sync.jumps == 1
 
 
-def test_gap_counter_estimates_frames_lost_from_stamp_gaps():
-    gaps = GapCounter()
-    stamps = [k / 30 for k in range(10)] + [k / 30 for k in range(13, 20)] + [k / 30 for k in range(24, 30)]
-    lost = [gaps.add(s) for s in stamps]
-    assert gaps.lost == 3 + 4 and lost[10] == 3
-    assert gaps.add(0.0) == 0 and gaps.add(0.0) == 0  # back in time or repeated: no gap counted
+def test_stamp_audit_estimates_frames_lost_from_stamp_gaps():
+    audit = StampAudit()
+    stamps = [k / 30 for k in range(1, 10)] + [k / 30 for k in range(13, 20)] + [k / 30 for k in range(24, 30)]
+    verdicts = [audit.add(s) for s in stamps]
+    assert audit.lost == 3 + 4 and verdicts[9].lost == 3 and not any(v.anomaly for v in verdicts)
+    assert audit.add(0.0).anomaly == "zero" and audit.add(-5.0).anomaly == "zero" and audit.lost == 7
+    assert audit.add(29 / 30).anomaly == "backwards"  # repeated: not later than the previous
+    assert audit.add(31 / 30).lost == 0  # the interval after a step back is not read
+    assert audit.add(33 / 30).lost == 1
+
+
+def test_stamp_audit_sorts_out_stamps_that_say_nothing_about_loss():
+    """The fuzz run's stamps (zero, far future, back and forth, a camera pause) are each counted under their own
+    anomaly; none of them is taken for frames lost."""
+    now = 1_700_000_000.0
+    audit = StampAudit()
+    steady = [now - 1000 + k / 15 for k in range(20)]
+    assert all(not audit.add(s, now).anomaly for s in steady)
+    assert audit.add(0.0, now).anomaly == "zero"
+    assert audit.add(now + 86_400, now).anomaly == "future"
+    assert StampAudit().add(now + 5, now).anomaly is None  # within future_s of the receiver's clock: a clock a little ahead
+    assert audit.add(steady[3], now).anomaly == "backwards"
+    assert audit.add(steady[-1] + 1 / 15, now).lost == 0  # back on the timeline: not read
+    assert audit.add(steady[-1] + 2 / 15, now).lost == 0
+    assert audit.add(steady[-1] + 600, now).anomaly == "discontinuity"  # 10 minutes of silence: a pause, not 9,000 frames lost
+    assert audit.add(now + 86_400).anomaly == "discontinuity"  # without a clock, no stamp is judged to be in the future
+    assert audit.lost == 0 and audit.seen == 27
+
+
+@pytest.mark.parametrize("seed", range(5))
+def test_stamp_audit_never_counts_more_frames_lost_than_it_saw(seed):
+    """Adversarial stamps: the anomalies keep to their bounded names and the frames lost to the frames seen."""
+    rng = np.random.default_rng(seed)
+    audit, now, t = StampAudit(), 1_700_000_000.0, 1_699_999_000.0
+    anomalies = set()
+    for _ in range(2000):
+        kind = rng.integers(6)
+        if kind == 0:
+            stamp = rng.choice([0.0, -1.0, 1e-9, now + 1e6, 2.0**31, -(2.0**31)])
+        elif kind == 1:
+            stamp = t - rng.uniform(0, 100)
+        elif kind == 2:
+            t += (rng.integers(2, 40)) / 15  # a gap, within max_gap or beyond
+            stamp = t
+        else:
+            t += 1 / 15 + rng.normal(0, 1e-4)
+            stamp = t
+        v = audit.add(float(stamp), now)
+        assert 0 <= v.lost <= audit.max_gap and audit.lost <= audit.seen
+        anomalies.add(v.anomaly)
+    assert anomalies <= {None, *STAMP_ANOMALIES} and audit.lost > 0
+    every_other = StampAudit()  # half the frames lost, all the time: the count stays a lower bound
+    for k in range(1, 400):
+        every_other.add(1000 + (k if k < 10 else 10 + 3 * (k - 10)) / 15)
+    assert every_other.lost <= every_other.seen
