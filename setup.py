@@ -17,7 +17,7 @@ setup(
     data_files=[
         ("share/ament_index/resource_index/packages", [f"resource/{PACKAGE}"]),
         (f"share/{PACKAGE}", ["package.xml"]),
-        (f"share/{PACKAGE}/config", glob("config/*.yaml")),
+        (f"share/{PACKAGE}/config", glob("config/*.yaml") + glob("config/*.xml")),  # *.xml: the Fast DDS profile
     ],
     # The core runs without ROS; the ROS extra pulls rclpy and the message packages from wheels.
     install_requires=[

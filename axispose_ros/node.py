@@ -22,10 +22,15 @@ executor never blocks and stale frames are dropped and counted instead of queuei
 sensor-data QoS (best effort): frames the transport discards never arrive and are estimated from stamp gaps
 (`frames_lost_in_transport`, at most one per frame seen); stamps that are zero, go back, lie in the future or jump
 are counted apart (`stamps_<anomaly>`), and such frames are still processed.
+
+Between processes, Fast DDS's defaults lose most full-size images (its 512 KB shared-memory segment cannot hold
+them in flight): `main` loads the shipped profile `config/fastdds_profile.xml` unless the user named one, and the
+camera driver's process needs it too (README, "Beside a camera driver").
 """
 
 from __future__ import annotations
 
+import os
 import sys
 import threading
 import time
@@ -57,6 +62,9 @@ from axispose_ros.sync import RoiStore, StampAudit, StampSynchronizer
 from axispose_ros.worker import InferenceWorker
 
 DEFAULT_CHECKPOINT = Path(__file__).resolve().parents[1] / "axispose_core" / "models" / "axispose_lmo.safetensors"
+FASTDDS_PROFILE_NAME = "fastdds_profile.xml"
+PROFILE_VARIABLES = ("FASTRTPS_DEFAULT_PROFILES_FILE", "FASTDDS_DEFAULT_PROFILES_FILE")
+"""The variables Fast DDS reads its XML profiles from: 2.x (Jazzy) and 3.x."""
 
 
 def _stamp_seconds(header) -> float:
@@ -337,7 +345,35 @@ class AxisPoseNode(Node):
         super().destroy_node()
 
 
+def shipped_fastdds_profile() -> Path | None:
+    """The Fast DDS profile shipped with the package: beside the sources (a checkout, pip -e), else in the package's
+    share directory (colcon, pip)."""
+    candidates = [Path(__file__).resolve().parents[1] / "config" / FASTDDS_PROFILE_NAME]
+    try:
+        from ament_index_python.packages import get_package_share_directory
+
+        candidates.append(Path(get_package_share_directory("axispose_ros")) / "config" / FASTDDS_PROFILE_NAME)
+    except Exception:  # not in an ament index (PackageNotFoundError, or no index at all)
+        pass
+    return next((p for p in candidates if p.is_file()), None)
+
+
+def use_shipped_fastdds_profile(environ: dict[str, str] | os._Environ = os.environ) -> Path | None:
+    """Point Fast DDS at the shipped profile, unless the user chose a profile (either variable set, even empty) or
+    another middleware (RMW_IMPLEMENTATION not Fast DDS). Must run before the process's first DDS participant:
+    Fast DDS reads the variable once. Returns the profile set, or None."""
+    rmw = environ.get("RMW_IMPLEMENTATION", "rmw_fastrtps_cpp")
+    if any(v in environ for v in PROFILE_VARIABLES) or not rmw.startswith("rmw_fastrtps"):
+        return None
+    profile = shipped_fastdds_profile()
+    if profile is not None:
+        for v in PROFILE_VARIABLES:
+            environ[v] = str(profile)
+    return profile
+
+
 def main(args: list[str] | None = None) -> int:
+    use_shipped_fastdds_profile()
     rclpy.init(args=args)
     try:
         node = AxisPoseNode()

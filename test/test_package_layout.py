@@ -114,6 +114,10 @@ def test_ament_index_finds_the_package_and_its_executables(install_prefix):
     share = _ament(install_prefix, "from ament_index_python.packages import get_package_share_directory as g; print(g('axispose_ros'))")
     assert (Path(share) / "package.xml").is_file()
     assert any((Path(share) / "config").glob("*.yaml"))
+    # the installed node finds its Fast DDS profile through the index (no config/ beside the installed sources)
+    site = next((install_prefix / "lib").glob("python*/site-packages"))
+    code = f"import sys; sys.path.insert(0, {str(site)!r}); from axispose_ros.node import shipped_fastdds_profile as s; print(s())"
+    assert Path(_ament(install_prefix, code)) == Path(share) / "config" / "fastdds_profile.xml"
     # `ros2 run axispose_ros X` executes <prefix>/lib/axispose_ros/X
     for exe in ("axispose_node", "axispose"):
         path = install_prefix / "lib" / "axispose_ros" / exe
