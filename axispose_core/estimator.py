@@ -27,23 +27,13 @@ from axispose_core.consensus import consensus
 from axispose_core.localiser.decode import Detection
 from axispose_core.localiser.model import Localiser, LocaliserConfig, build_localiser
 from axispose_core.objects import ObjectSpec
+from axispose_core.precision import bf16_native
 from axispose_core.tbm.backproject import backproject_readings
 from axispose_core.tbm.dense import DenseFusion, dense_correspondences, fuse_pose
 from axispose_core.tbm.reader import KeypointReader, ReaderConfig
 
 KIND = ESTIMATOR
 PRECISIONS = ("auto", "float32", "bfloat16")
-
-
-def bf16_native(device: torch.device) -> bool:
-    """Whether `device` computes in bfloat16 natively (CUDA with bf16, or a CPU with AVX-512 BF16/AMX), where
-    autocast speeds the AGM up; elsewhere bfloat16 is emulated and slower than float32."""
-    if device.type == "cuda":
-        return torch.cuda.is_available() and torch.cuda.is_bf16_supported()
-    try:
-        return bool(torch.ops.mkldnn._is_mkldnn_bf16_supported())
-    except (AttributeError, RuntimeError):  # a torch without the oneDNN query
-        return False
 
 
 @dataclass(frozen=True)

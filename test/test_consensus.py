@@ -221,7 +221,7 @@ def test_the_dense_fusion_corrects_the_tbms_rotation_and_depth_with_exact_points
     # one sample has the fusion's covariance; samples that scatter add theirs (the law of total covariance)
     assert fused.covariance.shape == (6, 6) and np.all(np.linalg.eigvalsh(fused.covariance) > 0)
     (same,) = est.estimate(image, K, [(spec.obj_id, box)], hypotheses=4)  # the oracle's samples agree
-    np.testing.assert_allclose(same.covariance, fused.covariance, rtol=1e-6, atol=1e-15)
+    np.testing.assert_allclose(same.covariance, fused.covariance, rtol=1e-5, atol=1e-15)  # float32 sums in another order
     est.sampler.sigma = np.radians(4.0)
     (scattered,) = est.estimate(image, K, [(spec.obj_id, box)], hypotheses=4, seed=2)
     assert scattered.spread_deg > 1.0

@@ -17,7 +17,8 @@ from axispose_core.data.synth.preview import contact_sheet
 from axispose_core.evaluate import Prediction, evaluate, plot_cdfs, plot_grid, plot_uncertainty, summarize, write_report
 from axispose_core.stress import low_light, motion_blur
 
-KEYS = {"n", "name", "add_0.1d", "add_0.2d", "reproj_5px", "reproj_15px", "rot_err_median_deg", "trans_err_median_mm"}
+KEYS = {"n", "name", "add_0.1d", "add_0.2d", "reproj_5px", "reproj_15px", "rot_err_median_deg", "trans_err_median_mm",
+        "depth_log_abs_mean", "depth_ratio_median"}  # fmt: skip
 
 
 @pytest.fixture(scope="module")
