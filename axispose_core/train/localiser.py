@@ -21,6 +21,8 @@ from torch.utils.data import Dataset
 
 from axispose_core.checkpoint import save_checkpoint
 from axispose_core.data.bop import bop_frames
+from axispose_core.data.synth.appearance import photometric
+from axispose_core.data.synth.config import PhotometricConfig
 from axispose_core.data.visibility import gt_info_from_models
 from axispose_core.localiser.decode import draw_targets, focal_loss
 from axispose_core.localiser.model import STRIDE, Localiser, LocaliserConfig, build_localiser
@@ -40,6 +42,8 @@ class LocaliserTrainConfig:
     size_weight: float = 0.1
     offset_weight: float = 1.0
     val_frames: int = 40
+    photometric: PhotometricConfig = field(default_factory=PhotometricConfig)
+    """The appearance chain on each training frame, over the data's own randomisation (off by default)."""
 
 
 class LocaliserDataset(Dataset):
@@ -54,8 +58,10 @@ class LocaliserDataset(Dataset):
         seed: int = 0,
         occluded_weight: float = 0.0,
         models_dir: str | Path | None = None,
+        photometric: PhotometricConfig | None = None,
     ) -> None:
         self.config, self.augment, self.seed, self.epoch = config, augment, seed, 0
+        self.photometric = photometric or PhotometricConfig()
         self.occluded_weight = occluded_weight
         self.classes = {o: k for k, o in enumerate(config.obj_ids)}
         self.frames = bop_frames(roots, gt_info_from_models(models_dir))
@@ -87,6 +93,7 @@ class LocaliserDataset(Dataset):
         image = cv2.warpAffine(rgb, A, (w, h), flags=cv2.INTER_AREA, borderMode=cv2.BORDER_REFLECT101).astype(np.float32) / 255
         if self.augment:
             image = np.clip(image * rng.uniform(0.7, 1.3, 3) + rng.uniform(-0.1, 0.1), 0, 1)
+            image, _ = photometric(rng, self.photometric, image, scale=A[0, 0])
         instances = self.boxes(i)
         boxes = [(c, (A[0, 0] * x + A[0, 2], A[1, 1] * y + A[1, 2], A[0, 0] * bw, A[1, 1] * bh)) for c, (x, y, bw, bh), _ in instances]
         weights = [wt for _, _, wt in instances]
@@ -124,7 +131,9 @@ def train_localiser(
     out = Path(out)
     out.parent.mkdir(parents=True, exist_ok=True)
     torch.manual_seed(cfg.optim.seed)
-    train_set = LocaliserDataset(data, cfg.localiser, cfg.min_visib, seed=cfg.optim.seed, occluded_weight=cfg.occluded_weight)
+    train_set = LocaliserDataset(
+        data, cfg.localiser, cfg.min_visib, seed=cfg.optim.seed, occluded_weight=cfg.occluded_weight, photometric=cfg.photometric
+    )
     if not len(train_set):
         raise ValueError(f"no frames in {data}")
 

@@ -132,6 +132,56 @@ class SensorConfig:
 
 
 @dataclass(frozen=True)
+class PhotometricConfig:
+    """Photometric augmentation of a finished image (`appearance.photometric`), at the strength of the methods
+    that train on renders alone and read real LM-O frames (GDRNPP's LM-O chain, imgaug's and PIL's semantics): with
+    probability `prob` the ops below run in random order, each with its own probability; `prob` 0 (the default)
+    draws no random number. Factors are PIL ImageEnhance's (1: unchanged); additive terms in 8-bit levels. Camera
+    processing follows: a Bayer mosaic demosaiced back (colour fringes on edges) and an unsharp mask (a camera's
+    sharpening halos)."""
+
+    prob: float = 0.0
+    dropout: tuple[float, float, float] = (0.5, 0.2, 0.05)
+    """(probability, share of cells set to black, cell side as a fraction of the image side): coarse dropout."""
+    blur: tuple[float, float, float] = (0.4, 0.0, 3.0)
+    """(probability, sigma range in px of the image)."""
+    sharpness: tuple[float, float, float] = (0.3, 0.0, 50.0)
+    contrast: tuple[float, float, float] = (0.3, 0.2, 50.0)
+    brightness: tuple[float, float, float] = (0.5, 0.1, 6.0)
+    color: tuple[float, float, float] = (0.3, 0.0, 20.0)
+    add: tuple[float, float, float] = (0.5, 25.0, 0.3)
+    """(probability, largest offset in levels, share of draws with one offset per channel)."""
+    invert: tuple[float, float] = (0.3, 0.2)
+    """(probability, chance each channel is inverted)."""
+    multiply_channels: tuple[float, float, float, float] = (0.5, 0.6, 1.4, 0.5)
+    """(probability, gain range, share of draws with one gain per channel)."""
+    multiply: tuple[float, float, float] = (0.5, 0.6, 1.4)
+    noise: tuple[float, float] = (0.1, 10.0)
+    """(probability, per-channel Gaussian noise std in levels)."""
+    linear_contrast: tuple[float, float, float, float] = (0.5, 0.5, 2.2, 0.3)
+    """(probability, gain range about 128 levels, share of draws per channel)."""
+    grayscale: float = 0.5
+    """Probability of blending toward grey by a uniform alpha."""
+    demosaic: float = 0.0
+    """Probability of a Bayer mosaic demosaiced back (after the chain, whether or not it ran)."""
+    sharpen: tuple[float, float, float] = (0.0, 0.3, 1.5)
+    """(probability, amount range) of an unsharp mask of sigma 1 px."""
+
+
+@dataclass(frozen=True)
+class SurfaceConfig:
+    """The object's own look beyond its vertex colours (`appearance.surface`), on the target's pixels only: a real
+    surface has fine detail (print, grain, dirt) and a camera's colour response bends its colours; 0 draws nothing."""
+
+    detail_prob: float = 0.0
+    detail_std: tuple[float, float] = (0.05, 0.25)
+    """Range of the std of a multiplicative texture at 1-3 px scale."""
+    response_prob: float = 0.0
+    response_gamma: tuple[float, float] = (0.6, 1.6)
+    """Per-channel exponent range of the colour response on the object."""
+
+
+@dataclass(frozen=True)
 class RandomizationConfig:
     """Domain randomisation of appearance, by what it varies."""
 
@@ -145,6 +195,8 @@ class RandomizationConfig:
     cutouts: tuple[int, int] = (1, 3)
     cutout_size: tuple[float, float] = (0.04, 0.15)
     """Side of a cut-out occluder as a fraction of the image width."""
+    surface: SurfaceConfig = field(default_factory=SurfaceConfig)
+    photometric: PhotometricConfig = field(default_factory=PhotometricConfig)
 
 
 @dataclass(frozen=True)

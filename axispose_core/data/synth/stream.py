@@ -39,6 +39,7 @@ from axispose_core.camera import crop_intrinsics, square_around_box
 from axispose_core.data.bop import bbox_from_model, load_models_info, model_path
 from axispose_core.data.meshes import load_render_mesh, ply_vertex_properties
 from axispose_core.data.objects import objects_from_models
+from axispose_core.data.synth.appearance import photometric, surface
 from axispose_core.data.synth.clutter import distractor_mesh
 from axispose_core.data.synth.config import StreamConfig
 from axispose_core.data.synth.randomize import background, camera_effects, jpeg, light, object_tint
@@ -221,7 +222,7 @@ class CropStream:
             return None
         inside = self._inside_frame(center, side)
         visible = (res.instance == 0) & inside
-        image = res.rgb
+        image = surface(rng, rcfg.surface, res.rgb, res.instance == 0)
         covered = np.zeros((S, S), bool)
         if occluded or rng.uniform() < cfg.clutter_prob:
             # Its apparent diameter in crop pixels grows with the share of the target it must hide (0.84-1.22
@@ -240,11 +241,14 @@ class CropStream:
         bg = cv2.resize(background(rng, rcfg.background, n, n, zoom), (S, S), interpolation=cv2.INTER_AREA if n > S else cv2.INTER_LINEAR)
         image = np.where(owned[..., None], image, bg).astype(np.float32)
         image = self._camera(rng, image, center, side)
+        image, dropped = photometric(rng, rcfg.photometric, image, scale=S / side)
         image[~inside] = 0.0
         mask_visib = visible & ~covered
         visib = float(mask_visib.sum() / full.sum())
         if not lo <= visib <= hi:
             return None
+        if dropped is not None:  # blacked-out cells hide the surface from the dense targets, not from `visib`
+            mask_visib &= ~dropped
         kp = axis_keypoints(Kc, R, t, model.spec.axes.lengths)
         return CropSample(
             crop=(image * 255 + 0.5).astype(np.uint8),
