@@ -215,3 +215,13 @@ def test_the_docs_describe_the_product_not_its_history():
         text = (REPO / "docs" / name).read_text()
         assert len(text.splitlines()) <= most, f"docs/{name}: {len(text.splitlines())} lines, at most {most}"
         assert not re.search(r"\b(phase|session)s?\b", text, re.IGNORECASE), f"docs/{name} tells its history"
+
+
+def test_shipped_files_stay_small():
+    """Every committed version of a shipped file stays in every clone for ever: the shipped model files (weights,
+    demo bag) are kept to 20 MB each, and a checkpoint is committed only when it ships."""
+    tracked = subprocess.run(["git", "ls-files", "-z", "axispose_core/models", "demo"], cwd=REPO, capture_output=True, check=True)
+    files = [REPO / f for f in tracked.stdout.decode().split("\0") if f]
+    assert files, "no shipped files found by git ls-files"
+    large = {str(f.relative_to(REPO)): f.stat().st_size for f in files if f.stat().st_size > 20 * 2**20}
+    assert not large, f"shipped files over 20 MB: {large}"
