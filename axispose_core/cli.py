@@ -12,7 +12,6 @@ from typing import TypeVar
 from axispose_core.lmo import REAL_SLICE, SHARED_LMO
 
 C = TypeVar("C")
-DEFAULT_CHECKPOINT = Path(__file__).resolve().parent / "models" / "axispose_lmo.safetensors"
 TARGETS_FILE = "test_targets_bop19.json"
 
 
@@ -284,6 +283,7 @@ def _validate(args: argparse.Namespace) -> int:
     import torch
 
     from axispose_core.checkpoint import CheckpointError
+    from axispose_core.estimator import SHIPPED_ESTIMATOR
     from axispose_core.evaluate import write_report
     from axispose_core.validation import ValidationSettings, format_validation, validate
 
@@ -291,10 +291,10 @@ def _validate(args: argparse.Namespace) -> int:
     if not Path(args.data).is_dir():
         print(f"axispose validate: no BOP scenes at {args.data}", file=sys.stderr)
         return 2
-    settings = ValidationSettings(steps=args.steps, hypotheses=args.hypotheses, precision=args.precision,
-                                  score_threshold=args.score_threshold)  # fmt: skip
+    given = {k: getattr(args, k) for k in ("steps", "hypotheses", "precision", "score_threshold") if getattr(args, k) is not None}
+    settings = ValidationSettings(**given)
     try:
-        report = validate(args.checkpoint, args.data, args.models, settings, plots=Path(args.out) / "plots")
+        report = validate(args.checkpoint or SHIPPED_ESTIMATOR, args.data, args.models, settings, plots=Path(args.out) / "plots")
     except CheckpointError as err:
         print(f"axispose validate: {err}", file=sys.stderr)
         return 2
@@ -505,14 +505,15 @@ def build_parser() -> argparse.ArgumentParser:
 
     va = sub.add_parser("validate", help="a checkpoint on real frames: GT crops and the localiser's, per object (default: "
                         "the real validation slice)")  # fmt: skip
-    va.add_argument("--checkpoint", default=str(DEFAULT_CHECKPOINT), help="estimator checkpoint (default: the shipped one)")
+    va.add_argument("--checkpoint", help="estimator checkpoint (default: the shipped one)")
     va.add_argument("--data", default=str(REAL_SLICE), help="BOP split folder (default: ../shared/data/lmo_real_val/test)")
     va.add_argument("--models", default=str(SHARED_LMO / "models_eval"), help="models for the metrics and visibility")
     va.add_argument("--out", default="out/validate", help="folder for validation.json and plots/")
-    va.add_argument("--steps", type=int, default=3, help="DDIM steps (the node's default)")
-    va.add_argument("--hypotheses", type=int, default=1, help="AGM samples per instance (the node's default)")
-    va.add_argument("--score-threshold", type=float, default=0.3, help="least localiser score (the node's default)")
-    va.add_argument("--precision", choices=["float32", "bfloat16", "auto"], default="float32")
+    # Unset options take ValidationSettings' defaults: the node's.
+    va.add_argument("--steps", type=int, help="DDIM steps (default: the node's, 3)")
+    va.add_argument("--hypotheses", type=int, help="AGM samples per instance (default: the node's, 1)")
+    va.add_argument("--score-threshold", type=float, help="least localiser score (default: the node's, 0.3)")
+    va.add_argument("--precision", choices=["float32", "bfloat16", "auto"], help="the AGM's arithmetic (default: float32)")
     va.add_argument("--threads", type=int, default=2)
     va.set_defaults(func=_validate)
 

@@ -33,6 +33,8 @@ from axispose_core.tbm.dense import DenseFusion, dense_correspondences, fuse_pos
 from axispose_core.tbm.reader import KeypointReader, ReaderConfig
 
 KIND = ESTIMATOR
+SHIPPED_ESTIMATOR = Path(__file__).resolve().parent / "models" / "axispose_lmo.safetensors"
+"""The shipped LM-O estimator: the node's and `axispose validate`'s default checkpoint."""
 PRECISIONS = ("auto", "float32", "bfloat16")
 
 

@@ -53,7 +53,7 @@ from sensor_msgs.msg import CameraInfo, Image, RegionOfInterest
 
 from axispose_core.agm.sampler import Cancelled
 from axispose_core.checkpoint import CheckpointError
-from axispose_core.estimator import Estimator
+from axispose_core.estimator import SHIPPED_ESTIMATOR, Estimator
 from axispose_core.lmo import LMO_K
 from axispose_ros.conversions import InputError, Undistorter, camera_for_image, camera_from_info, image_to_rgb
 from axispose_ros.health import Health, HealthConfig
@@ -61,7 +61,7 @@ from axispose_ros.outputs import PoseOutputs
 from axispose_ros.sync import RoiStore, StampAudit, StampSynchronizer
 from axispose_ros.worker import InferenceWorker
 
-DEFAULT_CHECKPOINT = Path(__file__).resolve().parents[1] / "axispose_core" / "models" / "axispose_lmo.safetensors"
+DEFAULT_CHECKPOINT = SHIPPED_ESTIMATOR
 FASTDDS_PROFILE_NAME = "fastdds_profile.xml"
 PROFILE_VARIABLES = ("FASTRTPS_DEFAULT_PROFILES_FILE", "FASTDDS_DEFAULT_PROFILES_FILE")
 """The variables Fast DDS reads its XML profiles from: 2.x (Jazzy) and 3.x."""

@@ -11,15 +11,13 @@ from __future__ import annotations
 import argparse
 import dataclasses
 
-from axispose_core.estimator import Estimator
-
-SHIPPED = "axispose_core/models/axispose_lmo.safetensors"
+from axispose_core.estimator import SHIPPED_ESTIMATOR, Estimator
 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--agm", required=True, help="a trained estimator checkpoint whose AGM to take")
-    ap.add_argument("--base", default=SHIPPED, help="the estimator whose other parts and settings to keep")
+    ap.add_argument("--base", default=str(SHIPPED_ESTIMATOR), help="the estimator whose other parts and settings to keep")
     ap.add_argument("--out", required=True)
     args = ap.parse_args()
     base, run = Estimator.load(args.base), Estimator.load(args.agm)
