@@ -156,8 +156,9 @@ def _train_recipe(args: argparse.Namespace) -> int:
     from axispose_core.checkpoint import CheckpointError
     from axispose_core.train.recipe import RecipeError, RecipeRunner, load_recipe
 
-    if args.config or args.init or args.resume or args.data:
-        print("axispose train: --recipe runs the recipe's own configs and data; drop --config, --init, --resume, --data", file=sys.stderr)
+    if args.config or args.init or args.resume or args.data or args.stop_at is not None:
+        print("axispose train: --recipe runs the recipe's own configs, data and schedule; drop --config, --init, --resume, "
+              "--data, --stop-at", file=sys.stderr)  # fmt: skip
         return 2
     adopt = dict(a.split("=", 1) for a in args.adopt if "=" in a)
     try:
@@ -386,6 +387,8 @@ def _training_args(
                         "(optim.steps, save_every, val_every may differ: a longer run extends it)")  # fmt: skip
     parser.add_argument("--device", default="auto", choices=["cpu", "cuda", "auto"])
     parser.add_argument("--max-minutes", type=float, default=None, help="stop (and save) after this much wall time")
+    parser.add_argument("--stop-at", type=int, default=None, metavar="STEP",
+                        help="stop (and save) at this step, the schedule unchanged: equal-compute comparisons")  # fmt: skip
     parser.add_argument("--threads", type=int, default=2)
     if stream:
         help = "BOP models folder the crop stream renders (default: ../shared/data/lmo/models beside the clone)"
@@ -403,7 +406,7 @@ def _run_options(args: argparse.Namespace):
     """How this call of a trainer runs, from the options `_training_args` declares."""
     from axispose_core.train.loop import RunOptions
 
-    return RunOptions(resume=args.resume, device=args.device, max_minutes=args.max_minutes)
+    return RunOptions(resume=args.resume, device=args.device, max_minutes=args.max_minutes, stop_at=args.stop_at)
 
 
 def _ids(text: str) -> list[int]:
