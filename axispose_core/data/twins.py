@@ -1,0 +1,70 @@
+"""Rendered twins of real frames: the annotated objects re-rendered at their GT poses and pasted over the frame.
+
+A twin keeps everything of the real frame but the annotated objects' own look: the background, the clutter, the
+camera, the poses, the framing and the occlusion among the annotated objects stay; the objects' pixels become
+the project's vertex-coloured renders under one fixed light. Scoring a checkpoint on a split and on its twins
+tells how much of its error on a camera comes from the objects' appearance (what renders lack) and how much
+from the scene. Occluders that are not annotated (a real object in front of an annotated one) are painted over,
+so the twins see a little more of each object than the frame does.
+"""
+
+from __future__ import annotations
+
+import json
+import shutil
+from pathlib import Path
+
+import numpy as np
+from PIL import Image
+
+from axispose_core.data.bop import BopScene, GTInstance, scene_dirs
+from axispose_core.data.meshes import load_render_mesh
+from axispose_core.data.synth.raster import Light, RenderMesh, render
+
+TWIN_LIGHT = Light(np.array([0.0, 0.4, 1.0]) / np.hypot(0.4, 1.0), np.ones(3), ambient=0.45, specular=0.2, shininess=30.0)
+"""One light for every twin: from above and behind the camera, a mild highlight."""
+
+_COPIED = ("scene_camera.json", "scene_gt_info.json", "scene_gt.json")
+"""scene_gt.json last: a scene counts as written once it is there."""
+
+
+def twin_frame(rgb: np.ndarray, K: np.ndarray, gts: list[GTInstance], meshes: list[RenderMesh], light: Light = TWIN_LIGHT) -> np.ndarray:
+    """`rgb` (H,W,3 uint8) with the instances `gts` (their `meshes`) rendered at their poses over it; where they
+    overlap, the nearest wins, as in the frame."""
+    h, w = rgb.shape[:2]
+    res = render([(m, g.R, g.t) for m, g in zip(meshes, gts, strict=True)], K, w, h, light)
+    twin = rgb.copy()
+    drawn = res.instance >= 0
+    twin[drawn] = np.round(res.rgb[drawn] * 255.0).astype(np.uint8)
+    return twin
+
+
+def write_twins(data: str | Path, models: str | Path, out: str | Path, light: Light = TWIN_LIGHT) -> Path:
+    """The twins of every scene of the BOP split `data` as a BOP split under `out` (same scene names, same
+    annotations, PNG frames); a scene already written is kept. Returns `out`."""
+    out = Path(out)
+    meshes: dict[int, RenderMesh] = {}
+    for scene_dir in scene_dirs(data):
+        target = out / scene_dir.name
+        if (target / "scene_gt.json").exists():
+            continue
+        scene = BopScene(scene_dir)
+        (target / "rgb").mkdir(parents=True, exist_ok=True)
+        for im_id in scene.image_ids:
+            gts = scene.gt[im_id]
+            for g in gts:
+                if g.obj_id not in meshes:
+                    meshes[g.obj_id] = load_render_mesh(models, g.obj_id)
+            rgb = np.asarray(Image.open(scene.rgb_path(im_id)).convert("RGB"))
+            twin = twin_frame(rgb, scene.cameras[im_id], gts, [meshes[g.obj_id] for g in gts], light)
+            Image.fromarray(twin).save(target / "rgb" / f"{im_id:06d}.png")
+        for name in _COPIED:
+            if (scene_dir / name).exists():
+                shutil.copy2(scene_dir / name, target / name)
+        (target / "twins.json").write_text(json.dumps({"source": str(scene_dir.resolve()), "light": _light_record(light)}, indent=1))
+    return out
+
+
+def _light_record(light: Light) -> dict:
+    return {"direction": light.direction.tolist(), "color": light.color.tolist(), "ambient": light.ambient,
+            "specular": light.specular, "shininess": light.shininess}  # fmt: skip

@@ -1,0 +1,62 @@
+"""Rendered twins of real frames: only the annotated objects' pixels change, the annotations carry over."""
+
+from __future__ import annotations
+
+import json
+import shutil
+
+import numpy as np
+import pytest
+from PIL import Image
+
+from axispose_core.data.bop import BopScene, bbox_from_model
+from axispose_core.data.meshes import load_render_mesh
+from axispose_core.data.twins import write_twins
+from axispose_core.lmo import REAL_SLICE, SHARED_LMO
+
+MODELS = SHARED_LMO / "models_eval"
+pytestmark = pytest.mark.skipif(not (REAL_SLICE / "000002").is_dir() or not MODELS.is_dir(), reason="needs ../shared/data")
+
+
+@pytest.fixture(scope="module")
+def one_frame(tmp_path_factory):
+    """The real slice's first frame as a one-frame split."""
+    src = REAL_SLICE / "000002"
+    im_id = BopScene(src).image_ids[0]
+    dst = tmp_path_factory.mktemp("real") / "test" / "000002"
+    (dst / "rgb").mkdir(parents=True)
+    shutil.copy2(src / "rgb" / f"{im_id:06d}.png", dst / "rgb")
+    for name in ("scene_gt.json", "scene_camera.json"):
+        whole = json.loads((src / name).read_text())
+        (dst / name).write_text(json.dumps({str(im_id): whole[str(im_id)]}))
+    return dst.parent, im_id
+
+
+def test_twins_change_only_the_objects_and_keep_the_annotations(one_frame, tmp_path):
+    split, im_id = one_frame
+    out = write_twins(split, MODELS, tmp_path / "twins")
+    real, twin = BopScene(split / "000002"), BopScene(out / "000002")
+    assert twin.image_ids == real.image_ids
+    for a, b in zip(real.gt[im_id], twin.gt[im_id], strict=True):
+        assert a.obj_id == b.obj_id and np.array_equal(a.R, b.R) and np.array_equal(a.t, b.t)
+    assert np.array_equal(twin.cameras[im_id], real.cameras[im_id])
+
+    frame = np.asarray(Image.open(real.rgb_path(im_id)).convert("RGB"))
+    pasted = np.asarray(Image.open(twin.rgb_path(im_id)).convert("RGB"))
+    assert pasted.shape == frame.shape
+    inside = np.zeros(frame.shape[:2], dtype=bool)
+    for g in real.gt[im_id]:
+        x, y, w, h = bbox_from_model(real.cameras[im_id], g.R, g.t, load_render_mesh(MODELS, g.obj_id).vertices)
+        box = (slice(max(y - 1, 0), y + h + 1), slice(max(x - 1, 0), x + w + 1))
+        inside[box] = True
+        assert (pasted[box] != frame[box]).any(-1).mean() > 0.05, f"object {g.obj_id} was not drawn"
+    assert np.array_equal(pasted[~inside], frame[~inside]), "a pixel outside every object's box changed"
+
+
+def test_a_written_scene_is_kept(one_frame, tmp_path):
+    split, im_id = one_frame
+    out = write_twins(split, MODELS, tmp_path / "twins")
+    png = out / "000002" / "rgb" / f"{im_id:06d}.png"
+    stamp = png.stat().st_mtime_ns
+    write_twins(split, MODELS, tmp_path / "twins")
+    assert png.stat().st_mtime_ns == stamp
