@@ -1,0 +1,272 @@
+"""Tracks across a camera stream: each object instance keeps an id, a filtered pose and the box it is cropped from.
+
+A tracked object's crop comes from its predicted pose (the box it had, moved with the pose's projection and scaled
+with its depth), so the localiser runs only every `redetect_period` frames, while nothing is tracked, or after a
+track missed a frame or ended; its detections then refresh the tracks' boxes (matched by object and overlap) and start
+tracks for new objects. Every crop goes through the estimator in one batch, and each pose that comes back is a
+measurement for its track's `PoseFilter`. Tracks end after `track_timeout` seconds without a measurement or
+`max_misses` frames in a row without a pose; all end when the stamps go backwards (a looped bag) or the camera's
+intrinsics change.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from typing import Protocol
+
+import numpy as np
+
+from axispose_core.tracking.filter import FilterConfig, PoseFilter
+
+Box = tuple[float, float, float, float]
+"""(x, y, w, h) in image pixels."""
+
+
+@dataclass(frozen=True)
+class TrackingConfig:
+    """When the localiser runs, when tracks end, and the filter's model."""
+
+    redetect_period: int = 5
+    """Run the localiser on every n-th frame (1: on every frame)."""
+    track_timeout: float = 1.0
+    """Seconds without an accepted measurement after which a track ends."""
+    max_misses: int = 3
+    """Frames in a row without a pose (the estimator refused the crop) after which a track ends."""
+    reinit_after: int = 3
+    """Measurements in a row refused at the gate after which the track restarts at the latest one: the object
+    really moved (or the filter had locked onto a wrong pose)."""
+    match_iou: float = 0.3
+    """Least overlap of a detection with a track's predicted box to refresh that track rather than start one."""
+    same_distance: float = 0.1
+    """A new detection's pose this close to an unmeasured track of its object (a fraction of the depth) is that
+    track's measurement, not a new track: its predicted box had drifted off the detection's."""
+    fallback_std: tuple[float, float] = (0.05, 0.35)
+    """Measurement noise where the estimator gives no covariance: translation as a fraction of the depth, and
+    rotation (rad)."""
+    filter: FilterConfig = field(default_factory=FilterConfig)
+
+
+class Measurement(Protocol):
+    """What the tracker reads of an estimator's pose (`estimator.PoseEstimate` is one)."""
+
+    ok: bool
+    R: np.ndarray
+    t: np.ndarray
+    covariance: np.ndarray | None
+
+
+class Detected(Protocol):
+    """What the tracker reads of a localiser's detection (`localiser.decode.Detection` is one)."""
+
+    obj_id: int
+    score: float
+
+    @property
+    def box(self) -> Box: ...
+
+
+@dataclass(frozen=True)
+class Crop:
+    """One box to estimate: a track's (`track` its id; `prior` its predicted pose) or a new detection's."""
+
+    obj_id: int
+    box: Box
+    score: float
+    track: int | None = None
+    prior: tuple[np.ndarray, np.ndarray] | None = None
+
+
+@dataclass
+class Track:
+    id: int
+    obj_id: int
+    filter: PoseFilter
+    box: Box
+    """The box the object was last cropped from."""
+    anchor: tuple[np.ndarray, float]
+    """The box's centre minus the pose's projection (px), and the depth (m), when `box` was set."""
+    score: float
+    stamp: float
+    """The filter's time (s)."""
+    updated: float
+    """When a measurement was last accepted (s)."""
+    misses: int = 0
+    rejects: int = 0
+    measured: bool = False
+    """This frame gave a pose (accepted or refused at the gate)."""
+
+
+@dataclass(frozen=True)
+class TrackedPose:
+    """One track's output for a frame: its filtered pose and covariance, and the frame's raw measurement."""
+
+    track_id: int
+    obj_id: int
+    R: np.ndarray
+    t: np.ndarray
+    covariance: np.ndarray
+    score: float
+    measurement: Measurement
+    accepted: bool
+    """The measurement went into the filter (False: refused at the gate; the pose is the prediction)."""
+
+
+def _project(K: np.ndarray, t: np.ndarray) -> np.ndarray:
+    p = K @ t
+    return p[:2] / p[2]
+
+
+def _iou(a: Box, b: Box) -> float:
+    ix = max(0.0, min(a[0] + a[2], b[0] + b[2]) - max(a[0], b[0]))
+    iy = max(0.0, min(a[1] + a[3], b[1] + b[3]) - max(a[1], b[1]))
+    inter = ix * iy
+    union = a[2] * a[3] + b[2] * b[3] - inter
+    return inter / union if union > 0 else 0.0
+
+
+class Tracker:
+    """`step(stamp, K, detect, estimate)` per frame: tracks' crops (and the localiser's, when it runs) through
+    the estimator, the poses into the tracks' filters, the tracks' filtered poses out. `counts` tallies what
+    happened (resets, refused measurements, tracks started and ended) for diagnostics."""
+
+    def __init__(self, config: TrackingConfig) -> None:
+        self.config = config
+        self.tracks: list[Track] = []
+        self.counts: dict[str, int] = {}
+        self._next_id = 1
+        self._frame = 0
+        self._stamp: float | None = None
+        self._K: np.ndarray | None = None
+        self._lost = False
+        """A track ended: look for its object on the next frame."""
+
+    def reset(self, reason: str) -> None:
+        """End every track (counted as `reset_<reason>`)."""
+        if self.tracks:
+            self._count(f"reset_{reason}")
+        self.tracks = []
+        self._frame = 0
+
+    def step(
+        self, stamp: float, K: np.ndarray, detect: Callable[[], Sequence[Detected]], estimate: Callable[[list[Crop]], Sequence[Measurement]]
+    ) -> list[TrackedPose]:
+        """One frame: resets and timeouts, prediction, the localiser where due, one estimator batch, the updates."""
+        self._start_frame(stamp, K)
+        crops = self._track_crops(K)
+        if self._detection_due():
+            crops = self._with_detections(crops, detect())
+            self._count("localiser_runs")
+        measurements = estimate(crops) if crops else []
+        out = [self._measure(crop, m, K, stamp) for crop, m in zip(crops, measurements, strict=True)]
+        self._end_tracks()
+        self._frame += 1
+        return [pose for pose in out if pose is not None]
+
+    def _start_frame(self, stamp: float, K: np.ndarray) -> None:
+        if self._stamp is not None and stamp < self._stamp:
+            self.reset("stamps_backwards")
+        if self._K is not None and not np.allclose(K, self._K):
+            self.reset("camera_changed")
+        self._stamp, self._K = stamp, np.array(K, float)
+        kept = [tr for tr in self.tracks if stamp - tr.updated <= self.config.track_timeout]
+        self._count("ended_timeout", len(self.tracks) - len(kept))
+        self._lost |= len(kept) < len(self.tracks)
+        self.tracks = kept
+        for tr in self.tracks:
+            tr.filter.predict(stamp - tr.stamp)
+            tr.stamp, tr.measured = stamp, False
+
+    def _predicted_box(self, tr: Track, K: np.ndarray) -> Box:
+        offset, z = tr.anchor
+        scale = z / tr.filter.t[2] if tr.filter.t[2] > 0 else 1.0
+        cx, cy = _project(K, tr.filter.t) + offset * scale
+        w, h = tr.box[2] * scale, tr.box[3] * scale
+        return (cx - w / 2, cy - h / 2, w, h)
+
+    def _track_crops(self, K: np.ndarray) -> list[Crop]:
+        return [Crop(tr.obj_id, self._predicted_box(tr, K), tr.score, tr.id, (tr.filter.R, tr.filter.t)) for tr in self.tracks]
+
+    def _detection_due(self) -> bool:
+        period = max(1, self.config.redetect_period)
+        due = self._lost or not self.tracks or self._frame % period == 0 or any(tr.misses > 0 for tr in self.tracks)
+        self._lost = False
+        return due
+
+    def _with_detections(self, crops: list[Crop], detections: Sequence[Detected]) -> list[Crop]:
+        """Each detection refreshes the box of the track it overlaps most (same object, IoU ≥ match_iou), or
+        becomes a new crop."""
+        crops = list(crops)
+        pairs = sorted(
+            ((_iou(c.box, d.box), i, j) for i, c in enumerate(crops) for j, d in enumerate(detections) if c.obj_id == d.obj_id),
+            reverse=True,
+        )
+        taken_c, taken_d = set(), set()
+        for iou, i, j in pairs:
+            if iou < self.config.match_iou or i in taken_c or j in taken_d:
+                continue
+            taken_c.add(i)
+            taken_d.add(j)
+            d = detections[j]
+            crops[i] = Crop(d.obj_id, tuple(d.box), d.score, crops[i].track, crops[i].prior)
+        return crops + [Crop(d.obj_id, tuple(d.box), d.score) for j, d in enumerate(detections) if j not in taken_d]
+
+    def _noise(self, m: Measurement) -> np.ndarray:
+        if m.covariance is not None and np.all(np.isfinite(m.covariance)):
+            return np.asarray(m.covariance, float)
+        rel, rot = self.config.fallback_std
+        return np.diag([(rel * m.t[2]) ** 2] * 3 + [rot**2] * 3)
+
+    def _measure(self, crop: Crop, m: Measurement, K: np.ndarray, stamp: float) -> TrackedPose | None:
+        tr = next((t for t in self.tracks if t.id == crop.track), None) if crop.track is not None else None
+        if not m.ok:
+            if tr is not None:
+                tr.misses += 1
+            return None
+        cov = self._noise(m)
+        tr = tr or self._nearby_track(crop.obj_id, m.t)
+        if tr is None:
+            tr = self._start_track(crop, m, cov, stamp)
+            return self._output(tr, m, True, K, crop.box)
+        tr.misses, tr.measured, tr.score = 0, True, crop.score
+        accepted, _ = tr.filter.update(m.R, m.t, cov)
+        if accepted:
+            tr.rejects, tr.updated = 0, stamp
+        else:
+            tr.rejects += 1
+            self._count("measurements_gated")
+            if tr.rejects >= self.config.reinit_after:
+                tr.filter = PoseFilter.start(self.config.filter, m.R, m.t, cov)
+                tr.rejects, tr.updated, accepted = 0, stamp, True
+                self._count("tracks_restarted")
+        return self._output(tr, m, accepted, K, crop.box)
+
+    def _nearby_track(self, obj_id: int, t: np.ndarray) -> Track | None:
+        near = [tr for tr in self.tracks if tr.obj_id == obj_id and not tr.measured
+                and np.linalg.norm(tr.filter.t - t) < self.config.same_distance * t[2]]  # fmt: skip
+        return min(near, key=lambda tr: np.linalg.norm(tr.filter.t - t), default=None)
+
+    def _start_track(self, crop: Crop, m: Measurement, cov: np.ndarray, stamp: float) -> Track:
+        tr = Track(self._next_id, crop.obj_id, PoseFilter.start(self.config.filter, m.R, m.t, cov), crop.box,
+                   (np.zeros(2), 1.0), crop.score, stamp, stamp, measured=True)  # fmt: skip
+        self._next_id += 1
+        self.tracks.append(tr)
+        self._count("tracks_started")
+        return tr
+
+    def _output(self, tr: Track, m: Measurement, accepted: bool, K: np.ndarray, box: Box) -> TrackedPose:
+        """The track's pose out; the crop's box becomes the track's, anchored to the filtered pose."""
+        centre = np.array([box[0] + box[2] / 2, box[1] + box[3] / 2])
+        tr.box, tr.anchor = box, (centre - _project(K, tr.filter.t), float(tr.filter.t[2]))
+        f = tr.filter
+        return TrackedPose(tr.id, tr.obj_id, f.R.copy(), f.t.copy(), f.covariance, tr.score, m, accepted)
+
+    def _end_tracks(self) -> None:
+        kept = [tr for tr in self.tracks if tr.misses < self.config.max_misses]
+        self._count("ended_misses", len(self.tracks) - len(kept))
+        self._lost |= len(kept) < len(self.tracks)
+        self.tracks = kept
+
+    def _count(self, key: str, n: int = 1) -> None:
+        if n:
+            self.counts[key] = self.counts.get(key, 0) + n

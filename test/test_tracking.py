@@ -1,0 +1,207 @@
+"""Tracking: the SE(3) filter against known motion and noise, and the tracker's bookkeeping on scripted frames."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from axispose_core.tracking.filter import FilterConfig, PoseFilter
+from axispose_core.tracking.tracker import Crop, Tracker, TrackingConfig
+
+K = np.array([[572.4, 0.0, 325.3], [0.0, 573.6, 242.0], [0.0, 0.0, 1.0]])
+SIGMA_T, SIGMA_R = 0.01, np.deg2rad(5.0)
+COV = np.diag([SIGMA_T**2] * 3 + [SIGMA_R**2] * 3)
+
+
+def _rot_deg(A: np.ndarray, B: np.ndarray) -> float:
+    return float(np.rad2deg(np.linalg.norm(Rotation.from_matrix(A @ B.T).as_rotvec())))
+
+
+def _noisy(rng: np.random.Generator, R: np.ndarray, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    return Rotation.from_rotvec(rng.normal(0, SIGMA_R, 3)).as_matrix() @ R, t + rng.normal(0, SIGMA_T, 3)
+
+
+def test_a_static_pose_is_averaged_down():
+    rng = np.random.default_rng(0)
+    R0, t0 = Rotation.from_euler("xyz", [20, -30, 45], degrees=True).as_matrix(), np.array([0.05, -0.02, 0.8])
+    f = PoseFilter.start(FilterConfig(accel_std=0.01, angular_accel_std=0.01), *_noisy(rng, R0, t0), COV)
+    raw_t, raw_r = [], []
+    for _ in range(60):
+        f.predict(1 / 30)
+        R, t = _noisy(rng, R0, t0)
+        raw_t.append(np.linalg.norm(t - t0))
+        raw_r.append(_rot_deg(R, R0))
+        assert f.update(R, t, COV)[0]
+    assert np.linalg.norm(f.t - t0) < 0.4 * np.median(raw_t)
+    assert _rot_deg(f.R, R0) < 0.4 * np.median(raw_r)
+    assert np.sqrt(f.covariance[2, 2]) < 0.5 * SIGMA_T  # it knows it has averaged
+
+
+def test_constant_motion_is_followed_without_lag():
+    """A pose moving at constant linear and angular velocity: after a while the filter sits on it, and its
+    velocities are the true ones."""
+    rng = np.random.default_rng(1)
+    v, w, dt = np.array([0.1, 0.0, -0.05]), np.array([0.0, 0.5, 0.2]), 1 / 15
+    R0, t0 = np.eye(3), np.array([0.0, 0.0, 1.0])
+
+    def truth(k: int) -> tuple[np.ndarray, np.ndarray]:
+        return Rotation.from_rotvec(w * dt * k).as_matrix() @ R0, t0 + v * dt * k
+
+    f = PoseFilter.start(FilterConfig(accel_std=0.05, angular_accel_std=0.3), *truth(0), COV)
+    for k in range(1, 90):
+        f.predict(dt)
+        assert f.update(*_noisy(rng, *truth(k)), COV)[0]
+    R, t = truth(89)
+    assert np.linalg.norm(f.t - t) < 2 * SIGMA_T
+    assert _rot_deg(f.R, R) < 2 * np.rad2deg(SIGMA_R)
+    # velocities within 3 sigma of the filter's own uncertainty, which is well below the speeds
+    sd_v, sd_w = np.sqrt(np.diag(f.P)[3:6]), np.sqrt(np.diag(f.P)[9:12])
+    assert np.all(np.abs(f.v - v) < 3 * sd_v) and sd_v.max() < 0.5 * np.abs(v).max()
+    assert np.all(np.abs(f.w - w) < 3 * sd_w) and sd_w.max() < 0.5 * np.abs(w).max()
+
+
+def test_a_flip_is_refused_at_the_gate():
+    rng = np.random.default_rng(2)
+    R0, t0 = np.eye(3), np.array([0.0, 0.0, 1.0])
+    f = PoseFilter.start(FilterConfig(), R0, t0, COV)
+    for _ in range(10):
+        f.predict(1 / 15)
+        f.update(*_noisy(rng, R0, t0), COV)
+    before = (f.R.copy(), f.t.copy(), f.P.copy())
+    flipped = Rotation.from_euler("z", 180, degrees=True).as_matrix() @ R0
+    accepted, d2 = f.update(flipped, t0, COV)
+    assert not accepted and d2 > FilterConfig().gate_d2
+    assert np.array_equal(f.R, before[0]) and np.array_equal(f.t, before[1]) and np.array_equal(f.P, before[2])
+
+
+def test_the_state_covariance_stays_symmetric_positive():
+    rng = np.random.default_rng(3)
+    f = PoseFilter.start(FilterConfig(), np.eye(3), np.array([0, 0, 1.0]), COV)
+    for _ in range(200):
+        f.predict(rng.uniform(0.01, 0.3))
+        f.update(*_noisy(rng, np.eye(3), np.array([0, 0, 1.0])), COV)
+    assert np.allclose(f.P, f.P.T)
+    assert np.linalg.eigvalsh(f.P).min() > 0
+
+
+@dataclass
+class Pose:
+    ok: bool
+    R: np.ndarray
+    t: np.ndarray
+    covariance: np.ndarray | None
+
+
+@dataclass
+class Det:
+    obj_id: int
+    score: float
+    box: tuple[float, float, float, float]
+
+
+class Scene:
+    """Scripted frames: objects at known poses, a localiser that returns their boxes, an estimator whose poses
+    are the truth plus noise (or a flip, or nothing), and a log of what each frame asked for."""
+
+    def __init__(self, poses: dict[int, tuple[np.ndarray, np.ndarray]], seed: int = 0) -> None:
+        self.poses, self.rng = poses, np.random.default_rng(seed)
+        self.detect_calls, self.crops = 0, []
+        self.flip: set[int] = set()
+        self.refuse: set[int] = set()
+        self.hidden: set[int] = set()
+
+    def box(self, obj_id: int) -> tuple[float, float, float, float]:
+        p = K @ self.poses[obj_id][1]
+        cx, cy, side = p[0] / p[2], p[1] / p[2], 60.0 / self.poses[obj_id][1][2]
+        return (cx - side / 2, cy - side / 2, side, side)
+
+    def detect(self) -> list[Det]:
+        self.detect_calls += 1
+        return [Det(o, 0.9, self.box(o)) for o in self.poses if o not in self.hidden]
+
+    def estimate(self, crops: list[Crop]) -> list[Pose]:
+        self.crops.append(crops)
+        out = []
+        for c in crops:
+            R, t = _noisy(self.rng, *self.poses[c.obj_id])
+            if c.obj_id in self.flip:
+                R = Rotation.from_euler("z", 180, degrees=True).as_matrix() @ R
+            out.append(Pose(c.obj_id not in self.refuse, R, t, COV))
+        return out
+
+
+def _run(tracker: Tracker, scene: Scene, stamps) -> list:
+    return [tracker.step(s, K, scene.detect, scene.estimate) for s in stamps]
+
+
+def _scene() -> Scene:
+    tilted = Rotation.from_euler("x", 40, degrees=True).as_matrix()
+    return Scene({1: (np.eye(3), np.array([0.05, 0.0, 0.9])), 5: (tilted, np.array([-0.1, 0.05, 1.1]))})
+
+
+def test_tracks_keep_their_ids_and_the_localiser_runs_every_period():
+    scene, tracker = _scene(), Tracker(TrackingConfig(redetect_period=5))
+    frames = _run(tracker, scene, np.arange(20) / 15)
+    ids = [{(p.obj_id, p.track_id) for p in poses} for poses in frames]
+    assert all(i == ids[0] for i in ids) and len(ids[0]) == 2
+    assert scene.detect_calls == 4  # frames 0, 5, 10, 15
+    tracked = scene.crops[1]
+    assert all(c.track is not None and c.prior is not None for c in tracked)
+    for c in tracked:  # a tracked object's crop is where it is
+        x, y, w, h = scene.box(c.obj_id)
+        assert np.hypot(c.box[0] + c.box[2] / 2 - (x + w / 2), c.box[1] + c.box[3] / 2 - (y + h / 2)) < 5
+        assert abs(c.box[2] / w - 1) < 0.1
+
+
+def test_a_flip_is_gated_then_followed_if_it_persists():
+    scene, tracker = _scene(), Tracker(TrackingConfig(reinit_after=3))
+    _run(tracker, scene, np.arange(10) / 15)
+    R_before = next(tr.filter.R for tr in tracker.tracks if tr.obj_id == 5)
+    scene.flip.add(5)
+    frames = _run(tracker, scene, (10 + np.arange(2)) / 15)
+    assert [next(p.accepted for p in f if p.obj_id == 5) for f in frames] == [False, False]
+    assert _rot_deg(next(p.R for p in frames[-1] if p.obj_id == 5), R_before) < 10  # not followed
+    frames = _run(tracker, scene, [12 / 15])
+    assert next(p.accepted for p in frames[0] if p.obj_id == 5)
+    assert tracker.counts["measurements_gated"] == 3 and tracker.counts["tracks_restarted"] == 1
+
+
+def test_resets_on_stamps_backwards_camera_change_and_timeout():
+    scene, tracker = _scene(), Tracker(TrackingConfig(track_timeout=0.5))
+    first = _run(tracker, scene, [0.0, 0.1])[-1]
+    old_ids = {p.track_id for p in first}
+    poses = tracker.step(0.05, K, scene.detect, scene.estimate)  # a looped bag
+    assert tracker.counts["reset_stamps_backwards"] == 1 and not old_ids & {p.track_id for p in poses}
+    K2 = K.copy()
+    K2[0, 0] *= 1.1
+    tracker.step(0.2, K2, scene.detect, scene.estimate)
+    assert tracker.counts["reset_camera_changed"] == 1
+    scene.refuse = {1, 5}
+    tracker.step(0.3, K2, scene.detect, scene.estimate)  # no poses: the tracks miss but live on
+    assert len(tracker.tracks) == 2
+    scene.refuse = set()
+    scene.hidden = {1, 5}
+    tracker.step(0.3 + 0.6, K2, scene.detect, scene.estimate)  # past the timeout since the last accepted pose
+    assert tracker.counts["ended_timeout"] == 2
+
+
+def test_an_object_that_leaves_ends_its_track_and_a_return_starts_a_new_one():
+    scene, tracker = _scene(), Tracker(TrackingConfig(max_misses=3, track_timeout=10.0))
+    _run(tracker, scene, np.arange(3) / 15)
+    id1 = next(tr.id for tr in tracker.tracks if tr.obj_id == 1)
+    scene.refuse, scene.hidden = {1}, {1}
+    _run(tracker, scene, (3 + np.arange(3)) / 15)
+    assert all(tr.obj_id != 1 for tr in tracker.tracks) and tracker.counts["ended_misses"] == 1
+    scene.refuse, scene.hidden = set(), set()
+    poses = _run(tracker, scene, [6 / 15])[0]
+    assert next(p.track_id for p in poses if p.obj_id == 1) != id1
+
+
+@pytest.mark.parametrize("period", [1, 3])
+def test_a_redetection_refreshes_a_track_instead_of_duplicating_it(period):
+    scene, tracker = _scene(), Tracker(TrackingConfig(redetect_period=period))
+    _run(tracker, scene, np.arange(7) / 15)
+    assert len(tracker.tracks) == 2 and tracker.counts["tracks_started"] == 2
