@@ -19,7 +19,7 @@ import torch
 
 from axispose_core.agm.guidance import self_consistency_target
 from axispose_core.agm.model import VERSION, AGMConfig, AxisGenerator, depth_from_log
-from axispose_core.agm.sampler import sample
+from axispose_core.agm.sampler import Guidance, sample
 from axispose_core.axis_image import AxisSpec
 from axispose_core.camera import InstanceCrop, instance_crop, off_axis, validate_intrinsics
 from axispose_core.checkpoint import ESTIMATOR, CheckpointError, load_state, read_checkpoint, read_metadata, save_checkpoint
@@ -255,7 +255,7 @@ class Estimator:
         with torch.inference_mode(scale <= 0), torch.autocast(self.device.type, dtype=torch.bfloat16, enabled=self.bf16):
             enc = self.agm.encode(x.to(self.device), objects)
             axes = self.sampler(
-                self.agm, enc.repeat(hypotheses), steps, generator=gen, guidance=guidance if scale > 0 else None, guidance_scale=scale,
+                self.agm, enc.repeat(hypotheses), steps, generator=gen, guidance=Guidance(guidance, scale) if scale > 0 else None,
                 cancelled=cancelled, noise_scale=noise_scale,
             )  # fmt: skip
         log_depth = enc.log_depth.detach().float().cpu().numpy()  # guided sampling runs outside inference mode

@@ -91,7 +91,7 @@ class _OracleSampler:
         self.size = size
         self.batches: list[int] = []
 
-    def __call__(self, agm, enc, steps, eta=0.0, generator=None, guidance=None, guidance_scale=0.0, cancelled=None, noise_scale=None):
+    def __call__(self, agm, enc, steps, eta=0.0, generator=None, guidance=None, cancelled=None, noise_scale=None):
         n = len(enc.context)
         scale = np.ones(n) if noise_scale is None else noise_scale.numpy()  # the prior's mode draws the exact axes
         self.batches.append(n)

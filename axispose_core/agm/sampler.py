@@ -4,6 +4,7 @@ prior's mode), with run-time guidance injected into the noise estimate, cancella
 from __future__ import annotations
 
 from collections.abc import Callable
+from dataclasses import dataclass
 
 import torch
 
@@ -16,6 +17,15 @@ class Cancelled(Exception):
     """Sampling was stopped between DDIM steps by its `cancelled` callback."""
 
 
+@dataclass(frozen=True)
+class Guidance:
+    """Run-time guidance for `sample`: the measurement and its weight travel together, as neither means anything
+    alone. `target(x̂0) -> g` supplies the measurement; `scale` weighs it (0: off)."""
+
+    target: Callable[[torch.Tensor], AxisGeometry]
+    scale: float
+
+
 @torch.no_grad()
 def sample(
     agm: AxisGenerator,
@@ -23,15 +33,14 @@ def sample(
     steps: int,
     eta: float = 0.0,
     generator: torch.Generator | None = None,
-    guidance: Callable[[torch.Tensor], AxisGeometry] | None = None,
-    guidance_scale: float = 0.0,
+    guidance: Guidance | None = None,
     cancelled: Callable[[], bool] | None = None,
     noise_scale: torch.Tensor | None = None,
 ) -> torch.Tensor:
-    """One axis image (B,3,S,S) in [-1,1] per row of `enc` (`Encoding.repeat` for several per crop). `guidance(x̂0)
-    -> g` supplies the measurement for run-time guidance, scaled by `guidance_scale` (0: off). `cancelled()` is
-    asked before every step; True raises `Cancelled` (a node shutting down mid-frame). `noise_scale` (one factor
-    per row) scales the starting noise x_T: 0 starts the deterministic (eta = 0) path from the mode of N(0, I)."""
+    """One axis image (B,3,S,S) in [-1,1] per row of `enc` (`Encoding.repeat` for several per crop), with run-time
+    `guidance` where given (None or scale 0: off). `cancelled()` is asked before every step; True raises
+    `Cancelled` (a node shutting down mid-frame). `noise_scale` (one factor per row) scales the starting noise x_T:
+    0 starts the deterministic (eta = 0) path from the mode of N(0, I)."""
     sched = agm.scheduler
     sched.set_timesteps(steps)
     S = agm.config.denoiser.size
@@ -44,10 +53,10 @@ def sample(
             raise Cancelled("sampling cancelled")
         out = agm.denoiser(x, torch.full((x.shape[0],), t, device=x.device), enc)
         eps_override = None
-        if guidance is not None and guidance_scale > 0:
+        if guidance is not None and guidance.scale > 0:
             eps, x0 = sched.to_eps_x0(out, t, x)
             abar = sched.alphas_cumprod[t].to(x.dtype)
-            sigma = agm.config.guidance_sigma / guidance_scale**0.5
-            eps_override = guided_eps(eps, x, abar, guidance(x0), sigma, create_graph=False)
+            sigma = agm.config.guidance_sigma / guidance.scale**0.5
+            eps_override = guided_eps(eps, x, abar, guidance.target(x0), sigma, create_graph=False)
         x, x0 = sched.step(out, t, x, eta=eta, generator=generator, eps_override=eps_override)
     return x0
