@@ -17,6 +17,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from axispose_core.agm.correspondences import dense_correspondences
 from axispose_core.agm.guidance import self_consistency_target
 from axispose_core.agm.model import VERSION, AGMConfig, AxisGenerator, depth_from_log
 from axispose_core.agm.sampler import Guidance, sample
@@ -29,7 +30,7 @@ from axispose_core.localiser.model import Localiser, LocaliserConfig, build_loca
 from axispose_core.objects import ObjectSpec
 from axispose_core.precision import bf16_native
 from axispose_core.tbm.backproject import backproject_readings
-from axispose_core.tbm.dense import DenseFusion, dense_correspondences, fuse_pose
+from axispose_core.tbm.dense import DenseFusion, fuse_pose
 from axispose_core.tbm.reader import KeypointReader, ReaderConfig
 
 KIND = ESTIMATOR
@@ -283,7 +284,7 @@ class Estimator:
             axis_image = images[poses[c.medoid][0]].permute(1, 2, 0).cpu().numpy()
             spread = dict(spread_deg=c.spread_deg, spread_m=c.spread_m) if len(poses) > 1 else {}
             R, t, cov = c.R, c.t, (c.covariance if len(poses) > 1 else None)
-            if dense is not None and (fused := fuse_pose(cut.K_patch, R, t, *dense[i], z_head, self.config.dense_fusion)) is not None:
+            if dense is not None and (fused := fuse_pose(cut.K_patch, R, t, dense[i], z_head, self.config.dense_fusion)) is not None:
                 # The law of total covariance: the fusion's own (given the consensus) plus the samples' scatter about it.
                 R, t, cov = fused.R, fused.t, fused.covariance + (c.scatter if len(poses) > 1 else 0.0)
             out.append(PoseEstimate(R=R, t=t, ok=True, reason="", axis_image=axis_image, covariance=cov, **pick, **spread))

@@ -35,13 +35,14 @@ import numpy as np
 import torch
 from write_results import write_results
 
+from axispose_core.agm.correspondences import dense_correspondences
 from axispose_core.camera import project_model
 from axispose_core.data.bop import model_path
 from axispose_core.data.meshes import load_ply
 from axispose_core.estimator import Estimator, crop_batch, fuse_depth
 from axispose_core.evaluate import Prediction, evaluate
 from axispose_core.metrics import add_or_adi, re
-from axispose_core.tbm.dense import dense_correspondences, fuse_pose, translation_from_points
+from axispose_core.tbm.dense import DensePoints, fuse_pose, translation_from_points
 
 BANDS = ((0.1, 0.5), (0.5, 0.8), (0.8, 1.0))
 """Visible-fraction bands the depth errors are split by."""
@@ -101,7 +102,7 @@ def main() -> None:
             # The estimator's pose: from the TBM's and the fused depth, solved with the dense points and both as priors
             # (the crop's frame is the image's: K_patch only moves and scales the pixels).
             start = fuse_depth(p.t, p.head_depth, shipped.head_depth_weight)
-            fused = fuse_pose(cut.K_patch, p.R, start, uv, X, w, p.head_depth, shipped.dense_fusion) if p.ok else None
+            fused = fuse_pose(cut.K_patch, p.R, start, DensePoints(uv, X, w), p.head_depth, shipped.dense_fusion) if p.ok else None
             z_fus, R_fus = (float(fused[1][2]), fused[0]) if fused is not None else (float("nan"), None)
             dense.append((float(t_dense[2]) if t_dense is not None and t_dense[2] > 0 else float("nan"), z_pnp, R_pnp, z_fus, R_fus))
         return [Prediction(p.R, p.t, p.ok) for p in poses]

@@ -186,7 +186,7 @@ def test_the_dense_fusion_weighs_points_against_its_priors():
     """Exact points and priors at the truth give the true pose from a start 10 degrees and 5 % off; priors off the
     truth (rotation, depth, the origin's projection) give way to many points and hold against few; a fifth of the
     points moved far off do not pull it (IRLS); too few points, or a start behind the camera, give None."""
-    from axispose_core.tbm.dense import DenseFusion, fuse_pose
+    from axispose_core.tbm.dense import DenseFusion, DensePoints, fuse_pose
 
     rng = np.random.default_rng(4)
     R, t, X, uv = _exact_points(rng)
@@ -196,27 +196,27 @@ def test_the_dense_fusion_weighs_points_against_its_priors():
         return float(np.degrees(np.arccos(np.clip((np.trace(A.T @ B) - 1) / 2, -1, 1))))
 
     fusion = DenseFusion(points=10, rotation_sigma=0.1, depth_sigma=0.02)
-    R1, t1, _ = fuse_pose(LMO_K, R, 1.05 * t, uv, X, np.ones(300), t[2], fusion)  # the start is off, the priors are not
+    R1, t1, _ = fuse_pose(LMO_K, R, 1.05 * t, DensePoints(uv, X, np.ones(300)), t[2], fusion)  # the start is off, the priors are not
     np.testing.assert_allclose(R1, R, atol=1e-8)
     np.testing.assert_allclose(t1, t, atol=1e-8)
-    many = fuse_pose(LMO_K, off, 1.05 * t, uv, X, np.ones(300), 1.05 * t[2], DenseFusion(points=1e6))
-    few = fuse_pose(LMO_K, off, 1.05 * t, uv, X, np.ones(300), 1.05 * t[2], DenseFusion(points=1e-4))
+    many = fuse_pose(LMO_K, off, 1.05 * t, DensePoints(uv, X, np.ones(300)), 1.05 * t[2], DenseFusion(points=1e6))
+    few = fuse_pose(LMO_K, off, 1.05 * t, DensePoints(uv, X, np.ones(300)), 1.05 * t[2], DenseFusion(points=1e-4))
     assert angle(many[0], R) < 0.05 and abs(many[1][2] / t[2] - 1) < 1e-3
     assert angle(few[0], off) < 0.05 and abs(few[1][2] / t[2] - 1.05) < 1e-3
     # the origin's prior: a start 1 cm to the side stays there against few points and gives way to many
     side = t + np.array([0.01, 0.0, 0.0])
-    few = fuse_pose(LMO_K, R, side, uv, X, np.ones(300), t[2], DenseFusion(points=1e-4))
-    many = fuse_pose(LMO_K, R, side, uv, X, np.ones(300), t[2], DenseFusion(points=1e6))
+    few = fuse_pose(LMO_K, R, side, DensePoints(uv, X, np.ones(300)), t[2], DenseFusion(points=1e-4))
+    many = fuse_pose(LMO_K, R, side, DensePoints(uv, X, np.ones(300)), t[2], DenseFusion(points=1e6))
     np.testing.assert_allclose(few[1][:2] / few[1][2], side[:2] / side[2], atol=1e-5)
     np.testing.assert_allclose(many[1], t, atol=1e-4)
-    between = fuse_pose(LMO_K, off, 1.05 * t, uv, X, np.ones(300), 1.05 * t[2], fusion)
+    between = fuse_pose(LMO_K, off, 1.05 * t, DensePoints(uv, X, np.ones(300)), 1.05 * t[2], fusion)
     assert angle(between[0], R) < angle(off, R) and abs(between[1][2] / t[2] - 1) < 0.05
     bad = uv.copy()
     bad[:60] += rng.uniform(20, 40, (60, 2))
-    R2, t2, _ = fuse_pose(LMO_K, R, 1.05 * t, bad + rng.normal(0, 0.3, bad.shape), X, np.ones(300), t[2], fusion)
+    R2, t2, _ = fuse_pose(LMO_K, R, 1.05 * t, DensePoints(bad + rng.normal(0, 0.3, bad.shape), X, np.ones(300)), t[2], fusion)
     assert abs(t2[2] / t[2] - 1) < 0.005 and angle(R2, R) < 0.5
-    assert fuse_pose(LMO_K, R, t, uv[:5], X[:5], np.ones(5), t[2], fusion) is None
-    assert fuse_pose(LMO_K, R, -t, uv, X, np.ones(300), t[2], fusion) is None
+    assert fuse_pose(LMO_K, R, t, DensePoints(uv[:5], X[:5], np.ones(5)), t[2], fusion) is None
+    assert fuse_pose(LMO_K, R, -t, DensePoints(uv, X, np.ones(300)), t[2], fusion) is None
 
 
 def test_the_dense_fusions_covariance_is_the_scatter_of_its_solutions():
@@ -225,7 +225,7 @@ def test_the_dense_fusions_covariance_is_the_scatter_of_its_solutions():
     Laplace approximation), in geometry_msgs' order (x, y, z, rotation about X, Y, Z; the rotation error as the
     rotation vector of R_est R_trueᵀ); `covariance_scale` scales its translation and rotation blocks."""
     from axispose_core.metrics import mahalanobis_sq
-    from axispose_core.tbm.dense import DenseFusion, fuse_pose
+    from axispose_core.tbm.dense import DenseFusion, DensePoints, fuse_pose
 
     rng = np.random.default_rng(11)
     R, t, X, uv = _exact_points(rng)
@@ -234,7 +234,7 @@ def test_the_dense_fusions_covariance_is_the_scatter_of_its_solutions():
     wide = DenseFusion(points=n, rotation_sigma=10.0, depth_sigma=10.0, origin_sigma=1e4)
     errors, covs, d2 = [], [], []
     for _ in range(1000):
-        f = fuse_pose(LMO_K, R, t, uv + rng.normal(0, 1.0, uv.shape), X, np.ones(n), t[2], wide)
+        f = fuse_pose(LMO_K, R, t, DensePoints(uv + rng.normal(0, 1.0, uv.shape), X, np.ones(n)), t[2], wide)
         errors.append(np.concatenate([f.t - t, Rotation.from_matrix(f.R @ R.T).as_rotvec()]))
         covs.append(f.covariance)
         d2.append(mahalanobis_sq(f.R, f.t, R, t, f.covariance))
@@ -245,8 +245,8 @@ def test_the_dense_fusions_covariance_is_the_scatter_of_its_solutions():
     corr_cov = cov / np.sqrt(np.outer(np.diag(cov), np.diag(cov)))
     assert np.abs(corr - corr_cov).max() < 0.1  # the cross terms too: depth against tilt, x against rotation about y
     assert 1.5 < np.median(np.array(d2)[:, 0]) < 2.5 and 1.5 < np.median(np.array(d2)[:, 1]) < 2.5  # χ²(3): 2.37
-    scaled = fuse_pose(LMO_K, R, t, uv + 0.5, X, np.ones(n), t[2], replace(wide, covariance_scale=(2.0, 3.0)))
-    plain = fuse_pose(LMO_K, R, t, uv + 0.5, X, np.ones(n), t[2], wide)
+    scaled = fuse_pose(LMO_K, R, t, DensePoints(uv + 0.5, X, np.ones(n)), t[2], replace(wide, covariance_scale=(2.0, 3.0)))
+    plain = fuse_pose(LMO_K, R, t, DensePoints(uv + 0.5, X, np.ones(n)), t[2], wide)
     np.testing.assert_allclose(scaled.covariance, plain.covariance * np.outer(*2 * [np.sqrt([2, 2, 2, 3, 3, 3])]), rtol=1e-9)
     with pytest.raises(ValueError, match="covariance_scale"):
         DenseFusion(covariance_scale=(0.0, 1.0))

@@ -3,22 +3,19 @@
 Each visible pixel u of the encoder's surface-point map says which model point X it shows, u ≃ K (R X + t). With
 R from the TBM that is linear in t (`translation_from_points`); `fuse_pose` solves R and t together, with the
 TBM's rotation and origin and the encoder's depth as priors. No CAD model is needed: the points are the network's,
-in λ_O units.
+in λ_O units. The correspondences arrive as `DensePoints`; reading them off the AGM's encoding is the AGM's business
+(`agm/correspondences.py`), so the solver depends on nothing upstream of it.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, NamedTuple
+from typing import NamedTuple
 
 import cv2
 import numpy as np
-import torch
 
 from axispose_core.camera import project
-
-if TYPE_CHECKING:
-    from axispose_core.agm.denoiser import Encoding
 
 MIN_POINTS = 8
 """Fewer usable correspondences than this give no translation."""
@@ -29,23 +26,14 @@ RAYLEIGH_MEDIAN = float(np.sqrt(2 * np.log(2)))
 SIGMA_FLOOR_PX = 0.17
 """Least residual scale (px per coordinate) `fuse_pose` assumes for the dense points."""
 
-MASK_THRESHOLD = 0.5
-"""Mask probability from which a cell of the dense map counts as showing the object."""
 
+class DensePoints(NamedTuple):
+    """One crop's 2D-3D correspondences, the solver's input: pixels uv (N,2) (pixel centres at integers), model
+    points X (N,3) in metres and each point's prior weight (N,), e.g. the mask probability."""
 
-def dense_correspondences(enc: Encoding, scales: np.ndarray) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
-    """Per crop of an encoding: the dense map's cells that show the object, as crop pixels uv (N,2) (a cell's
-    centre: pixel centres at integers), model points X (N,3) in metres (the network's, in object radii, times the
-    crop's λ_O in `scales` (B,)) and weights (N,): the mask probability."""
-    cells = np.arange(enc.points.shape[-1]) * 2 + 0.5  # a cell of the half-resolution map covers 2 x 2 pixels
-    uv = np.stack(np.meshgrid(cells, cells), axis=-1).reshape(-1, 2)
-    points = enc.points.detach().float().cpu().numpy().reshape(len(scales), 3, -1).transpose(0, 2, 1)
-    prob = torch.sigmoid(enc.mask.detach().float()).cpu().numpy().reshape(len(scales), -1)
-    out = []
-    for X, p, scale in zip(points, prob, scales, strict=True):
-        keep = p > MASK_THRESHOLD
-        out.append((uv[keep], X[keep] * float(scale), p[keep]))
-    return out
+    uv: np.ndarray
+    X: np.ndarray
+    weight: np.ndarray
 
 
 def translation_from_points(
@@ -141,25 +129,23 @@ def fuse_pose(
     K: np.ndarray,
     R: np.ndarray,
     t: np.ndarray,
-    uv: np.ndarray,
-    X: np.ndarray,
-    weight: np.ndarray,
+    points: DensePoints,
     depth: float,
     fusion: DenseFusion,
     iters: int = 8,
 ) -> FusedPose | None:
     """The pose most probable given the dense points, the TBM's rotation R and origin (where t projects) and the
     encoder's `depth` (m), from the start (R, t): robust Gauss-Newton (R perturbed on the left, R ← exp([ω]×) R)
-    on the points' reprojection errors (in units of their robust scale per coordinate; prior `weight` (N,) scaled to sum
+    on the `points`' reprojection errors (in units of their robust scale per coordinate; prior weights scaled to sum
     to `fusion.points`, IRLS weights as in `translation_from_points`) with the three priors as further residuals.
     A tilted object's apparent size trades its tilt against its distance; the points see its shape, the head its
     size, the TBM its axes: solving for both together lets each settle what the others leave open. With it, its
     covariance: a crop whose points disagree with each other or with the priors gets a wide one.
     None when fewer than MIN_POINTS have weight, or the pose falls behind the camera."""
-    keep = weight > 0
+    keep = points.weight > 0
     if keep.sum() < MIN_POINTS or t[2] <= 0 or not depth > 0:
         return None
-    uv, X, prior = uv[keep], X[keep], weight[keep].astype(np.float64)
+    uv, X, prior = points.uv[keep], points.X[keep], points.weight[keep].astype(np.float64)
     prior *= fusion.points / prior.sum()
     R0, R, t = np.asarray(R, dtype=np.float64), np.asarray(R, dtype=np.float64), np.asarray(t, dtype=np.float64)
     origin = project(K, t[None])[0]

@@ -26,6 +26,7 @@ import numpy as np
 import torch
 import torch.distributed as dist
 
+from axispose_core.agm.correspondences import dense_correspondences
 from axispose_core.agm.model import AGMConfig, AxisGenerator, depth_from_log, grow_into
 from axispose_core.agm.sampler import sample
 from axispose_core.axis_image import axis_keypoints
@@ -34,7 +35,7 @@ from axispose_core.data.synth.stream import CropStream, stream_loader
 from axispose_core.estimator import Estimator, EstimatorConfig
 from axispose_core.metrics import re
 from axispose_core.tbm.backproject import backproject_readings
-from axispose_core.tbm.dense import dense_correspondences, translation_from_points
+from axispose_core.tbm.dense import translation_from_points
 from axispose_core.tbm.reader import SHIPPED_READER, KeypointReader, load_reader
 from axispose_core.train.dataset import AxisCropDataset
 from axispose_core.train.loop import (
