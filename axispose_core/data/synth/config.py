@@ -200,6 +200,20 @@ class RandomizationConfig:
 
 
 @dataclass(frozen=True)
+class CameraPathConfig:
+    """A scene filmed as a sequence: the camera orbits the objects' centre (about the table's normal; without a
+    table, about the camera's vertical) and shakes as a hand-held one does, so consecutive images share one
+    world, seen a little differently. Lighting stays with the camera; the background photograph is far away."""
+
+    orbit_deg: float = 1.0
+    """Orbit per image (degrees)."""
+    shake_deg: float = 0.3
+    """Standard deviation per image of the random walk of the camera's orientation (degrees)."""
+    shake_m: float = 0.002
+    """Standard deviation per image of the random walk of the camera's position (m)."""
+
+
+@dataclass(frozen=True)
 class SynthConfig:
     """A whole generation run: camera, scene and randomisation settings, and the recipe's identity."""
 
@@ -214,6 +228,8 @@ class SynthConfig:
     randomization: RandomizationConfig = field(default_factory=RandomizationConfig)
     depth: bool = False
     """Also write BOP depth images of the objects (depth/, DEPTH_SCALE), for BOP's VSD error."""
+    camera_path: CameraPathConfig | None = None
+    """Each scene as one world filmed along a camera path (tracking's test video); None: every image its own world."""
 
     def save(self, path: str | Path) -> None:
         Path(path).write_text(json.dumps(dataclasses.asdict(self), indent=1))

@@ -18,6 +18,7 @@ from pathlib import Path
 
 import cv2
 import numpy as np
+from scipy.spatial.transform import Rotation
 from tqdm import tqdm
 
 from axispose_core.data.bop import (
@@ -34,9 +35,9 @@ from axispose_core.data.bop import (
 from axispose_core.data.meshes import load_render_mesh
 from axispose_core.data.objects import NAMES_FILE
 from axispose_core.data.synth.clutter import distractor_mesh
-from axispose_core.data.synth.config import TABLE_TEXTURE, SynthConfig
+from axispose_core.data.synth.config import TABLE_TEXTURE, CameraPathConfig, SynthConfig
 from axispose_core.data.synth.randomize import background, camera_effects, cutouts, light, object_tint
-from axispose_core.data.synth.raster import RenderMesh, render
+from axispose_core.data.synth.raster import Light, RenderMesh, render
 from axispose_core.data.synth.scene import Placement, primitive, sample_scene
 from axispose_core.data.synth.table import Table, light_from_above, rest_on, shade_table, table_pixels
 
@@ -60,9 +61,21 @@ class SynthImage:
     """The table top the objects rest on, if the frame has one."""
 
 
-def render_image(cfg: SynthConfig, meshes: dict[int, RenderMesh], diameters: dict[int, float], scene_id: int, im_id: int) -> SynthImage:
-    """Sample, render and randomise one frame deterministically from (cfg.seed, scene_id, im_id)."""
-    rng = np.random.default_rng([cfg.seed, scene_id, im_id])
+@dataclass
+class World:
+    """What one image (or, along a camera path, one scene) shows before the camera renders it: the posed meshes
+    (camera frame; target objects where `placements` has an obj_id), the table, the background and the light."""
+
+    placements: list[Placement]
+    posed: list[tuple[RenderMesh, np.ndarray, np.ndarray]]
+    table: Table | None
+    background: np.ndarray
+    light: Light
+    shadows: bool
+
+
+def sample_world(cfg: SynthConfig, meshes: dict[int, RenderMesh], diameters: dict[int, float], rng: np.random.Generator) -> World:
+    """Objects, distractors, table, background and light, drawn from `rng`."""
     K = np.asarray(cfg.K, dtype=np.float64).reshape(3, 3)
     w, h = cfg.width, cfg.height
     rcfg = cfg.randomization
@@ -89,10 +102,45 @@ def render_image(cfg: SynthConfig, meshes: dict[int, RenderMesh], diameters: dic
     if table is not None:
         lit = light_from_above(lit, table, rng)
     shadows = rcfg.light.shadows > 0 and rng.uniform() < rcfg.light.shadows
-    res = render(posed, K, w, h, lit, shadows)
+    return World(placements, posed, table, bg, lit, shadows)
+
+
+def moved(world: World, R: np.ndarray, t: np.ndarray) -> World:
+    """The world seen by a camera that moved: every camera-frame point p becomes R p + t."""
+    placements = [Placement(p.obj_id, R @ p.R, R @ p.t + t, p.radius) for p in world.placements]
+    posed = [(m, R @ Rm, R @ tm + t) for m, Rm, tm in world.posed]
+    table = None if world.table is None else world.table.transformed(R, t)
+    return World(placements, posed, table, world.background, world.light, world.shadows)
+
+
+def camera_motion(path: CameraPathConfig, world: World, count: int, rng: np.random.Generator) -> list[tuple[np.ndarray, np.ndarray]]:
+    """The first camera's points in each of `count` cameras along the path, (R, t) per image (identity first):
+    an orbit about the target objects' centre, composed with a random walk of the camera's pose."""
+    targets = [p.t for p in world.placements if p.obj_id] or [p.t for p in world.placements]
+    centre = np.mean(targets, axis=0)
+    axis = world.table.normal if world.table is not None else np.array([0.0, -1.0, 0.0])
+    shake_R, shake_t = np.eye(3), np.zeros(3)
+    out = []
+    for k in range(count):
+        if k:
+            shake_R = Rotation.from_rotvec(rng.normal(0.0, np.radians(path.shake_deg), 3)).as_matrix() @ shake_R
+            shake_t = shake_t + rng.normal(0.0, path.shake_m, 3)
+        orbit = Rotation.from_rotvec(-np.radians(path.orbit_deg * k) * axis).as_matrix()
+        R = shake_R @ orbit
+        out.append((R, shake_R @ (centre - orbit @ centre) + shake_t))
+    return out
+
+
+def render_world(cfg: SynthConfig, world: World, meshes: dict[int, RenderMesh], rng: np.random.Generator) -> SynthImage:
+    """The camera's image of `world`: render, table, cut-outs, lens and sensor (from `rng`), and the annotations."""
+    K = np.asarray(cfg.K, dtype=np.float64).reshape(3, 3)
+    w, h = cfg.width, cfg.height
+    rcfg, table, placements = cfg.randomization, world.table, world.placements
+    res = render(world.posed, K, w, h, world.light, world.shadows)
+    bg = world.background
     if table is not None:
         points, table_depth = table_pixels(table, K, w, h)
-        bg = np.where(np.isfinite(table_depth)[..., None], shade_table(table, points, table_depth, lit, res.shadows), bg)
+        bg = np.where(np.isfinite(table_depth)[..., None], shade_table(table, points, table_depth, world.light, res.shadows), bg)
     image = np.where(res.instance[..., None] >= 0, res.rgb.astype(np.float32), bg)
     occluded = cutouts(rng, rcfg, image)
     image = camera_effects(rng, rcfg.sensor, image)
@@ -119,6 +167,19 @@ def render_image(cfg: SynthConfig, meshes: dict[int, RenderMesh], diameters: dic
         masks_visib.append(visib)
     depth = np.where(occluded, 0.0, res.depth)
     return SynthImage((image * 255 + 0.5).astype(np.uint8), quality, gt, info, masks, masks_visib, depth, table)
+
+
+def render_image(cfg: SynthConfig, meshes: dict[int, RenderMesh], diameters: dict[int, float], scene_id: int, im_id: int) -> SynthImage:
+    """Sample, render and randomise one frame deterministically from (cfg.seed, scene_id, im_id). Along a camera
+    path, the scene's world is image 0's and only the camera and its sensor noise change."""
+    if cfg.camera_path is None:
+        rng = np.random.default_rng([cfg.seed, scene_id, im_id])
+        return render_world(cfg, sample_world(cfg, meshes, diameters, rng), meshes, rng)
+    rng = np.random.default_rng([cfg.seed, scene_id, 0])
+    world = sample_world(cfg, meshes, diameters, rng)
+    path_rng = np.random.default_rng([cfg.seed, scene_id, 0, 1])
+    R, t = camera_motion(cfg.camera_path, world, im_id + 1, path_rng)[im_id]
+    return render_world(cfg, moved(world, R, t), meshes, np.random.default_rng([cfg.seed, scene_id, im_id, 2]))
 
 
 def generate_scene(cfg: SynthConfig, meshes: dict[int, RenderMesh], diameters: dict[int, float], out: Path, scene_id: int) -> int:

@@ -29,7 +29,11 @@ class Table:
 
     def rolled(self, roll: np.ndarray) -> Table:
         """The table after the camera rolls (every camera-frame vector turned by `roll`)."""
-        return Table(roll @ self.centre, roll @ self.normal, self.axes @ roll.T, self.half_size, self.texture, self.texel)
+        return self.transformed(roll, np.zeros(3))
+
+    def transformed(self, R: np.ndarray, t: np.ndarray) -> Table:
+        """The table seen by a camera that moved: every camera-frame point p becomes R p + t."""
+        return Table(R @ self.centre + t, R @ self.normal, self.axes @ R.T, self.half_size, self.texture, self.texel)
 
 
 def table_frame(elevation_deg: float) -> tuple[np.ndarray, np.ndarray]:
