@@ -205,3 +205,36 @@ def test_a_redetection_refreshes_a_track_instead_of_duplicating_it(period):
     scene, tracker = _scene(), Tracker(TrackingConfig(redetect_period=period))
     _run(tracker, scene, np.arange(7) / 15)
     assert len(tracker.tracks) == 2 and tracker.counts["tracks_started"] == 2
+
+
+def test_jitter_measures_the_error_change_not_the_motion():
+    from axispose_core.tracking.jitter import PosePair, jitter
+
+    rng = np.random.default_rng(4)
+    pairs, steady = [], []
+    for k in range(20):  # the object moves a lot; the prediction is off by a constant, then by a known jump
+        R_gt = Rotation.from_rotvec([0.0, 0.1 * k, 0.0]).as_matrix()
+        t_gt = np.array([0.02 * k, 0.0, 1.0])
+        bias_t = np.array([0.01, 0.0, 0.0]) if k % 2 == 0 else np.array([0.01, 0.003, 0.0])  # 3 mm jumps
+        bias_R = Rotation.from_rotvec([0.0, 0.0, np.radians(2.0 if k % 2 else 0.0)]).as_matrix()
+        pairs.append(PosePair(k, 1, bias_R @ R_gt, t_gt + bias_t, R_gt, t_gt))
+        steady.append(PosePair(k, 2, Rotation.from_rotvec(rng.normal(0, 0.3, 3)).as_matrix() @ R_gt, t_gt + 0.05, R_gt, t_gt))
+    out = jitter(pairs)
+    assert out["n"] == 19
+    assert out["jitter_mm"] == pytest.approx(3.0) and out["jitter_deg"] == pytest.approx(2.0)
+    constant = [PosePair(p.frame, 2, Rotation.from_rotvec([0.3, 0, 0]).as_matrix() @ p.R_gt, p.t_pred, p.R_gt, p.t_gt) for p in steady]
+    assert jitter(constant)["jitter_mm"] == pytest.approx(0.0, abs=1e-9)
+    assert jitter(constant)["jitter_deg"] == pytest.approx(0.0, abs=1e-4)
+    gap = [p for p in pairs if p.frame != 5]  # a missing frame breaks two pairs
+    assert jitter(gap)["n"] == 17
+
+
+def test_jitter_of_a_symmetric_object_ignores_a_flip_between_equivalent_poses():
+    from axispose_core.tracking.jitter import PosePair, jitter
+
+    flip = Rotation.from_euler("z", 180, degrees=True).as_matrix()
+    syms = {3: [(np.eye(3), np.zeros(3)), (flip, np.zeros(3))]}
+    R_gt, t_gt = Rotation.from_euler("x", 30, degrees=True).as_matrix(), np.array([0.0, 0.0, 0.8])
+    pairs = [PosePair(k, 3, R_gt @ (flip if k % 2 else np.eye(3)), t_gt, R_gt, t_gt) for k in range(6)]
+    assert jitter(pairs, syms)["jitter_deg"] == pytest.approx(0.0, abs=1e-4)
+    assert jitter(pairs)["jitter_deg"] == pytest.approx(180.0, abs=1e-4)
