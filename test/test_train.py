@@ -206,20 +206,21 @@ def test_a_state_saved_before_a_field_existed_resumes_if_the_field_is_left_at_it
 
     from axispose_core.agm.model import AxisGenerator
     from axispose_core.train.agm import CurriculumStage, TrainConfig
-    from axispose_core.train.resume import load_run_state, save_run_state
+    from axispose_core.train.resume import RunParts, load_run_state, save_run_state
 
     cfg = TrainConfig(agm=TINY_AGM)
     model = AxisGenerator(TINY_AGM)
     opt = torch.optim.AdamW(model.parameters())
     sched = torch.optim.lr_scheduler.LambdaLR(opt, lambda s: 1.0)
     path = tmp_path / "state.pt"
-    save_run_state(path, cfg, model, model, opt, sched, 7)
+    parts = RunParts(model, model, opt, sched)
+    save_run_state(path, cfg, parts, 7)
     state = torch.load(path, weights_only=False)
     del state["config"]["curriculum"]  # as written before the field was added
     torch.save(state, path)
-    assert load_run_state(path, cfg, model, model, opt, sched)[0] == 7
+    assert load_run_state(path, cfg, parts)[0] == 7
     with pytest.raises(ValueError, match="curriculum"):
-        load_run_state(path, replace(cfg, curriculum=(CurriculumStage(until=5),)), model, model, opt, sched)
+        load_run_state(path, replace(cfg, curriculum=(CurriculumStage(until=5),)), parts)
 
 
 def test_a_resumed_run_may_change_its_stream_from_the_saved_step_on_but_not_before(tmp_path):
@@ -230,17 +231,18 @@ def test_a_resumed_run_may_change_its_stream_from_the_saved_step_on_but_not_befo
     from axispose_core.agm.model import AxisGenerator
     from axispose_core.data.synth.config import StreamConfig
     from axispose_core.train.agm import CurriculumStage, TrainConfig, same_stream_before
-    from axispose_core.train.resume import load_run_state, save_run_state
+    from axispose_core.train.resume import RunParts, load_run_state, save_run_state
 
     easy = TrainConfig(agm=TINY_AGM, stream=StreamConfig(occluded_prob=0.0, clutter_prob=0.0, neighbours=(0, 0)))
     model = AxisGenerator(TINY_AGM)
     opt = torch.optim.AdamW(model.parameters())
     sched = torch.optim.lr_scheduler.LambdaLR(opt, lambda s: 1.0)
     path = tmp_path / "state.pt"
-    save_run_state(path, easy, model, model, opt, sched, 7)
+    parts = RunParts(model, model, opt, sched)
+    save_run_state(path, easy, parts, 7)
 
     def resume(cfg: TrainConfig) -> int:
-        return load_run_state(path, cfg, model, model, opt, sched, ("stream", "curriculum"), lambda s, n: same_stream_before(s, cfg, n))[0]
+        return load_run_state(path, cfg, parts, ("stream", "curriculum"), lambda s, n: same_stream_before(s, cfg, n))[0]
 
     occluded = replace(easy, stream=StreamConfig(occluded_prob=0.4))
     assert resume(replace(occluded, curriculum=(CurriculumStage(until=7),))) == 7  # the easy stream up to step 7, then occluded

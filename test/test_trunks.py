@@ -19,7 +19,7 @@ from axispose_core.agm.model import AGMConfig, AxisGenerator
 from axispose_core.agm.sampler import sample
 from axispose_core.checkpoint import config_from_dict, load_state
 from axispose_core.localiser.model import Localiser, LocaliserConfig
-from axispose_core.train.loop import OptimConfig, RunOptions, fit, param_groups, start_pretrained
+from axispose_core.train.loop import OptimConfig, RunOptions, TrainJob, fit, param_groups, start_pretrained
 from axispose_core.trunks import TRUNKS, EfficientNetLiteConfig, ResidualBNConfig, ResidualGNConfig, build_trunk
 from axispose_core.trunks.efficientnet_lite import EfficientNetLiteClassifier, SamePad, imagenet_state, key_map, weights_file
 
@@ -152,8 +152,8 @@ def test_a_pretrained_trunk_starts_from_imagenet_with_its_first_stages_frozen_an
         while True:
             yield {"image": images}
 
-    fit(cfg, net, batches, lambda model, batch, _: (model(batch["image"]) ** 2).mean(), tmp_path / "net.safetensors",
-        lambda *a: None, run=RunOptions(progress=False))  # fmt: skip
+    fit(TrainJob(cfg, net, batches, lambda model, batch, _: (model(batch["image"]) ** 2).mean(), tmp_path / "net.safetensors",
+                 lambda *a: None), RunOptions(progress=False))  # fmt: skip
     state = imagenet_state()
     after = net.trunk.state_dict()
     frozen = [k for k in after if k.startswith(("stages.0.", "stages.1."))]

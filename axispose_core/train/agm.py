@@ -42,6 +42,8 @@ from axispose_core.train.loop import (
     DEFAULT_RUN,
     OptimConfig,
     RunOptions,
+    TrainJob,
+    Validation,
     epochs,
     fit,
     start_pretrained,
@@ -268,8 +270,9 @@ def train_agm(
         est_cfg = EstimatorConfig(agm=cfg.agm, reader=reader.config, objects=tuple(objects), training=record)
         Estimator(est_cfg, ema, reader, "cpu" if dev.type == "cpu" else str(dev)).save(out)
 
-    return fit(
-        cfg, model, batches, loss, out, save, validate_ema, VAL_COLUMNS, run, dev, "train agm",
-        str(init) if init else None, ("stream", "curriculum"), lambda saved, at: same_stream_before(saved, cfg, at),
-        AGMObjective,
+    job = TrainJob(
+        cfg, model, batches, loss, out, save, validation=Validation(VAL_COLUMNS, validate_ema), device=dev, desc="train agm",
+        init=str(init) if init else None, data_fields=("stream", "curriculum"),
+        same_data=lambda saved, at: same_stream_before(saved, cfg, at), objective=AGMObjective,
     )  # fmt: skip
+    return fit(job, run)

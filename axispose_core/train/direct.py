@@ -20,7 +20,18 @@ from axispose_core.metrics import re
 from axispose_core.tbm.backproject import backproject
 from axispose_core.train.agm import with_depth_target
 from axispose_core.train.dataset import AxisCropDataset
-from axispose_core.train.loop import DEFAULT_RUN, OptimConfig, RunOptions, epochs, fit, start_pretrained, training_device, training_record
+from axispose_core.train.loop import (
+    DEFAULT_RUN,
+    OptimConfig,
+    RunOptions,
+    TrainJob,
+    Validation,
+    epochs,
+    fit,
+    start_pretrained,
+    training_device,
+    training_record,
+)
 from axispose_core.train.losses import DirectObjective
 from axispose_core.train.sources import CropSources
 
@@ -85,8 +96,9 @@ def train_direct(cfg: DirectTrainConfig, sources: CropSources, out: str | Path, 
     model = DirectRegressor(config)
     if not run.resume:
         start_pretrained(model)
-    return fit(
+    columns = ("val_rot_median_deg", "val_rot_within_15deg", "val_kp_err_px", "val_depth_head")
+    job = TrainJob(
         cfg, model, batches if stream is not None else epochs(train_set, cfg.optim), loss, out, save,
-        validate if val_batch else None, ("val_rot_median_deg", "val_rot_within_15deg", "val_kp_err_px", "val_depth_head"),
-        run, dev, "train direct", objective=DirectObjective,
+        validation=Validation(columns, validate if val_batch else None), device=dev, desc="train direct", objective=DirectObjective,
     )  # fmt: skip
+    return fit(job, run)

@@ -28,7 +28,18 @@ from axispose_core.localiser.decode import draw_targets, focal_loss
 from axispose_core.localiser.model import STRIDE, Localiser, LocaliserConfig, build_localiser
 from axispose_core.localiser.scoring import detection_scores, frame_instances
 from axispose_core.localiser.weights import KIND, warm_start
-from axispose_core.train.loop import DEFAULT_RUN, OptimConfig, RunOptions, epochs, fit, start_pretrained, training_device, training_record
+from axispose_core.train.loop import (
+    DEFAULT_RUN,
+    OptimConfig,
+    RunOptions,
+    TrainJob,
+    Validation,
+    epochs,
+    fit,
+    start_pretrained,
+    training_device,
+    training_record,
+)
 
 
 @dataclass(frozen=True)
@@ -152,8 +163,9 @@ def train_localiser(
         fresh = warm_start(model, init)
         shown = (": " + ", ".join(fresh[:6]) + (" ..." if len(fresh) > 6 else "")) if fresh else ""
         print(f"started from {init}; {len(fresh)} of {len(model.state_dict())} tensors start fresh{shown}")
-    return fit(
+    job = TrainJob(
         cfg, model, epochs(train_set, cfg.optim), lambda net, batch, _: localiser_loss(net, batch, cfg), out, save,
-        validate if val_data else None, ("val_recall", "val_precision"), run, dev, "train localiser",
-        str(init) if init else None,
+        validation=Validation(("val_recall", "val_precision"), validate if val_data else None), device=dev,
+        desc="train localiser", init=str(init) if init else None,
     )  # fmt: skip
+    return fit(job, run)

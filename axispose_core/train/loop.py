@@ -25,7 +25,7 @@ from torch.utils.data import DataLoader, Dataset, DistributedSampler, RandomSamp
 from tqdm import tqdm
 
 from axispose_core.precision import bf16_native
-from axispose_core.train.resume import load_run_state, save_run_state, state_path
+from axispose_core.train.resume import RunParts, load_run_state, save_run_state, state_path
 from axispose_core.trunks import Trunk
 
 Batch = dict[str, torch.Tensor]
@@ -154,106 +154,163 @@ def param_groups(model: torch.nn.Module, optim: OptimConfig) -> list[dict[str, A
     return groups + ([{"params": pretrained, "lr": optim.lr * optim.trunk_lr}] if pretrained else [])
 
 
-def fit(
-    cfg: Any,
-    model: torch.nn.Module,
-    batches: Callable[[int], Iterable[Batch]],
-    loss_fn: Callable[[torch.nn.Module, Batch, torch.Generator], torch.Tensor],
-    out: Path,
-    save: Callable[[torch.nn.Module, int, float, str | None], None],
-    validate: Callable[[torch.nn.Module], dict[str, float]] | None = None,
-    val_columns: tuple[str, ...] = (),
-    run: RunOptions = DEFAULT_RUN,
-    device: torch.device | str = "cpu",
-    desc: str = "train",
-    init: str | None = None,
-    data_fields: tuple[str, ...] = (),
-    same_data: Callable[[dict[str, Any], int], bool] | None = None,
-    objective: Callable[[torch.nn.Module], torch.nn.Module] | None = None,
-) -> int:
-    """Train `model` for cfg.optim.steps; returns the step reached.
+LossFn = Callable[[torch.nn.Module, Batch, torch.Generator], torch.Tensor]
+"""(net, batch on the device, the run's seeded generator) -> the loss."""
+SaveFn = Callable[[torch.nn.Module, int, float, str | None], None]
+"""(EMA weights, step, the run's training time in seconds, the checkpoint it was warm-started from) -> None."""
 
-    `batches(step)` yields the training batches from `step` on (the crop stream's next samples, or `epochs`), so a
-    resumed run continues where it stopped. `loss_fn(net, batch, generator)` gets the batch on the device and the
-    run's seeded generator for any randomness of its own (`device` is where `run.device` resolved to).
-    `save(ema, step, seconds, init)` writes the checkpoint; `validate(ema)` gives the `val_columns` every
-    `val_every` steps. Seed torch with cfg.optim.seed before building
-    `model`, so its initial weights follow the seed too. `init` names the checkpoint `model` was warm-started from;
-    a resumed run takes it from its state, so that every call records it. `cfg` is saved in the resume state and
-    must match on resume but for the run's length, how often it saves and validates, and `data_fields` where
-    `same_data` accepts them (`load_run_state`). `objective(model)`, where given, is the module whose forward
-    computes the loss (`train/losses.py`): what loss_fn is handed and DistributedDataParallel wraps, while the
-    model's own state is what the EMA, the checkpoints and the resume state hold. Pretrained trunks
-    (`start_pretrained`) have their first optim.freeze_trunk stages frozen and train the rest at optim.trunk_lr
-    times the rate (`param_groups`)."""
-    optim: OptimConfig = cfg.optim
-    rank, size = world()
-    for trunk in pretrained_trunks(model):
+
+@dataclass(frozen=True)
+class Validation:
+    """The CSV's held-out metric columns and `metrics(ema)`, which gives them every optim.val_every steps (None: the
+    columns stay empty, e.g. a run without held-out data, so that every run of a trainer writes the same header)."""
+
+    columns: tuple[str, ...] = ()
+    metrics: Callable[[torch.nn.Module], dict[str, float]] | None = None
+
+
+@dataclass(frozen=True)
+class TrainJob:
+    """What a trainer hands `fit`: what it trains, on what, to which loss, where it saves and how it validates.
+
+    `cfg` is the trainer's config (its `optim` the `OptimConfig`), saved in the resume state; it must match on
+    resume but for the run's length, how often it saves and validates, and `data_fields` where `same_data` accepts
+    them (`load_run_state`). Seed torch with cfg.optim.seed before building `model`, so its initial weights follow
+    the seed too. `batches(step)` yields the training batches from `step` on (the crop stream's next samples, or
+    `epochs`), so a resumed run continues where it stopped. `save` writes the checkpoint `out`; beside it go
+    OUT.state.pt and OUT.csv. `device` is where `RunOptions.device` resolved to (the trainer's: under torchrun,
+    the local rank's GPU). `init` names the checkpoint `model` was warm-started from; a resumed run takes it from
+    its state, so that every call records it. `objective(model)`, where given, is the module whose forward
+    computes the loss (`train/losses.py`): what `loss` is handed and DistributedDataParallel wraps, while the
+    model's own state is what the EMA, the checkpoints and the resume state hold."""
+
+    cfg: Any
+    model: torch.nn.Module
+    batches: Callable[[int], Iterable[Batch]]
+    loss: LossFn
+    out: Path
+    save: SaveFn
+    validation: Validation = Validation()
+    device: torch.device | str = "cpu"
+    desc: str = "train"
+    init: str | None = None
+    data_fields: tuple[str, ...] = ()
+    same_data: Callable[[dict[str, Any], int], bool] | None = None
+    objective: Callable[[torch.nn.Module], torch.nn.Module] | None = None
+
+
+def _run_parts(job: TrainJob) -> RunParts:
+    """The model on the device with its pretrained trunks' first optim.freeze_trunk stages frozen, its EMA copy,
+    AdamW over `param_groups` and the warm-up-cosine schedule: what the resume state saves and restores."""
+    optim: OptimConfig = job.cfg.optim
+    for trunk in pretrained_trunks(job.model):
         trunk.freeze(optim.freeze_trunk)
-    model = model.to(device)
+    model = job.model.to(job.device)
     ema = copy.deepcopy(model).eval()
     opt = torch.optim.AdamW(param_groups(model, optim), lr=optim.lr, weight_decay=optim.weight_decay)
     sched = torch.optim.lr_scheduler.LambdaLR(opt, lambda s: warmup_cosine(s, optim.warmup, optim.steps))
-    step, before = 0, 0.0
-    if run.resume:
-        step, init, before = load_run_state(run.resume, cfg, model, ema, opt, sched, data_fields, same_data)
-    trained = objective(model) if objective is not None else model
-    net = torch.nn.parallel.DistributedDataParallel(trained) if size > 1 else trained
-    gen = torch.Generator().manual_seed(optim.seed * 1000 + step + rank)
-    log = open(out.with_suffix(".csv"), "a", newline="") if rank == 0 else None
-    writer = csv.writer(log) if log else None
-    if writer and step == 0:
-        writer.writerow(["step", "samples", "loss", "lr", "seconds", *val_columns])
-    start = time.time()
-    device_type = torch.device(device).type
+    return RunParts(model, ema, opt, sched)
+
+
+def _bf16_autocast(optim: OptimConfig, device: torch.device | str, rank: int) -> bool:
+    """Whether steps run under bfloat16 autocast: asked for and native on `device`; says so where it is not."""
     autocast = optim.bf16 and bf16_native(torch.device(device))
     if optim.bf16 and not autocast and rank == 0:
+        device_type = torch.device(device).type
         print(f"bf16: {device_type} has no native bfloat16; training in float32 (emulated bfloat16 is ~10x slower)")
+    return autocast
 
-    def seconds() -> float:
+
+class _Session:
+    """One call of `fit` under way: the parts it trains, the step reached, its clock and rank 0's CSV log. Kept
+    apart from `fit` so that each step of a training step (optimise, validate, log, save) has a name."""
+
+    def __init__(self, job: TrainJob, run: RunOptions, parts: RunParts, resumed: tuple[int, str | None, float]) -> None:
+        """Open the log and start the clock; `resumed`: the step, init and seconds `load_run_state` gave."""
+        self.job, self.run, self.parts, self.optim = job, run, parts, job.cfg.optim
+        self.rank, self.size = world()
+        self.step, self.init, self.before = resumed
+        self.columns = job.validation.columns
+        self.log = open(job.out.with_suffix(".csv"), "a", newline="") if self.rank == 0 else None
+        self.writer = csv.writer(self.log) if self.log else None
+        if self.writer and self.step == 0:
+            self.writer.writerow(["step", "samples", "loss", "lr", "seconds", *self.columns])
+        self.start = time.time()
+
+    def seconds(self) -> float:
         """The run's training time over all its calls: the checkpoint's record and the CSV's clock."""
-        return before + time.time() - start
+        return self.before + time.time() - self.start
 
-    def checkpoint() -> None:
-        if rank == 0:
-            now = seconds()
-            save(ema, step, now, init)
-            save_run_state(state_path(out), cfg, model, ema, opt, sched, step, init, now)
-
-    def done() -> bool:
-        if step >= optim.steps or (run.stop_at is not None and step >= run.stop_at):
+    def done(self) -> bool:
+        """The end of the schedule or of this call: the last step, the stop step, or the wall-time cap."""
+        if self.step >= self.optim.steps or (self.run.stop_at is not None and self.step >= self.run.stop_at):
             return True
-        return run.max_minutes is not None and time.time() - start > 60 * run.max_minutes
+        return self.run.max_minutes is not None and time.time() - self.start > 60 * self.run.max_minutes
 
-    bar = tqdm(total=optim.steps, initial=step, desc=desc, disable=not run.progress or rank != 0)
+    def checkpoint(self) -> None:
+        """Rank 0 saves the EMA weights (the trainer's `save`) and the resume state beside them."""
+        if self.rank == 0:
+            now = self.seconds()
+            self.job.save(self.parts.ema, self.step, now, self.init)
+            save_run_state(state_path(self.job.out), self.job.cfg, self.parts, self.step, self.init, now)
+
+    def train_step(self, net: torch.nn.Module, batch: Batch, gen: torch.Generator, autocast: bool) -> torch.Tensor:
+        """One optimiser step on `batch` (clipped, scheduled, EMA updated); the loss."""
+        parts, device = self.parts, self.job.device
+        parts.model.train()
+        with torch.autocast(torch.device(device).type, dtype=torch.bfloat16, enabled=autocast):
+            loss = self.job.loss(net, {k: v.to(device) for k, v in batch.items()}, gen)
+        parts.opt.zero_grad(set_to_none=True)
+        loss.backward()
+        torch.nn.utils.clip_grad_norm_(parts.model.parameters(), self.optim.grad_clip)
+        parts.opt.step()
+        parts.sched.step()
+        ema_update(parts.ema, parts.model, self.optim.ema_decay)
+        self.step += 1
+        return loss
+
+    def record(self, loss: torch.Tensor) -> None:
+        """After a step: rank 0 validates every val_every steps and logs every 10th step (and each validated
+        one); everyone saves every save_every steps."""
+        step, metrics = self.step, self.job.validation.metrics
+        val = metrics(self.parts.ema) if metrics is not None and self.rank == 0 and step % self.optim.val_every == 0 else {}
+        if self.writer and (step % 10 == 0 or val):
+            self.writer.writerow([step, step * self.optim.batch * self.size, f"{loss.item():.5f}",
+                                  f"{self.parts.sched.get_last_lr()[0]:.2e}", f"{self.seconds():.1f}",
+                                  *(val.get(c, "") for c in self.columns)])  # fmt: skip
+            self.log.flush()
+        if step % self.optim.save_every == 0:
+            self.checkpoint()
+
+
+def fit(job: TrainJob, run: RunOptions = DEFAULT_RUN) -> int:
+    """Train `job.model` for cfg.optim.steps, as `run` says (resume, stop, progress); returns the step reached.
+
+    AdamW over `param_groups` with warm-up then cosine decay, gradient clipping, EMA weights (what the checkpoints
+    hold) and bf16 autocast where native; pretrained trunks (`start_pretrained`) have their first
+    optim.freeze_trunk stages frozen and train the rest at optim.trunk_lr times the rate. Under torchrun the
+    model (or its objective) is wrapped in DistributedDataParallel and rank 0 alone logs, validates and saves."""
+    parts = _run_parts(job)
+    resumed = load_run_state(run.resume, job.cfg, parts, job.data_fields, job.same_data) if run.resume else (0, job.init, 0.0)
+    trained = job.objective(parts.model) if job.objective is not None else parts.model
+    net = torch.nn.parallel.DistributedDataParallel(trained) if world()[1] > 1 else trained
+    session = _Session(job, run, parts, resumed)
+    gen = torch.Generator().manual_seed(session.optim.seed * 1000 + session.step + session.rank)
+    autocast = _bf16_autocast(session.optim, job.device, session.rank)
+    bar = tqdm(total=session.optim.steps, initial=session.step, desc=job.desc, disable=not run.progress or session.rank != 0)
     try:
-        for batch in batches(step) if not done() else ():
-            model.train()
-            with torch.autocast(device_type, dtype=torch.bfloat16, enabled=autocast):
-                loss = loss_fn(net, {k: v.to(device) for k, v in batch.items()}, gen)
-            opt.zero_grad(set_to_none=True)
-            loss.backward()
-            torch.nn.utils.clip_grad_norm_(model.parameters(), optim.grad_clip)
-            opt.step()
-            sched.step()
-            ema_update(ema, model, optim.ema_decay)
-            step += 1
+        for batch in job.batches(session.step) if not session.done() else ():
+            loss = session.train_step(net, batch, gen, autocast)
             bar.update(1)
             bar.set_postfix(loss=f"{loss.item():.4f}")
-            val = validate(ema) if validate is not None and rank == 0 and step % optim.val_every == 0 else {}
-            if writer and (step % 10 == 0 or val):
-                writer.writerow([step, step * optim.batch * size, f"{loss.item():.5f}", f"{sched.get_last_lr()[0]:.2e}",
-                                 f"{seconds():.1f}", *(val.get(c, "") for c in val_columns)])  # fmt: skip
-                log.flush()
-            if step % optim.save_every == 0:
-                checkpoint()
-            if done():
+            session.record(loss)
+            if session.done():
                 break
-        checkpoint()
+        session.checkpoint()
     finally:
         bar.close()
-        if log:
-            log.close()
-        if size > 1:
+        if session.log:
+            session.log.close()
+        if session.size > 1:
             dist.barrier()
-    return step
+    return session.step

@@ -16,7 +16,7 @@ from axispose_core.axis_image import axis_keypoints, render_axis_keypoints_torch
 from axispose_core.checkpoint import save_checkpoint
 from axispose_core.pose_sampling import sample_patch
 from axispose_core.tbm.reader import KIND, KeypointReader, ReaderConfig
-from axispose_core.train.loop import DEFAULT_RUN, OptimConfig, RunOptions, fit, training_device, training_record
+from axispose_core.train.loop import DEFAULT_RUN, OptimConfig, RunOptions, TrainJob, Validation, fit, training_device, training_record
 
 VAL_SEED = 1_000_000
 
@@ -143,4 +143,6 @@ def train_reader(
         record = training_record(["rendered axis images"], step, optim.batch, seconds, dev, init)
         save_checkpoint(out, KIND, cfg.reader, {"reader": ema}, extra={"training": record})
 
-    return fit(cfg, KeypointReader(cfg.reader), batches, loss, out, save, validate, ("val_kp_err_px",), run, dev, "train reader")
+    validation = Validation(("val_kp_err_px",), validate)
+    job = TrainJob(cfg, KeypointReader(cfg.reader), batches, loss, out, save, validation=validation, device=dev, desc="train reader")
+    return fit(job, run)

@@ -5,6 +5,7 @@ from __future__ import annotations
 import copy
 import dataclasses
 from collections.abc import Callable
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -18,28 +19,30 @@ def state_path(out: Path) -> Path:
     return out.with_suffix(out.suffix + ".state.pt")
 
 
-def save_run_state(
-    path: Path,
-    cfg: Any,
-    model: torch.nn.Module,
-    ema: torch.nn.Module,
-    opt,
-    sched,
-    step: int,
-    init: str | None = None,
-    seconds: float = 0.0,
-) -> None:
-    """Model, EMA, optimiser, LR schedule, step and RNG with the run's config, written atomically; `init` names the
-    checkpoint a warm-started run began from and `seconds` the run's training time so far, so that every later call
-    of the run still records both."""
+@dataclass(frozen=True)
+class RunParts:
+    """What a resume state holds besides the config and the step: the weights being trained, their EMA, the
+    optimiser and its LR schedule. Saved and restored together, since a run resumed with one of them missing or
+    from another step would silently train another recipe."""
+
+    model: torch.nn.Module
+    ema: torch.nn.Module
+    opt: torch.optim.Optimizer
+    sched: torch.optim.lr_scheduler.LRScheduler
+
+
+def save_run_state(path: Path, cfg: Any, parts: RunParts, step: int, init: str | None = None, seconds: float = 0.0) -> None:
+    """The run's `parts`, step and RNG with its config, written atomically; `init` names the checkpoint a
+    warm-started run began from and `seconds` the run's training time so far, so that every later call of the run
+    still records both."""
     tmp = path.with_suffix(".tmp")
     torch.save(
         {
             "config": dataclasses.asdict(cfg),
-            "model": model.state_dict(),
-            "ema": ema.state_dict(),
-            "opt": opt.state_dict(),
-            "sched": sched.state_dict(),
+            "model": parts.model.state_dict(),
+            "ema": parts.ema.state_dict(),
+            "opt": parts.opt.state_dict(),
+            "sched": parts.sched.state_dict(),
             "step": step,
             "torch_rng": torch.get_rng_state(),
             "init": init,
@@ -74,14 +77,11 @@ def _fill_new_fields(saved: dict[str, Any], cfg: Any) -> None:
 def load_run_state(
     path: str | Path,
     cfg: Any,
-    model: torch.nn.Module,
-    ema: torch.nn.Module,
-    opt,
-    sched,
+    parts: RunParts,
     data_fields: tuple[str, ...] = (),
     same_data: Callable[[dict[str, Any], int], bool] | None = None,
 ) -> tuple[int, str | None, float]:
-    """Restore a saved run into the given objects and return its step, the checkpoint it was warm-started from
+    """Restore a saved run into `parts` and return its step, the checkpoint it was warm-started from
     (None: from scratch) and its training time so far in seconds (0 for a state written before it was kept); a run
     with another recipe is refused. `data_fields` say what the run trains on at each step: they may change where
     `same_data(saved config, saved step)` finds that the new ones give the same data before the saved step (e.g. a
@@ -99,9 +99,9 @@ def load_run_state(
         changed = sorted(k for k in saved.keys() | now.keys() if saved.get(k) != now.get(k))
         raise ValueError(f"{path}: saved by a run with another configuration ({', '.join(changed)}); only "
                          f"optim.{', optim.'.join(EXTENDABLE)} may change on resume, and the data from the saved step on")  # fmt: skip
-    model.load_state_dict(state["model"])
-    ema.load_state_dict(state["ema"])
-    opt.load_state_dict(state["opt"])
-    sched.load_state_dict(state["sched"])
+    parts.model.load_state_dict(state["model"])
+    parts.ema.load_state_dict(state["ema"])
+    parts.opt.load_state_dict(state["opt"])
+    parts.sched.load_state_dict(state["sched"])
     torch.set_rng_state(state["torch_rng"])
     return state["step"], state.get("init"), float(state.get("seconds", 0.0))
