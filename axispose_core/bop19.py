@@ -58,6 +58,19 @@ class BopObject:
         return render_depth(RenderMesh(self.points, self.faces, zeros, zeros), R, t, K, width, height)
 
 
+@dataclass(frozen=True)
+class BopImage:
+    """What the errors need of one image besides the poses: its BOP ids, its camera, its size (MSPD is scaled to a
+    640 px width; VSD renders at this size) and its depth image (m, 0: none; None: the scene has none, so no VSD)."""
+
+    scene_id: int
+    im_id: int
+    K: np.ndarray
+    width: int
+    height: int
+    depth: np.ndarray | None = None
+
+
 @dataclass
 class ImageErrors:
     """One evaluated image: its instances to find (`obj_ids`), every estimate made (for the results file), and
@@ -74,19 +87,12 @@ class ImageErrors:
 
 
 def image_errors(
-    scene_id: int,
-    im_id: int,
-    estimates: list[BopEstimate],
-    targets: list[tuple[int, np.ndarray, np.ndarray]],
-    objects: dict[int, BopObject],
-    K: np.ndarray,
-    width: int,
-    height: int,
-    depth: np.ndarray | None,
+    image: BopImage, estimates: list[BopEstimate], targets: list[tuple[int, np.ndarray, np.ndarray]], objects: dict[int, BopObject]
 ) -> ImageErrors:
     """The errors of one image's `estimates` against its `targets` [(obj_id, R, t)]: the instances to find. Per
     object, only the best-scored estimates take part, as many as it has targets (estimates of objects without
-    one take none). VSD needs the image's `depth` (m, 0: none) and is left out without it."""
+    one take none). VSD needs the image's depth and is left out without it."""
+    K, width, height, depth = image.K, image.width, image.height, image.depth
     obj_ids = np.array([o for o, _, _ in targets], dtype=np.int64)
     order = sorted(range(len(estimates)), key=lambda i: -estimates[i].score)  # stable, as BOP's sort
     quota = {int(o): int(np.count_nonzero(obj_ids == o)) for o in obj_ids}
@@ -117,7 +123,7 @@ def image_errors(
             if depth is not None:
                 d_est, d_gt = rendered("est", a, obj, e.R, e.t), rendered("gt", b, obj, R_gt, t_gt)
                 errors["vsd"][a, b] = vsd(d_est, d_gt, depth, K, VSD_DELTA, FRACTIONS, obj.diameter)
-    return ImageErrors(scene_id, im_id, obj_ids, list(estimates), np.array(kept, dtype=np.int64), errors)
+    return ImageErrors(image.scene_id, image.im_id, obj_ids, list(estimates), np.array(kept, dtype=np.int64), errors)
 
 
 def _matched(errors: np.ndarray, threshold: float) -> np.ndarray:

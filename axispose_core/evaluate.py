@@ -23,7 +23,7 @@ import numpy as np
 from tqdm import tqdm
 
 from axispose_core.axis_image import draw_axes
-from axispose_core.bop19 import BopObject, ImageErrors, average_recall, image_errors
+from axispose_core.bop19 import BopImage, BopObject, ImageErrors, average_recall, image_errors
 from axispose_core.camera import crop_image, crop_intrinsics, square_around_box
 from axispose_core.data.bop import BopEstimate, BopScene, GTInfo, GTInstance, bop_frames, load_models_info, model_path, read_bgr
 from axispose_core.data.meshes import load_ply
@@ -177,9 +177,8 @@ def evaluate(
             sid = scene_ids[scene.root]
             made = [BopEstimate(sid, im_id, obj_id, score, p.R, p.t, frame_seconds)
                     for (obj_id, _), score, p in zip(boxes, box_scores, posed, strict=True) if p.ok]  # fmt: skip
-            depth = scene.depth(im_id)
-            h, w = rgb.shape[:2]
-            bop.append(image_errors(sid, im_id, made, [(g.obj_id, g.R, g.t) for g, _ in insts], bop_objects, K, w, h, depth))
+            image = BopImage(sid, im_id, K, rgb.shape[1], rgb.shape[0], scene.depth(im_id))
+            bop.append(image_errors(image, made, [(g.obj_id, g.R, g.t) for g, _ in insts], bop_objects))
         for (g, info), p in zip(insts, preds, strict=True):
             scores = instance_scores(specs[g.obj_id], points[g.obj_id], K, g.R, g.t, (p.R, p.t) if p.ok else None)
             records.append(

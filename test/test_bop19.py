@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from axispose_core.bop19 import FRACTIONS, BopObject, average_recall, image_errors
+from axispose_core.bop19 import FRACTIONS, BopImage, BopObject, average_recall, image_errors
 from axispose_core.cli import main
 from axispose_core.data.bop import (
     BopEstimate,
@@ -29,6 +29,7 @@ CUBE = np.array([[x, y, z] for x in (-0.05, 0.05) for y in (-0.05, 0.05) for z i
 K = np.array([[500.0, 0, 320], [0, 500.0, 240], [0, 0, 1]])
 t0 = np.array([0.0, 0.0, 1.0])
 I3 = np.eye(3)
+IMAGE = BopImage(0, 0, K, 640, 480)
 RZ90 = Rotation.from_euler("z", 90, degrees=True).as_matrix()
 NO_SYMMETRY = symmetry_transformations((), ())
 
@@ -118,7 +119,7 @@ def _estimate(obj_id: int, score: float, t: np.ndarray, R: np.ndarray = I3) -> B
 def test_average_recall_of_a_known_translation_error():
     cube = _cube(1)
     shift = 0.12 * cube.diameter  # MSSD / diameter = 0.12: correct from the threshold 0.15 on
-    errors = image_errors(0, 0, [_estimate(1, 0.9, t0 + [shift, 0, 0])], [(1, I3, t0)], {1: cube}, K, 640, 480, None)
+    errors = image_errors(IMAGE, [_estimate(1, 0.9, t0 + [shift, 0, 0])], [(1, I3, t0)], {1: cube})
     ar = average_recall([errors])
     assert ar["kinds"] == ["mssd", "mspd"] and ar["targets"] == 1
     assert ar["ar_mssd"] == pytest.approx(0.8)
@@ -126,7 +127,7 @@ def test_average_recall_of_a_known_translation_error():
     assert ar["ar_mspd"] == pytest.approx(np.mean([mspd_px < th for th in range(5, 51, 5)]))
     assert ar["ar"] == pytest.approx((ar["ar_mssd"] + ar["ar_mspd"]) / 2)
     # MSPD is scaled to a 640 px wide image: the same poses in a 1280 px image count as half the pixels.
-    wide = average_recall([image_errors(0, 0, [_estimate(1, 0.9, t0 + [shift, 0, 0])], [(1, I3, t0)], {1: cube}, K, 1280, 480, None)])
+    wide = average_recall([image_errors(BopImage(0, 0, K, 1280, 480), [_estimate(1, 0.9, t0 + [shift, 0, 0])], [(1, I3, t0)], {1: cube})])
     assert wide["ar_mspd"] == pytest.approx(np.mean([mspd_px / 2 < th for th in range(5, 51, 5)]))
 
 
@@ -134,21 +135,19 @@ def test_only_the_best_scored_estimates_count_and_matching_is_greedy():
     objects = {1: _cube(1), 2: _cube(2)}
     bad, good = t0 + [0.3, 0, 0], t0
     # One instance of object 1: of its two estimates only the best-scored (wrong) one takes part.
-    one = image_errors(0, 0, [_estimate(1, 0.9, bad), _estimate(1, 0.5, good)], [(1, I3, t0)], objects, K, 640, 480, None)
+    one = image_errors(IMAGE, [_estimate(1, 0.9, bad), _estimate(1, 0.5, good)], [(1, I3, t0)], objects)
     assert average_recall([one])["ar_mssd"] == 0.0
-    swapped = image_errors(0, 0, [_estimate(1, 0.5, bad), _estimate(1, 0.9, good)], [(1, I3, t0)], objects, K, 640, 480, None)
+    swapped = image_errors(IMAGE, [_estimate(1, 0.5, bad), _estimate(1, 0.9, good)], [(1, I3, t0)], objects)
     assert average_recall([swapped])["ar_mssd"] == 1.0
     # An estimate of an object without a target takes no part and costs nothing.
-    extra = image_errors(0, 0, [_estimate(1, 0.9, good), _estimate(2, 1.0, good)], [(1, I3, t0)], objects, K, 640, 480, None)
+    extra = image_errors(IMAGE, [_estimate(1, 0.9, good), _estimate(2, 1.0, good)], [(1, I3, t0)], objects)
     assert list(extra.kept) == [0] and average_recall([extra])["ar"] == 1.0
     # Two instances of one object, a at 0 and b 4 cm aside; the better-scored estimate lies 2.5 cm from a and
     # 1.5 cm from b, the other right on b. Greedy matching gives the first b wherever both are in reach, so the
     # second finds b taken until the threshold reaches a (4 cm); an optimal assignment would match both at 0.15
     # and 0.20 (26 and 35 mm) already.
     a, b = t0, t0 + [0.04, 0, 0]
-    two = image_errors(
-        0, 0, [_estimate(1, 0.9, t0 + [0.025, 0, 0]), _estimate(1, 0.8, b)], [(1, I3, a), (1, I3, b)], objects, K, 640, 480, None
-    )
+    two = image_errors(IMAGE, [_estimate(1, 0.9, t0 + [0.025, 0, 0]), _estimate(1, 0.8, b)], [(1, I3, a), (1, I3, b)], objects)
     ar = average_recall([two])
     assert ar["ar_mssd"] == pytest.approx(np.mean([0.5] * 4 + [1.0] * 6))
     assert ar["objects"][1]["targets"] == 2
@@ -160,8 +159,8 @@ def test_vsd_enters_average_recall_with_depth(lmo_dir):
     t = np.array([0.0, 0.0, 0.6])
     scene = ape.depth(I3, t, K, 640, 480)
     assert (scene > 0).sum() > 1000
-    right = image_errors(0, 0, [_estimate(1, 1.0, t)], [(1, I3, t)], {1: ape}, K, 640, 480, scene)
-    far = image_errors(0, 0, [_estimate(1, 1.0, t + [0, 0, 0.05])], [(1, I3, t)], {1: ape}, K, 640, 480, scene)
+    right = image_errors(BopImage(0, 0, K, 640, 480, scene), [_estimate(1, 1.0, t)], [(1, I3, t)], {1: ape})
+    far = image_errors(BopImage(0, 0, K, 640, 480, scene), [_estimate(1, 1.0, t + [0, 0, 0.05])], [(1, I3, t)], {1: ape})
     assert average_recall([right])["ar_vsd"] == 1.0 and average_recall([right])["kinds"] == ["vsd", "mssd", "mspd"]
     assert average_recall([far])["ar_vsd"] < 0.2  # 5 cm behind is half the diameter: beyond every tau
     assert average_recall([right, far])["ar_vsd"] == pytest.approx(0.5 * (1.0 + average_recall([far])["ar_vsd"]))
