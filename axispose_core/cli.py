@@ -227,7 +227,7 @@ def _eval(args: argparse.Namespace) -> int:
     from axispose_core.baseline.direct import DirectEstimator
     from axispose_core.checkpoint import read_metadata
     from axispose_core.data.bop import BopFormatError
-    from axispose_core.estimator import Estimator
+    from axispose_core.estimator import EstimateOptions, Estimator
     from axispose_core.evaluate import Prediction, evaluate
     from axispose_core.stress import PERTURBATIONS
 
@@ -257,8 +257,8 @@ def _eval(args: argparse.Namespace) -> int:
     objects = [o for o in est.config.objects if not args.objects or o.obj_id in args.objects]
 
     def predict(image, K, boxes):
-        poses = est.estimate(image, K, boxes, steps=args.steps, guidance_scale=args.guidance, hypotheses=args.hypotheses,
-                             mode_sample=args.mode_sample)  # fmt: skip
+        options = EstimateOptions(steps=args.steps, guidance_scale=args.guidance, hypotheses=args.hypotheses, mode_sample=args.mode_sample)
+        poses = est.estimate(image, K, boxes, options)
         return [Prediction(p.R, p.t, p.ok, p.spread_deg, p.covariance) for p in poses]
 
     detector, counts = None, None

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import json
 import math
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
@@ -18,19 +18,21 @@ import numpy as np
 import torch
 
 from axispose_core.agm.correspondences import dense_correspondences
-from axispose_core.agm.guidance import self_consistency_target
+from axispose_core.agm.denoiser import Encoding
+from axispose_core.agm.guidance import AxisGeometry, self_consistency_target
 from axispose_core.agm.model import VERSION, AGMConfig, AxisGenerator, depth_from_log
 from axispose_core.agm.sampler import Guidance, sample
 from axispose_core.axis_image import AxisSpec
 from axispose_core.camera import InstanceCrop, instance_crop, off_axis, validate_intrinsics
 from axispose_core.checkpoint import ESTIMATOR, CheckpointError, load_state, read_checkpoint, read_metadata, save_checkpoint
-from axispose_core.consensus import consensus
+from axispose_core.consensus import Consensus, consensus
 from axispose_core.localiser.decode import Detection
 from axispose_core.localiser.model import Localiser, LocaliserConfig, build_localiser
 from axispose_core.objects import ObjectSpec
 from axispose_core.precision import bf16_native
 from axispose_core.tbm.backproject import backproject_readings
 from axispose_core.tbm.dense import DenseFusion, fuse_pose
+from axispose_core.tbm.keypoints import AxisKeypoints
 from axispose_core.tbm.reader import KeypointReader, ReaderConfig
 
 KIND = ESTIMATOR
@@ -99,6 +101,57 @@ def fuse_depth(t: np.ndarray, z_head: float, weight: float) -> np.ndarray:
     if weight <= 0 or t[2] <= 0:
         return t
     return t * float(np.exp(weight * (np.log(z_head) - np.log(t[2]))))
+
+
+@dataclass(frozen=True)
+class EstimateOptions:
+    """Per-call settings of `Estimator.estimate`, one value the node, eval and benches build; None takes the
+    checkpoint's (`EstimatorConfig`)."""
+
+    steps: int | None = None
+    """DDIM steps (None or 0: `ddim_steps`)."""
+    guidance_scale: float | None = None
+    """Run-time guidance weight (0: off)."""
+    seed: int = 0
+    """Seed of the starting noise, so a call repeats exactly."""
+    scales: Mapping[int, float] | None = None
+    """λ_O (metres) per object id in place of the checkpoint's, e.g. the node's object_scale parameters."""
+    hypotheses: int = 1
+    """AGM samples per crop, drawn in the same batch; with two or more the pose is their consensus, with their spread
+    and covariance."""
+    mode_sample: bool | None = None
+    """Whether each crop's first sample starts from the prior's mode."""
+
+    def __post_init__(self) -> None:
+        if self.hypotheses < 1:
+            raise ValueError(f"hypotheses must be >= 1, got {self.hypotheses}")
+
+
+@dataclass(frozen=True)
+class _Batch:
+    """The crop stage's output, which the later stages share: per box its crop, embedding row and axis lengths (B,3);
+    per sample (each box's `hypotheses` in a row) the intrinsics and lengths its keypoints are solved with."""
+
+    boxes: list[tuple[int, tuple[float, float, float, float]]]
+    cuts: list[InstanceCrop]
+    pixels: torch.Tensor
+    """(B,3,S,S) uint8: the network normalises it."""
+    objects: torch.Tensor
+    lengths: np.ndarray
+    hypotheses: int
+    K_rows: np.ndarray
+    length_rows: np.ndarray
+
+
+@dataclass(frozen=True)
+class _Solved:
+    """One box after the solve stage: the encoder's depth, its samples' poses (sample row, R, t with the fused depth),
+    why the others failed, and the poses' consensus (None: no sample gave one)."""
+
+    head_depth: float
+    poses: list[tuple[int, np.ndarray, np.ndarray]]
+    reasons: list[str]
+    consensus: Consensus | None
 
 
 @dataclass
@@ -216,76 +269,99 @@ class Estimator:
         image_rgb: np.ndarray,
         K: np.ndarray,
         boxes: list[tuple[int, tuple[float, float, float, float]]],
-        steps: int | None = None,
-        guidance_scale: float | None = None,
-        seed: int = 0,
-        scales: dict[int, float] | None = None,
-        hypotheses: int = 1,
+        options: EstimateOptions | None = None,
         cancelled: Callable[[], bool] | None = None,
-        mode_sample: bool | None = None,
     ) -> list[PoseEstimate]:
         """Poses for (obj_id, (x, y, w, h)) boxes in an RGB uint8 image; all crops go through the AGM as one batch.
 
-        `scales` overrides λ_O per object id (metres), e.g. from the node's object_scale parameters. With
-        `hypotheses` K > 1 each crop is sampled K times in the same batch and the pose is the samples' consensus,
-        with their spread and covariance. `mode_sample` overrides the config's (whether hypothesis 0 starts from
-        the prior's mode).
+        The data flow's stages, each one method: crop, sample (the AGM), read (the reader), solve (the TBM and the
+        samples' consensus), fuse (the dense points). `options` holds the per-call settings (None: the checkpoint's
+        defaults); `cancelled()` is asked between DDIM steps, and True raises `Cancelled`.
         """
-        if hypotheses < 1:
-            raise ValueError(f"hypotheses must be >= 1, got {hypotheses}")
-        cuts, x = crop_batch(image_rgb, K, boxes, self.objects, self.size, self.config.crop_pad)
-        if not boxes:
+        options = options or EstimateOptions()
+        batch = self._crop(image_rgb, K, boxes, options)
+        if batch is None:
             return []
-        steps = steps or self.config.ddim_steps
-        scale = self.config.guidance_scale if guidance_scale is None else guidance_scale
-        Kp = [c.K_patch for c in cuts]
-        lengths = []
-        for obj_id, _ in boxes:
-            spec = self.objects[obj_id]
-            lengths.append(AxisSpec((scales or {}).get(obj_id, spec.scale), spec.ratio_b, spec.ratio_c).lengths)
-        objects = torch.tensor([self.index[obj_id] for obj_id, _ in boxes], device=self.device)
-        Kp_all, lengths_all = np.repeat(np.stack(Kp), hypotheses, axis=0), np.repeat(np.stack(lengths), hypotheses, axis=0)
-
-        def guidance(x0: torch.Tensor):
-            return self_consistency_target(x0, self.reader, Kp_all, lengths_all)
-
-        gen = torch.Generator().manual_seed(seed)
-        noise_scale = torch.ones(len(boxes) * hypotheses)
-        if self.config.mode_sample if mode_sample is None else mode_sample:
-            noise_scale[::hypotheses] = 0.0
-        with torch.inference_mode(scale <= 0), torch.autocast(self.device.type, dtype=torch.bfloat16, enabled=self.bf16):
-            enc = self.agm.encode(x.to(self.device), objects)
-            axes = self.sampler(
-                self.agm, enc.repeat(hypotheses), steps, generator=gen, guidance=Guidance(guidance, scale) if scale > 0 else None,
-                cancelled=cancelled, noise_scale=noise_scale,
-            )  # fmt: skip
-        log_depth = enc.log_depth.detach().float().cpu().numpy()  # guided sampling runs outside inference mode
-        images = ((axes.float() + 1) * 0.5).clamp(0, 1)
+        enc, images = self._sample(batch, options, cancelled)
         readings = self.reader.read(images)
-        results = backproject_readings(Kp_all, readings, lengths_all)  # every box's hypotheses in one refinement
-        dense = dense_correspondences(enc, np.array([L[0] for L in lengths])) if self.config.dense_fusion.points > 0 else None
-        out = []
-        for i, ((obj_id, _), cut, L) in enumerate(zip(boxes, cuts, lengths, strict=True)):
-            poses, reasons = [], []
+        solved = self._solve(batch, readings, enc)
+        return self._fuse(batch, enc, images, solved)
+
+    def _crop(
+        self, image_rgb: np.ndarray, K: np.ndarray, boxes: list[tuple[int, tuple[float, float, float, float]]], options: EstimateOptions
+    ) -> _Batch | None:
+        """The boxes' crops and their objects' axis lengths (λ_O from `options.scales` where given); None without
+        boxes, after K and the objects are checked, so a bad call fails alike with or without boxes."""
+        cuts, pixels = crop_batch(image_rgb, K, boxes, self.objects, self.size, self.config.crop_pad)
+        if not boxes:
+            return None
+        scales = options.scales or {}
+        specs = [self.objects[obj_id] for obj_id, _ in boxes]
+        lengths = np.stack([AxisSpec(scales.get(o.obj_id, o.scale), o.ratio_b, o.ratio_c).lengths for o in specs])
+        objects = torch.tensor([self.index[obj_id] for obj_id, _ in boxes], device=self.device)
+        k = options.hypotheses
+        K_rows = np.repeat(np.stack([c.K_patch for c in cuts]), k, axis=0)
+        return _Batch(list(boxes), cuts, pixels, objects, lengths, k, K_rows, np.repeat(lengths, k, axis=0))
+
+    def _sample(self, batch: _Batch, options: EstimateOptions, cancelled: Callable[[], bool] | None) -> tuple[Encoding, torch.Tensor]:
+        """Every crop's encoding and its `hypotheses` axis images (B·K,3,S,S) in [0,1], drawn as one batch. Guided
+        sampling differentiates through the reader, so it runs outside inference mode."""
+        scale = self.config.guidance_scale if options.guidance_scale is None else options.guidance_scale
+        k = batch.hypotheses
+
+        def target(x0: torch.Tensor) -> AxisGeometry:
+            return self_consistency_target(x0, self.reader, batch.K_rows, batch.length_rows)
+
+        gen = torch.Generator().manual_seed(options.seed)
+        noise_scale = torch.ones(len(batch.cuts) * k)
+        if self.config.mode_sample if options.mode_sample is None else options.mode_sample:
+            noise_scale[::k] = 0.0  # each crop's first sample from the prior's mode
+        with torch.inference_mode(scale <= 0), torch.autocast(self.device.type, dtype=torch.bfloat16, enabled=self.bf16):
+            enc = self.agm.encode(batch.pixels.to(self.device), batch.objects)
+            axes = self.sampler(
+                self.agm, enc.repeat(k), options.steps or self.config.ddim_steps, generator=gen,
+                guidance=Guidance(target, scale) if scale > 0 else None, cancelled=cancelled, noise_scale=noise_scale,
+            )  # fmt: skip
+        return enc, ((axes.float() + 1) * 0.5).clamp(0, 1)
+
+    def _solve(self, batch: _Batch, readings: list[AxisKeypoints], enc: Encoding) -> list[_Solved]:
+        """The TBM's pose of every sample (all boxes' in one refinement), its depth fused with the encoder's
+        (`head_depth_weight`), and per box the consensus of the samples that gave one."""
+        log_depth = enc.log_depth.detach().float().cpu().numpy()  # guided sampling runs outside inference mode
+        results = backproject_readings(batch.K_rows, readings, batch.length_rows)
+        k, out = batch.hypotheses, []
+        for i, (cut, L) in enumerate(zip(batch.cuts, batch.lengths, strict=True)):
             z_head = self.head_depth(float(log_depth[i]), cut.K_patch, float(L[0]))
-            for k in range(i * hypotheses, (i + 1) * hypotheses):
-                res = results[k]
+            poses, reasons = [], []
+            for row in range(i * k, (i + 1) * k):
+                res = results[row]
                 if res is not None and res.ok:
-                    poses.append((k, res.R, fuse_depth(res.t, z_head, self.config.head_depth_weight)))
+                    poses.append((row, res.R, fuse_depth(res.t, z_head, self.config.head_depth_weight)))
                 else:
-                    reasons.append(readings[k].reason if res is None else res.reason)
-            pick = dict(obj_id=obj_id, K_patch=cut.K_patch, center=cut.center, side=cut.side, samples=hypotheses, samples_ok=len(poses),
-                        head_depth=z_head)  # fmt: skip
-            if not poses:
-                axis_image = images[i * hypotheses].permute(1, 2, 0).cpu().numpy()
-                out.append(PoseEstimate(R=np.eye(3), t=np.zeros(3), ok=False, reason=reasons[0], axis_image=axis_image, **pick))
+                    reasons.append(readings[row].reason if res is None else res.reason)
+            agreed = consensus(np.stack([p[1] for p in poses]), np.stack([p[2] for p in poses]), float(L.max())) if poses else None
+            out.append(_Solved(z_head, poses, reasons, agreed))
+        return out
+
+    def _fuse(self, batch: _Batch, enc: Encoding, images: torch.Tensor, solved: list[_Solved]) -> list[PoseEstimate]:
+        """Each box's pose from the encoder's dense points with its consensus and depth as priors (`dense_fusion`;
+        points 0: the consensus as it is) and its covariance; a box no sample posed says why."""
+        dense = dense_correspondences(enc, batch.lengths[:, 0]) if self.config.dense_fusion.points > 0 else None
+        out = []
+        for i, ((obj_id, _), cut, s) in enumerate(zip(batch.boxes, batch.cuts, solved, strict=True)):
+            pick = dict(obj_id=obj_id, K_patch=cut.K_patch, center=cut.center, side=cut.side, samples=batch.hypotheses,
+                        samples_ok=len(s.poses), head_depth=s.head_depth)  # fmt: skip
+            c = s.consensus
+            if c is None:
+                axis_image = images[i * batch.hypotheses].permute(1, 2, 0).cpu().numpy()
+                out.append(PoseEstimate(R=np.eye(3), t=np.zeros(3), ok=False, reason=s.reasons[0], axis_image=axis_image, **pick))
                 continue
-            c = consensus(np.stack([p[1] for p in poses]), np.stack([p[2] for p in poses]), float(L.max()))
-            axis_image = images[poses[c.medoid][0]].permute(1, 2, 0).cpu().numpy()
-            spread = dict(spread_deg=c.spread_deg, spread_m=c.spread_m) if len(poses) > 1 else {}
-            R, t, cov = c.R, c.t, (c.covariance if len(poses) > 1 else None)
-            if dense is not None and (fused := fuse_pose(cut.K_patch, R, t, dense[i], z_head, self.config.dense_fusion)) is not None:
+            many = len(s.poses) > 1
+            axis_image = images[s.poses[c.medoid][0]].permute(1, 2, 0).cpu().numpy()
+            spread = dict(spread_deg=c.spread_deg, spread_m=c.spread_m) if many else {}
+            R, t, cov = c.R, c.t, (c.covariance if many else None)
+            if dense is not None and (fused := fuse_pose(cut.K_patch, R, t, dense[i], s.head_depth, self.config.dense_fusion)) is not None:
                 # The law of total covariance: the fusion's own (given the consensus) plus the samples' scatter about it.
-                R, t, cov = fused.R, fused.t, fused.covariance + (c.scatter if len(poses) > 1 else 0.0)
+                R, t, cov = fused.R, fused.t, fused.covariance + (c.scatter if many else 0.0)
             out.append(PoseEstimate(R=R, t=t, ok=True, reason="", axis_image=axis_image, covariance=cov, **pick, **spread))
         return out

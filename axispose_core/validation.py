@@ -15,7 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
-from axispose_core.estimator import Estimator
+from axispose_core.estimator import EstimateOptions, Estimator
 from axispose_core.evaluate import MIN_VISIB, Prediction, Record, evaluate, plot_cdfs, summarize
 
 CROPS = ("gt", "detect")
@@ -39,7 +39,7 @@ def run_crops(
     objects = list(est.config.objects)
 
     def predict(image, K, boxes):
-        poses = est.estimate(image, K, boxes, steps=settings.steps, hypotheses=settings.hypotheses)
+        poses = est.estimate(image, K, boxes, EstimateOptions(steps=settings.steps, hypotheses=settings.hypotheses))
         return [Prediction(p.R, p.t, p.ok, p.spread_deg, p.covariance) for p in poses]
 
     detector, counts = None, None

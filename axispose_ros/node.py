@@ -53,7 +53,7 @@ from sensor_msgs.msg import CameraInfo, Image, RegionOfInterest
 
 from axispose_core.agm.sampler import Cancelled
 from axispose_core.checkpoint import CheckpointError
-from axispose_core.estimator import SHIPPED_ESTIMATOR, Estimator
+from axispose_core.estimator import SHIPPED_ESTIMATOR, EstimateOptions, Estimator
 from axispose_core.lmo import LMO_K
 from axispose_ros.conversions import InputError, Undistorter, camera_for_image, camera_from_info, image_to_rgb
 from axispose_ros.health import Health, HealthConfig
@@ -254,7 +254,8 @@ class AxisPoseNode(Node):
                 self.estimator.detect(rgb)
             for k in range(1, count + 1):
                 boxes = [(ids[i % len(ids)], (280.0, 200.0, 80.0, 90.0)) for i in range(k)]
-                self.estimator.estimate(rgb, LMO_K, boxes, steps=1, hypotheses=hypotheses, cancelled=self.worker.cancelled)
+                options = EstimateOptions(steps=1, hypotheses=hypotheses)
+                self.estimator.estimate(rgb, LMO_K, boxes, options=options, cancelled=self.worker.cancelled)
         except Cancelled:
             return
         except Exception as err:
@@ -312,10 +313,12 @@ class AxisPoseNode(Node):
             rgb,
             camera.K,
             boxes,
-            steps=int(self.get_parameter("ddim_steps").value),
-            guidance_scale=float(self.get_parameter("guidance_scale").value),
-            scales=self._scales(),
-            hypotheses=self.hypotheses(),
+            options=EstimateOptions(
+                steps=int(self.get_parameter("ddim_steps").value),
+                guidance_scale=float(self.get_parameter("guidance_scale").value),
+                scales=self._scales(),
+                hypotheses=self.hypotheses(),
+            ),
             cancelled=self.worker.cancelled,
         )
         lifetime = float(self.get_parameter("marker_lifetime").value)

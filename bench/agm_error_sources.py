@@ -39,7 +39,7 @@ from axispose_core.agm.correspondences import dense_correspondences
 from axispose_core.camera import project_model
 from axispose_core.data.bop import model_path
 from axispose_core.data.meshes import load_ply
-from axispose_core.estimator import Estimator, crop_batch, fuse_depth
+from axispose_core.estimator import EstimateOptions, Estimator, crop_batch, fuse_depth
 from axispose_core.evaluate import Prediction, evaluate
 from axispose_core.metrics import add_or_adi, re
 from axispose_core.tbm.dense import DensePoints, fuse_pose, translation_from_points
@@ -85,7 +85,7 @@ def main() -> None:
     S = est.size
 
     def predict(image: np.ndarray, K: np.ndarray, boxes: list) -> list[Prediction]:
-        poses = est.estimate(image, K, boxes, steps=args.steps)
+        poses = est.estimate(image, K, boxes, EstimateOptions(steps=args.steps))
         head_depths.extend(p.head_depth for p in poses)
         cuts, x = crop_batch(image, K, boxes, est.objects, S, est.config.crop_pad)
         with torch.inference_mode():

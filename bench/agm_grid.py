@@ -19,7 +19,7 @@ import time
 import torch
 from write_results import write_results
 
-from axispose_core.estimator import Estimator
+from axispose_core.estimator import EstimateOptions, Estimator
 from axispose_core.evaluate import Prediction, evaluate, summarize
 
 KEYS = ("add_0.1d", "add_0.2d", "reproj_5px", "reproj_15px", "rot_err_median_deg", "trans_err_median_mm")
@@ -47,7 +47,8 @@ def main() -> None:
             for steps in args.steps:
 
                 def predict(image, K, boxes, est=est, steps=steps, guidance=guidance):
-                    return [Prediction(p.R, p.t, p.ok) for p in est.estimate(image, K, boxes, steps=steps, guidance_scale=guidance)]
+                    poses = est.estimate(image, K, boxes, EstimateOptions(steps=steps, guidance_scale=guidance))
+                    return [Prediction(p.R, p.t, p.ok) for p in poses]
 
                 records = evaluate(predict, args.data, args.models, objects, limit=args.limit, progress=False)
                 report = summarize(records, objects, {})

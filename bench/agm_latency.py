@@ -20,7 +20,7 @@ import torch
 from write_results import write_results
 
 from axispose_core.data.bop import bop_frames
-from axispose_core.estimator import Estimator
+from axispose_core.estimator import EstimateOptions, Estimator
 from axispose_core.localiser.scoring import frame_instances
 
 
@@ -70,7 +70,7 @@ def main() -> None:
         for n in args.objects:
             frame_boxes = (boxes * n)[:n]
             for steps in args.steps:
-                ms = _median_ms(lambda b=frame_boxes, s=steps: est.estimate(rgb, K, b, steps=s), args.repeats)
+                ms = _median_ms(lambda b=frame_boxes, s=steps: est.estimate(rgb, K, b, EstimateOptions(steps=s)), args.repeats)
                 path_rows.append({"threads": threads, "objects": n, "steps": steps, "ms_per_frame": ms, "ms_per_object": ms / n})
                 print(f"  threads {threads} objects {n} steps {steps:>2}: {ms:7.1f} ms per frame, {ms / n:6.1f} per object")
         if est.localiser is not None:

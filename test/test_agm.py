@@ -20,7 +20,7 @@ from axispose_core.agm.scheduler import DDIMScheduler, SchedulerConfig
 from axispose_core.axis_image import axis_keypoints, render_axis_keypoints
 from axispose_core.camera import crop_intrinsics
 from axispose_core.checkpoint import CheckpointError, save_checkpoint
-from axispose_core.estimator import Estimator, EstimatorConfig, fuse_depth
+from axispose_core.estimator import EstimateOptions, Estimator, EstimatorConfig, fuse_depth
 from axispose_core.lmo import LMO_K
 from axispose_core.objects import lmo_objects
 from axispose_core.pose_sampling import sample_patch
@@ -240,7 +240,7 @@ def test_bfloat16_runs_the_agm_in_bfloat16_but_keeps_depth_and_poses_in_float32(
     assert enc.context.dtype == torch.bfloat16 and enc.log_depth.dtype == torch.float32  # bf16 would cost ~0.5 % of depth
     image = (np.random.default_rng(0).uniform(0, 255, (480, 640, 3))).astype(np.uint8)
     K = np.array([[572.4, 0, 325.3], [0, 573.6, 242.0], [0, 0, 1]])
-    (pose,) = est.estimate(image, K, [(1, (300, 200, 60, 70))], hypotheses=2)
+    (pose,) = est.estimate(image, K, [(1, (300, 200, 60, 70))], EstimateOptions(hypotheses=2))
     assert pose.axis_image.dtype == np.float32 and np.isfinite(pose.head_depth)
 
 
@@ -251,7 +251,7 @@ def test_guided_estimates_give_poses_with_the_encoders_depth():
     est = Estimator(cfg, AxisGenerator(cfg.agm), reader)
     image = (np.random.default_rng(0).uniform(0, 255, (480, 640, 3))).astype(np.uint8)
     K = np.array([[572.4, 0, 325.3], [0, 573.6, 242.0], [0, 0, 1]])
-    poses = est.estimate(image, K, [(1, (300, 200, 60, 70)), (5, (100, 100, 80, 80))], guidance_scale=1.0, hypotheses=2)
+    poses = est.estimate(image, K, [(1, (300, 200, 60, 70)), (5, (100, 100, 80, 80))], EstimateOptions(guidance_scale=1.0, hypotheses=2))
     assert len(poses) == 2 and all(np.isfinite(p.head_depth) for p in poses)
 
 

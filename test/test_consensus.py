@@ -13,7 +13,7 @@ from axispose_core.agm.model import AxisGenerator
 from axispose_core.axis_image import render_axis_image
 from axispose_core.camera import instance_crop, project
 from axispose_core.consensus import ROT_FLOOR_RAD, TRANS_FLOOR_M, consensus
-from axispose_core.estimator import Estimator, EstimatorConfig
+from axispose_core.estimator import EstimateOptions, Estimator, EstimatorConfig
 from axispose_core.metrics import re
 from axispose_core.objects import lmo_objects
 from axispose_core.tbm.dense import DenseFusion
@@ -135,35 +135,35 @@ def oracle_setup():
 def test_estimator_samples_every_box_k_times_in_one_batch(oracle_setup):
     make, image, K, box, spec, R, _ = oracle_setup
     est = make(3.0)
-    (single,) = est.estimate(image, K, [(spec.obj_id, box)], hypotheses=1)
+    (single,) = est.estimate(image, K, [(spec.obj_id, box)], EstimateOptions(hypotheses=1))
     assert single.ok and single.covariance is None and np.isnan(single.spread_deg)
-    many = est.estimate(image, K, [(spec.obj_id, box), (spec.obj_id, box)], hypotheses=8, seed=3)
+    many = est.estimate(image, K, [(spec.obj_id, box), (spec.obj_id, box)], EstimateOptions(hypotheses=8, seed=3))
     assert est.sampler.batches == [1, 16]
     for e in many:
         assert e.ok and e.samples == 8 and e.samples_ok >= 6
         assert re(e.R, R) < 3.0
         assert 0.5 < e.spread_deg < 10.0
         assert e.covariance.shape == (6, 6) and np.all(np.linalg.eigvalsh(e.covariance) > 0)
-    again = est.estimate(image, K, [(spec.obj_id, box), (spec.obj_id, box)], hypotheses=8, seed=3)
+    again = est.estimate(image, K, [(spec.obj_id, box), (spec.obj_id, box)], EstimateOptions(hypotheses=8, seed=3))
     np.testing.assert_array_equal(again[0].R, many[0].R)  # deterministic under a seed
 
 
 def test_first_hypothesis_starts_from_the_priors_mode(oracle_setup):
     make, image, K, box, spec, R, _ = oracle_setup
     est = make(5.0)
-    mode = [est.estimate(image, K, [(spec.obj_id, box)], seed=s)[0] for s in (1, 2)]
-    drawn = [est.estimate(image, K, [(spec.obj_id, box)], seed=s, mode_sample=False)[0] for s in (1, 2)]
+    mode = [est.estimate(image, K, [(spec.obj_id, box)], EstimateOptions(seed=s))[0] for s in (1, 2)]
+    drawn = [est.estimate(image, K, [(spec.obj_id, box)], EstimateOptions(seed=s, mode_sample=False))[0] for s in (1, 2)]
     np.testing.assert_allclose(mode[0].R, mode[1].R, atol=1e-9)  # seed-free: the mode, not a draw
     assert re(mode[0].R, R) < 1.0 and min(re(d.R, R) for d in drawn) > 2.0  # the reader's own error is ~0.5 deg
     assert not np.allclose(drawn[0].R, drawn[1].R)
-    many = est.estimate(image, K, [(spec.obj_id, box)], hypotheses=8, seed=1)[0]
+    many = est.estimate(image, K, [(spec.obj_id, box)], EstimateOptions(hypotheses=8, seed=1))[0]
     assert many.samples_ok >= 6 and many.spread_deg > 1.0  # the other hypotheses still scatter
 
 
 def test_wider_sample_scatter_gives_a_wider_spread(oracle_setup):
     make, image, K, box, spec, *_ = oracle_setup
-    tight = make(1.0).estimate(image, K, [(spec.obj_id, box)], hypotheses=8, seed=1)[0]
-    wide = make(8.0).estimate(image, K, [(spec.obj_id, box)], hypotheses=8, seed=1)[0]
+    tight = make(1.0).estimate(image, K, [(spec.obj_id, box)], EstimateOptions(hypotheses=8, seed=1))[0]
+    wide = make(8.0).estimate(image, K, [(spec.obj_id, box)], EstimateOptions(hypotheses=8, seed=1))[0]
     assert wide.spread_deg > 2 * tight.spread_deg
     assert np.trace(wide.covariance[3:, 3:]) > np.trace(tight.covariance[3:, 3:])
 
@@ -171,7 +171,7 @@ def test_wider_sample_scatter_gives_a_wider_spread(oracle_setup):
 def test_hypotheses_must_be_positive(oracle_setup):
     make, image, K, box, spec, *_ = oracle_setup
     with pytest.raises(ValueError, match="hypotheses"):
-        make(1.0).estimate(image, K, [(spec.obj_id, box)], hypotheses=0)
+        make(1.0).estimate(image, K, [(spec.obj_id, box)], EstimateOptions(hypotheses=0))
 
 
 def test_the_encoders_depth_is_reported_and_fused_along_the_tbms_ray(oracle_setup):
@@ -220,9 +220,9 @@ def test_the_dense_fusion_corrects_the_tbms_rotation_and_depth_with_exact_points
     assert re(fused.R, R) < 1.0 and abs(fused.t[2] / t[2] - 1) < 0.002 and np.linalg.norm(fused.t - t) < 0.002
     # one sample has the fusion's covariance; samples that scatter add theirs (the law of total covariance)
     assert fused.covariance.shape == (6, 6) and np.all(np.linalg.eigvalsh(fused.covariance) > 0)
-    (same,) = est.estimate(image, K, [(spec.obj_id, box)], hypotheses=4)  # the oracle's samples agree
+    (same,) = est.estimate(image, K, [(spec.obj_id, box)], EstimateOptions(hypotheses=4))  # the oracle's samples agree
     np.testing.assert_allclose(same.covariance, fused.covariance, rtol=1e-5, atol=1e-15)  # float32 sums in another order
     est.sampler.sigma = np.radians(4.0)
-    (scattered,) = est.estimate(image, K, [(spec.obj_id, box)], hypotheses=4, seed=2)
+    (scattered,) = est.estimate(image, K, [(spec.obj_id, box)], EstimateOptions(hypotheses=4, seed=2))
     assert scattered.spread_deg > 1.0
     assert np.trace(scattered.covariance[3:, 3:]) > np.trace(fused.covariance[3:, 3:]) + np.radians(1.0) ** 2

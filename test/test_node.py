@@ -147,7 +147,7 @@ def test_warm_up_runs_each_box_count_once_on_the_inference_thread_before_frames_
     calls, real = [], Estimator.estimate
 
     def spy(self, image, K, boxes, **kwargs):
-        calls.append((threading.current_thread().name, len(boxes), kwargs["steps"], kwargs["hypotheses"]))
+        calls.append((threading.current_thread().name, len(boxes), kwargs["options"].steps, kwargs["options"].hypotheses))
         return real(self, image, K, boxes, **kwargs)
 
     monkeypatch.setattr(Estimator, "estimate", spy)
@@ -198,7 +198,7 @@ def test_pose_cov_carries_the_estimators_covariance(harness):
     cov[0, 5] = cov[5, 0] = 1e-5
 
     def succeed(*args, **kwargs):
-        calls.append(kwargs["hypotheses"])
+        calls.append(kwargs["options"].hypotheses)
         spread = {"samples": 4, "samples_ok": 4, "spread_deg": 3.0, "spread_m": 0.01, "covariance": cov}
         return [
             PoseEstimate(e.obj_id, np.eye(3), np.array([0.0, 0.0, 0.8]), True, "", e.axis_image, e.K_patch, e.center, e.side, **spread)
