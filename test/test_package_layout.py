@@ -215,6 +215,9 @@ def test_the_docs_describe_the_product_not_its_history():
         text = (REPO / "docs" / name).read_text()
         assert len(text.splitlines()) <= most, f"docs/{name}: {len(text.splitlines())} lines, at most {most}"
         assert not re.search(r"\b(phase|session)s?\b", text, re.IGNORECASE), f"docs/{name} tells its history"
+    for path in [REPO / "README.md", *sorted((REPO / "docs").glob("*.md"))]:
+        dated = [line for line in path.read_text().splitlines() if line.startswith("#") and re.search(r"\b20\d\d-\d\d-\d\d\b", line)]
+        assert not dated, f"{path.name}: dated headings {dated}"
 
 
 def test_shipped_files_stay_small():
