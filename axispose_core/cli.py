@@ -207,7 +207,7 @@ def _score_and_attach(args: argparse.Namespace) -> int:
 def _train_localiser(args: argparse.Namespace) -> int:
     import torch
 
-    from axispose_core.data.objects import dataset_objects
+    from axispose_core.objects import dataset_objects
     from axispose_core.train.localiser import LocaliserTrainConfig, train_localiser
 
     torch.set_num_threads(args.threads)

@@ -15,7 +15,7 @@ from axispose_core.cli import main as core_main
 
 
 def _make_bag(args: argparse.Namespace) -> int:
-    from axispose_core.data.objects import objects_from_models
+    from axispose_core.objects import objects_from_models
     from axispose_ros.bag import make_bag
 
     objects = objects_from_models(args.models, args.objects or None)

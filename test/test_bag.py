@@ -15,10 +15,10 @@ from scipy.spatial.transform import Rotation
 from axispose_core.agm.model import AxisGenerator
 from axispose_core.data.bop import BopScene, model_path
 from axispose_core.data.meshes import load_ply
-from axispose_core.data.objects import objects_from_models
 from axispose_core.data.synth.config import SynthConfig
 from axispose_core.data.synth.generate import generate
 from axispose_core.estimator import Estimator, EstimatorConfig, PoseEstimate
+from axispose_core.objects import objects_from_models
 from axispose_core.tbm.reader import SHIPPED_READER, load_reader
 from axispose_ros.bag import IMAGE_TOPIC, INFO_TOPIC, BagError, bag_topics, cloud_points, deserialize, make_bag, read_bag
 from axispose_ros.cli import main

@@ -25,9 +25,9 @@ from axispose_core.data.bop import (
     write_scene_gt_info,
 )
 from axispose_core.data.meshes import load_ply
-from axispose_core.data.objects import objects_from_models
 from axispose_core.data.visibility import gt_info_from_models, write_gt_info
 from axispose_core.lmo import LMO_DIAMETERS, LMO_K, LMO_SYMMETRIC
+from axispose_core.objects import objects_from_models
 
 
 def test_lmo_models_info_in_metres_with_symmetries(lmo_dir):
@@ -217,7 +217,7 @@ def test_camera_json_gives_K_and_image_size_or_says_what_is_wrong(lmo_dir, tmp_p
 def test_object_names_come_from_the_models_folder(lmo_dir, tmp_path):
     import shutil
 
-    from axispose_core.data.objects import NAMES_FILE, dataset_objects, object_names
+    from axispose_core.objects import NAMES_FILE, dataset_objects, object_names
 
     assert object_names(lmo_dir / "models")[1] == "ape"  # LM-O's models: LM-O's names
     own = tmp_path / "own"

@@ -19,11 +19,11 @@ from axispose_core.data.bop import (
     read_bop_results,
     write_bop_results,
 )
-from axispose_core.data.objects import objects_from_models
 from axispose_core.data.synth.config import SynthConfig
 from axispose_core.data.synth.generate import generate
 from axispose_core.evaluate import Prediction, evaluate, summarize
 from axispose_core.metrics import mspd, mssd, symmetry_transformations, vsd
+from axispose_core.objects import objects_from_models
 
 CUBE = np.array([[x, y, z] for x in (-0.05, 0.05) for y in (-0.05, 0.05) for z in (-0.05, 0.05)])
 K = np.array([[500.0, 0, 320], [0, 500.0, 240], [0, 0, 1]])

@@ -10,11 +10,11 @@ import pytest
 
 from axispose_core.cli import main
 from axispose_core.data.bop import BopFormatError, BopScene
-from axispose_core.data.objects import objects_from_models
 from axispose_core.data.synth.config import SynthConfig
 from axispose_core.data.synth.generate import generate
 from axispose_core.data.synth.preview import contact_sheet
 from axispose_core.evaluate import Prediction, evaluate, plot_cdfs, plot_grid, plot_uncertainty, summarize, write_report
+from axispose_core.objects import objects_from_models
 from axispose_core.stress import low_light, motion_blur
 
 KEYS = {"n", "name", "add_0.1d", "add_0.2d", "reproj_5px", "reproj_15px", "rot_err_median_deg", "trans_err_median_mm",

@@ -14,12 +14,12 @@ from axispose_core.camera import crop_transform, instance_crop, project
 from axispose_core.checkpoint import CheckpointError, read_checkpoint, stored_half
 from axispose_core.cli import _score_and_attach, main
 from axispose_core.data.bop import BopFormatError, BopScene
-from axispose_core.data.objects import objects_from_models
 from axispose_core.estimator import Estimator, EstimatorConfig
 from axispose_core.localiser.decode import Detection, decode, draw_targets, focal_loss, iou, match
 from axispose_core.localiser.model import STRIDE, Localiser, LocaliserConfig
 from axispose_core.localiser.scoring import detection_scores, frame_outcome
 from axispose_core.localiser.weights import KIND, load_localiser, warm_start
+from axispose_core.objects import objects_from_models
 from axispose_core.tbm.reader import SHIPPED_READER, load_reader
 from axispose_core.train.dataset import AxisCropDataset
 from axispose_core.train.localiser import LocaliserDataset, LocaliserTrainConfig, localiser_loss, train_localiser

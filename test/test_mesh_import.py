@@ -5,8 +5,8 @@ from axispose_core.cli import main
 from axispose_core.data.bop import BopFormatError, BopScene, load_models_info, model_path
 from axispose_core.data.mesh_import import import_meshes
 from axispose_core.data.meshes import load_obj, load_ply
-from axispose_core.data.objects import objects_from_models
 from axispose_core.data.synth.config import SynthConfig, recipe
+from axispose_core.objects import objects_from_models
 
 CUBE_OBJ = """# a 4 cm cube in millimetres, wound counter-clockwise seen from outside, with vertex colours
 v -20 -20 -20 1 0 0

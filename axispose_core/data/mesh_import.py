@@ -16,7 +16,7 @@ from scipy.spatial.transform import Rotation
 
 from axispose_core.data.bop import MM, BopFormatError, ObjectInfo, model_path, write_models_info
 from axispose_core.data.meshes import Mesh, load_mesh, write_ply
-from axispose_core.data.objects import NAMES_FILE, object_name
+from axispose_core.objects import NAMES_FILE, object_name
 
 
 def object_info(obj_id: int, mesh: Mesh) -> ObjectInfo:

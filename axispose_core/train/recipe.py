@@ -34,12 +34,12 @@ import torch
 import yaml
 
 from axispose_core.checkpoint import ESTIMATOR, CheckpointError, config_from_dict, read_metadata
-from axispose_core.data.objects import dataset_objects
 from axispose_core.data.synth.config import SynthConfig
 from axispose_core.data.synth.config import recipe as synth_recipe
 from axispose_core.data.synth.generate import generate
 from axispose_core.estimator import Estimator, EstimatorConfig
 from axispose_core.localiser.weights import load_localiser
+from axispose_core.objects import dataset_objects
 from axispose_core.tbm.reader import load_reader
 from axispose_core.train.agm import TrainConfig, train_agm
 from axispose_core.train.localiser import LocaliserTrainConfig, train_localiser

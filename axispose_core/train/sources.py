@@ -10,10 +10,9 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from axispose_core.data.objects import dataset_objects
 from axispose_core.data.synth.config import StreamConfig
 from axispose_core.data.synth.stream import CropStream, CropStreamDataset
-from axispose_core.objects import ObjectSpec
+from axispose_core.objects import ObjectSpec, dataset_objects
 from axispose_core.train.dataset import AxisCropDataset
 
 VAL_MIN_VISIB = 0.3

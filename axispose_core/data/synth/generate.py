@@ -33,13 +33,13 @@ from axispose_core.data.bop import (
     write_scene_gt_info,
 )
 from axispose_core.data.meshes import load_render_mesh
-from axispose_core.data.objects import NAMES_FILE
 from axispose_core.data.synth.clutter import distractor_mesh
 from axispose_core.data.synth.config import TABLE_TEXTURE, CameraPathConfig, SynthConfig
 from axispose_core.data.synth.randomize import background, camera_effects, cutouts, light, object_tint
 from axispose_core.data.synth.raster import Light, RenderMesh, render
 from axispose_core.data.synth.scene import Placement, primitive, sample_scene
 from axispose_core.data.synth.table import Table, light_from_above, rest_on, shade_table, table_pixels
+from axispose_core.objects import NAMES_FILE
 
 DEPTH_SCALE = 0.1
 """mm per unit of the depth images (BOP's PBR scenes use the same): 0.1 mm steps up to 6.5 m."""

@@ -38,14 +38,13 @@ from axispose_core.axis_image import axis_keypoints, render_axis_keypoints
 from axispose_core.camera import crop_intrinsics, square_around_box
 from axispose_core.data.bop import bbox_from_model, load_models_info, model_path
 from axispose_core.data.meshes import load_render_mesh, ply_vertex_properties
-from axispose_core.data.objects import objects_from_models
 from axispose_core.data.synth.appearance import photometric, surface
 from axispose_core.data.synth.clutter import distractor_mesh
 from axispose_core.data.synth.config import StreamConfig
 from axispose_core.data.synth.randomize import background, camera_effects, jpeg, light, object_tint
 from axispose_core.data.synth.raster import Light, RenderMesh, decimate, render
 from axispose_core.data.synth.scene import primitive, upright_rotation
-from axispose_core.objects import ObjectSpec
+from axispose_core.objects import ObjectSpec, objects_from_models
 
 log = logging.getLogger(__name__)
 
