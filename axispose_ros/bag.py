@@ -120,31 +120,42 @@ class BagSummary:
     bytes: int
 
 
+@dataclass(frozen=True)
+class BagOptions:
+    """How `make_bag` writes a bag; checked when made."""
+
+    storage: str = "sqlite3"
+    """A key of FORMATS."""
+    fps: float = 10.0
+    """Frame rate the stamps are spaced by."""
+    limit: int | None = None
+    """The scene's first N images only; None: all."""
+    model_points: int = 1000
+    """Points per model in `/gt/models/*` (evenly picked from its vertices)."""
+    progress: bool = True
+
+    def __post_init__(self) -> None:
+        if self.storage not in FORMATS:
+            raise ValueError(f"storage must be one of {sorted(FORMATS)}, got {self.storage!r}")
+        if not self.fps > 0:
+            raise ValueError(f"fps must be > 0, got {self.fps}")
+
+
 def make_bag(
-    scene_dir: str | Path,
-    out: str | Path,
-    objects: list[ObjectSpec],
-    models_dir: str | Path,
-    storage: str = "sqlite3",
-    fps: float = 10.0,
-    limit: int | None = None,
-    model_points: int = 1000,
-    progress: bool = True,
+    scene_dir: str | Path, out: str | Path, objects: list[ObjectSpec], models_dir: str | Path, options: BagOptions | None = None
 ) -> BagSummary:
-    """Write a BOP scene as a rosbag2 (module docstring). `objects` names the objects (topic names) and picks
-    which get GT and ROI topics; `models_dir` gives the points for `/gt/models/*`."""
-    if storage not in FORMATS:
-        raise ValueError(f"storage must be one of {sorted(FORMATS)}, got {storage!r}")
-    if not fps > 0:
-        raise ValueError(f"fps must be > 0, got {fps}")
+    """Write a BOP scene as a rosbag2 (module docstring) as `options` say (default: sqlite3, 10 fps, every image).
+    `objects` names the objects (topic names) and picks which get GT and ROI topics; `models_dir` gives the points
+    for `/gt/models/*`."""
+    opts = options or BagOptions()
     out = Path(out)
     if out.exists():
         raise FileExistsError(f"{out} exists; rosbag2 writers refuse to overwrite a bag")
     scene = BopScene(Path(scene_dir), gt_info_from_models(models_dir))  # boxes, visibility: the models' if no gt_info
     specs = {o.obj_id: o for o in objects}
-    im_ids = scene.image_ids[:limit] if limit else scene.image_ids
+    im_ids = scene.image_ids[: opts.limit] if opts.limit else scene.image_ids
     frames = instances = 0
-    with Writer(out, version=9, storage_plugin=FORMATS[storage]) as writer:
+    with Writer(out, version=9, storage_plugin=FORMATS[opts.storage]) as writer:
         conns: dict[str, object] = {}
 
         def write(topic: str, msgtype: str, msg, stamp_ns: int) -> None:
@@ -155,11 +166,11 @@ def make_bag(
         present = sorted({g.obj_id for im in im_ids for g in scene.gt[im]} & specs.keys())
         for obj_id in present:
             name = specs[obj_id].name
-            pts = _eval_points(Path(models_dir), obj_id, model_points)
+            pts = _eval_points(Path(models_dir), obj_id, opts.model_points)
             write(MODELS_PREFIX + name, "sensor_msgs/msg/PointCloud2", _cloud(pts, _header(STAMP_ORIGIN_NS, name)), STAMP_ORIGIN_NS)
 
-        for k, im_id in enumerate(tqdm(im_ids, desc="make-bag", disable=not progress)):
-            stamp = STAMP_ORIGIN_NS + round(k * 1e9 / fps)
+        for k, im_id in enumerate(tqdm(im_ids, desc="make-bag", disable=not opts.progress)):
+            stamp = STAMP_ORIGIN_NS + round(k * 1e9 / opts.fps)
             header = _header(stamp, FRAME_ID)
             try:
                 rgb = scene.rgb(im_id)

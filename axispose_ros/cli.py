@@ -16,10 +16,10 @@ from axispose_core.cli import main as core_main
 
 def _make_bag(args: argparse.Namespace) -> int:
     from axispose_core.objects import objects_from_models
-    from axispose_ros.bag import make_bag
+    from axispose_ros.bag import BagOptions, make_bag
 
     objects = objects_from_models(args.models, args.objects or None)
-    s = make_bag(args.data, args.out, objects, args.models, storage=args.format, fps=args.fps, limit=args.limit)
+    s = make_bag(args.data, args.out, objects, args.models, BagOptions(storage=args.format, fps=args.fps, limit=args.limit))
     print(f"wrote {s.path} ({args.format}): {s.frames} frames, {s.instances} GT instances, {s.bytes / 1e6:.1f} MB")
     return 0
 
@@ -27,7 +27,7 @@ def _make_bag(args: argparse.Namespace) -> int:
 def _replay(args: argparse.Namespace) -> int:
     from axispose_core.evaluate import format_table, write_report
     from axispose_ros.bag import BagError
-    from axispose_ros.replay import replay
+    from axispose_ros.replay import ReplayOptions, replay
 
     params: dict[str, object] = {"num_threads": args.threads}
     if args.steps is not None:
@@ -38,12 +38,12 @@ def _replay(args: argparse.Namespace) -> int:
         params["guidance_scale"] = args.guidance
     if args.precision is not None:
         params["precision"] = args.precision
+    options = ReplayOptions(
+        rate=None if args.as_fast_as_possible else args.rate, params=params, image_topic=args.image_topic,
+        info_topic=args.camera_info_topic, storage=args.format, overlays=args.overlays, use_rois=not args.ignore_rois,
+    )  # fmt: skip
     try:
-        result = replay(
-            args.bag, args.checkpoint, args.out, rate=None if args.as_fast_as_possible else args.rate, params=params,
-            image_topic=args.image_topic, info_topic=args.camera_info_topic, storage=args.format, overlays=args.overlays,
-            use_rois=not args.ignore_rois,
-        )  # fmt: skip
+        result = replay(args.bag, args.checkpoint, args.out, options)
     except BagError as err:
         print(f"axispose replay: {err}", file=sys.stderr)
         if Path(args.out).exists():

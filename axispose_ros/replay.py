@@ -17,7 +17,7 @@ from __future__ import annotations
 
 import time
 from collections import defaultdict
-from collections.abc import Callable, Iterable, Iterator
+from collections.abc import Callable, Iterable, Iterator, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -27,6 +27,7 @@ import rclpy
 from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PoseArray, PoseStamped, PoseWithCovarianceStamped
 from rclpy.executors import SingleThreadedExecutor
+from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.qos import QoSProfile, ReliabilityPolicy
 from rclpy.serialization import deserialize_message, serialize_message
@@ -91,6 +92,36 @@ def register_axispose_msgs() -> None:
         register_types({f"axispose_msgs/msg/{p.stem}": p.read_text() for p in sorted(_msg_folder().glob("*.msg"))})
 
 
+@dataclass(frozen=True)
+class ReplayOptions:
+    """How `replay` plays a bag to the node and records it (module docstring); checked when made."""
+
+    rate: float | None = None
+    """Play at R x the recorded speed (the node drops what it cannot keep up with); None: lock-step."""
+    params: Mapping[str, object] = field(default_factory=dict)
+    """The node's parameters by name (its checkpoint is `replay`'s own argument)."""
+    image_topic: str | None = None
+    """The bag's Image topic; None: its only one."""
+    info_topic: str | None = None
+    """The bag's CameraInfo topic; None: its only one."""
+    storage: str = "mcap"
+    """Storage of the output bag (a key of FORMATS)."""
+    overlays: str | Path | None = None
+    """Folder for the first `overlay_count` debug images as PNG; None: none (and the node builds none)."""
+    overlay_count: int = 3
+    frame_timeout: float = 120.0
+    """Seconds the node may take to finish a frame before replay gives up (TimeoutError)."""
+    progress: bool = True
+    use_rois: bool = True
+    """Play the bag's `/roi/<name>` boxes; False: the node finds the objects with the checkpoint's localiser."""
+
+    def __post_init__(self) -> None:
+        if self.rate is not None and not self.rate > 0:
+            raise ValueError(f"rate must be > 0, got {self.rate}")
+        if self.storage not in FORMATS:
+            raise ValueError(f"storage must be one of {sorted(FORMATS)}, got {self.storage!r}")
+
+
 @dataclass
 class ReplayResult:
     out_bag: Path
@@ -98,6 +129,48 @@ class ReplayResult:
     counts: dict[str, int]
     frame_latency_ms: list[float]
     report: dict | None
+    overlays: list[Path] = field(default_factory=list)
+
+
+@dataclass
+class _Session:
+    """The node under test and the player node, spun by one executor, with the bag's camera topics."""
+
+    node: AxisPoseNode
+    player: Node
+    exe: SingleThreadedExecutor
+    image_topic: str
+    info_topic: str
+
+
+@dataclass
+class _Truth:
+    """What the bag holds besides the camera stream, for the metrics: GT poses (stamp -> name -> [(R, t)]), K and
+    the GT boxes by stamp, the model points by name."""
+
+    gt: dict[int, dict[str, list]] = field(default_factory=lambda: defaultdict(lambda: defaultdict(list)))
+    cameras: dict[int, np.ndarray] = field(default_factory=dict)
+    boxes: dict[tuple[int, str], tuple[int, int, int, int]] = field(default_factory=dict)
+    points: dict[str, np.ndarray] = field(default_factory=dict)
+
+    def take(self, stamp: int, m: BagMessage) -> bool:
+        """Keep `m` if it is ground truth (a model's points, a GT pose); False for any other message."""
+        if m.topic.startswith(MODELS_PREFIX):
+            self.points[m.topic[len(MODELS_PREFIX) :]] = cloud_points(deserialize(m))
+        elif m.topic.startswith(GT_PREFIX):
+            self.gt[stamp][m.topic[len(GT_PREFIX) :]].append(_pose_rt(deserialize(m).pose))
+        else:
+            return False
+        return True
+
+
+@dataclass
+class _Recording:
+    """What the player heard from the node: per-object poses (stamp -> name -> [(R, t)]), when each stamp's
+    PoseArray arrived (perf_counter s), and the overlay PNGs written."""
+
+    poses: dict[int, dict[str, list]] = field(default_factory=lambda: defaultdict(lambda: defaultdict(list)))
+    arrays: dict[int, float] = field(default_factory=dict)
     overlays: list[Path] = field(default_factory=list)
 
 
@@ -122,71 +195,31 @@ def _pose_rt(pose) -> tuple[np.ndarray, np.ndarray]:
     return R, np.array([pose.position.x, pose.position.y, pose.position.z])
 
 
-def replay(
-    bag: str | Path,
-    checkpoint: str | Path,
-    out_bag: str | Path,
-    rate: float | None = None,
-    params: dict[str, object] | None = None,
-    image_topic: str | None = None,
-    info_topic: str | None = None,
-    storage: str = "mcap",
-    overlays: str | Path | None = None,
-    overlay_count: int = 3,
-    frame_timeout: float = 120.0,
-    progress: bool = True,
-    use_rois: bool = True,
-) -> ReplayResult:
-    """Run the node on `bag` (module docstring). Raises BagError for an unreadable bag; what was recorded until
-    then stays a valid bag at `out_bag`. With `use_rois` False the bag's boxes are not played, so the node
-    finds the objects with the checkpoint's localiser."""
-    if rate is not None and not rate > 0:
-        raise ValueError(f"rate must be > 0, got {rate}")
-    if storage not in FORMATS:
-        raise ValueError(f"storage must be one of {sorted(FORMATS)}, got {storage!r}")
+def replay(bag: str | Path, checkpoint: str | Path, out_bag: str | Path, options: ReplayOptions | None = None) -> ReplayResult:
+    """Run the node on `bag` (module docstring) as `options` say (default: lock-step, the bag's boxes played).
+    Raises BagError for an unreadable bag; what was recorded until then stays a valid bag at `out_bag`."""
+    opts = options or ReplayOptions()
     out_bag = Path(out_bag)
     if out_bag.exists():
         raise FileExistsError(f"{out_bag} exists; rosbag2 writers refuse to overwrite a bag")
     topics = bag_topics(bag)
-    image_topic = _unique_topic(topics, "sensor_msgs/msg/Image", image_topic)
-    info_topic = _unique_topic(topics, "sensor_msgs/msg/CameraInfo", info_topic)
+    image_topic = _unique_topic(topics, "sensor_msgs/msg/Image", opts.image_topic)
+    info_topic = _unique_topic(topics, "sensor_msgs/msg/CameraInfo", opts.info_topic)
 
     ctx = rclpy.Context()
     rclpy.init(context=ctx)
-    overrides = [Parameter("checkpoint", value=str(checkpoint))]
-    overrides += [Parameter(k, value=v) for k, v in (params or {}).items()]
-    for topic in (image_topic, info_topic):
-        overrides += [
-            Parameter(f"qos_overrides.{topic}.subscription.reliability", value="reliable"),
-            Parameter(f"qos_overrides.{topic}.subscription.depth", value=10),
-        ]
     node = player = None
     try:
         node = AxisPoseNode(
             context=ctx,
-            parameter_overrides=overrides,
+            parameter_overrides=_overrides(checkpoint, opts.params, (image_topic, info_topic)),
             cli_args=["--ros-args", "-r", f"image:={image_topic}", "-r", f"camera_info:={info_topic}"],
         )
         player = rclpy.create_node("axispose_replay", context=ctx)
         exe = SingleThreadedExecutor(context=ctx)
         exe.add_node(node)
         exe.add_node(player)
-        return _run(
-            bag,
-            node,
-            player,
-            exe,
-            out_bag,
-            storage,
-            image_topic,
-            info_topic,
-            rate,
-            overlays,
-            overlay_count,
-            frame_timeout,
-            progress,
-            use_rois,
-        )
+        return _run(bag, _Session(node, player, exe, image_topic, info_topic), out_bag, opts)
     finally:
         if node is not None:
             node.destroy_node()
@@ -195,128 +228,154 @@ def replay(
         rclpy.try_shutdown(context=ctx)
 
 
-def _run(
-    bag, node: AxisPoseNode, player, exe, out_bag: Path, storage: str, image_topic: str, info_topic: str,
-    rate: float | None, overlays, overlay_count: int, frame_timeout: float, progress: bool, use_rois: bool,
-) -> ReplayResult:  # fmt: skip
-    reliable = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
-    pubs = {
-        image_topic: player.create_publisher(Image, image_topic, reliable),
-        info_topic: player.create_publisher(CameraInfo, info_topic, reliable),
-    }
-    by_name = {o.name: o for o in node.estimator.config.objects} if use_rois else {}
-    for name in by_name:
-        pubs[ROI_PREFIX + name] = player.create_publisher(RegionOfInterest, node.resolve_topic_name(f"~/roi/{name}"), 10)
+def _overrides(checkpoint: str | Path, params: Mapping[str, object], camera_topics: Iterable[str]) -> list[Parameter]:
+    """The node's parameters: the checkpoint, the caller's, and reliable delivery of the camera topics through
+    the node's QoS-override parameters, so that DDS does not discard large images in a burst."""
+    overrides = [Parameter("checkpoint", value=str(checkpoint))]
+    overrides += [Parameter(k, value=v) for k, v in params.items()]
+    for topic in camera_topics:
+        overrides += [
+            Parameter(f"qos_overrides.{topic}.subscription.reliability", value="reliable"),
+            Parameter(f"qos_overrides.{topic}.subscription.depth", value=10),
+        ]
+    return overrides
 
-    poses: dict[int, dict[str, list]] = defaultdict(lambda: defaultdict(list))
-    arrays: dict[int, float] = {}
-    overlay_paths: list[Path] = []
-    published_at: dict[int, float] = {}
-    with Writer(out_bag, version=9, storage_plugin=FORMATS[storage]) as writer:
-        conns: dict[str, object] = {}
 
-        def recorder(topic: str, msgtype: str, hook: Callable | None = None) -> Callable:
-            def on_msg(msg) -> None:
-                if topic not in conns:
-                    conns[topic] = writer.add_connection(topic, msgtype, typestore=TYPESTORE)
-                stamp = _stamp_ns(msg.header) if hasattr(msg, "header") else time.time_ns()
-                writer.write(conns[topic], stamp or time.time_ns(), serialize_message(msg))
-                if hook:
-                    hook(msg)
+def _run(bag: str | Path, s: _Session, out_bag: Path, opts: ReplayOptions) -> ReplayResult:
+    """Play the bag to the node, record what it publishes into `out_bag`, and score it when the bag has GT."""
+    player = _Player(s, opts)
+    with Writer(out_bag, version=9, storage_plugin=FORMATS[opts.storage]) as writer:
+        rec = _record(s, writer, opts)
+        try:
+            player.play(bag)
+        finally:
+            _await_frame(s.exe, s.node, player.frames, opts.frame_timeout)
+            _spin_until(s.exe, lambda: len(rec.arrays) >= s.node.counts["frames_processed"], 5.0)
+            _spin_until(s.exe, lambda: False, 0.3)  # last per-object poses and debug images
 
-            return on_msg
+    latency = {t: 1000 * (rec.arrays[t] - player.published_at[t]) for t in sorted(rec.arrays) if t in player.published_at}
+    counts = dict(s.node.counts)
+    report = None
+    if player.truth.gt and player.truth.points:
+        report = _report(s.node, player.truth, rec.poses, latency, counts, {"bag": str(bag), "rate": opts.rate})
+    return ReplayResult(out_bag, player.frames, counts, list(latency.values()), report, rec.overlays)
 
-        def on_array(msg: PoseArray) -> None:
-            arrays[_stamp_ns(msg.header)] = time.perf_counter()
 
-        def on_debug(msg: Image) -> None:
-            if overlays is not None and len(overlay_paths) < overlay_count:
-                path = Path(overlays) / f"overlay_{len(overlay_paths):02d}.png"
-                path.parent.mkdir(parents=True, exist_ok=True)
-                cv2.imwrite(str(path), cv2.cvtColor(image_to_rgb(msg), cv2.COLOR_RGB2BGR))
-                overlay_paths.append(path)
+def _record(s: _Session, writer: Writer, opts: ReplayOptions) -> _Recording:
+    """Subscribe the player to the node's outputs: every message into `writer` (stamped by its header), and what
+    the result and the report need into the returned _Recording."""
+    rec = _Recording()
+    conns: dict[str, object] = {}
 
-        ns = node.resolve_topic_name("~")
-        player.create_subscription(
-            PoseArray, f"{ns}/pose_array", recorder(f"{ns}/pose_array", "geometry_msgs/msg/PoseArray", on_array), 100
-        )
-        player.create_subscription(PoseStamped, f"{ns}/pose", recorder(f"{ns}/pose", "geometry_msgs/msg/PoseStamped"), 100)
-        register_axispose_msgs()
-        topic = f"{ns}/detections"
-        player.create_subscription(DetectionArray, topic, recorder(topic, "axispose_msgs/msg/DetectionArray"), 100)
-        player.create_subscription(
-            PoseWithCovarianceStamped, f"{ns}/pose_cov", recorder(f"{ns}/pose_cov", "geometry_msgs/msg/PoseWithCovarianceStamped"), 100
-        )
-        for name in node.published.values():
-            topic = f"{ns}/poses/{name}"
-            hook = (lambda n: lambda m: poses[_stamp_ns(m.header)][n].append(_pose_rt(m.pose)))(name)
-            player.create_subscription(PoseStamped, topic, recorder(topic, "geometry_msgs/msg/PoseStamped", hook), 100)
-        player.create_subscription(MarkerArray, f"{ns}/markers", recorder(f"{ns}/markers", "visualization_msgs/msg/MarkerArray"), 100)
-        player.create_subscription(DiagnosticArray, "/diagnostics", recorder("/diagnostics", "diagnostic_msgs/msg/DiagnosticArray"), 100)
-        if overlays is not None:
-            topic = f"{ns}/debug/axis_image"
-            player.create_subscription(Image, topic, recorder(topic, "sensor_msgs/msg/Image", on_debug), 10)
+    def record(msg_class: type, topic: str, msgtype: str, hook: Callable | None = None, depth: int = 100) -> None:
+        def on_msg(msg) -> None:
+            if topic not in conns:
+                conns[topic] = writer.add_connection(topic, msgtype, typestore=TYPESTORE)
+            stamp = _stamp_ns(msg.header) if hasattr(msg, "header") else time.time_ns()
+            writer.write(conns[topic], stamp or time.time_ns(), serialize_message(msg))
+            if hook:
+                hook(msg)
 
-        gt: dict[int, dict[str, list]] = defaultdict(lambda: defaultdict(list))
-        cameras: dict[int, np.ndarray] = {}
-        boxes: dict[tuple[int, str], tuple[int, int, int, int]] = {}
-        points: dict[str, np.ndarray] = {}
-        frames = 0
-        first_ns: int | None = None
-        start = time.perf_counter()
+        s.player.create_subscription(msg_class, topic, on_msg, depth)
+
+    def on_array(msg: PoseArray) -> None:
+        rec.arrays[_stamp_ns(msg.header)] = time.perf_counter()
+
+    def on_debug(msg: Image) -> None:
+        if opts.overlays is not None and len(rec.overlays) < opts.overlay_count:
+            path = Path(opts.overlays) / f"overlay_{len(rec.overlays):02d}.png"
+            path.parent.mkdir(parents=True, exist_ok=True)
+            cv2.imwrite(str(path), cv2.cvtColor(image_to_rgb(msg), cv2.COLOR_RGB2BGR))
+            rec.overlays.append(path)
+
+    ns = s.node.resolve_topic_name("~")
+    record(PoseArray, f"{ns}/pose_array", "geometry_msgs/msg/PoseArray", on_array)
+    record(PoseStamped, f"{ns}/pose", "geometry_msgs/msg/PoseStamped")
+    register_axispose_msgs()
+    record(DetectionArray, f"{ns}/detections", "axispose_msgs/msg/DetectionArray")
+    record(PoseWithCovarianceStamped, f"{ns}/pose_cov", "geometry_msgs/msg/PoseWithCovarianceStamped")
+    for name in s.node.published.values():
+        hook = (lambda n: lambda m: rec.poses[_stamp_ns(m.header)][n].append(_pose_rt(m.pose)))(name)
+        record(PoseStamped, f"{ns}/poses/{name}", "geometry_msgs/msg/PoseStamped", hook)
+    record(MarkerArray, f"{ns}/markers", "visualization_msgs/msg/MarkerArray")
+    record(DiagnosticArray, "/diagnostics", "diagnostic_msgs/msg/DiagnosticArray")
+    if opts.overlays is not None:
+        record(Image, f"{ns}/debug/axis_image", "sensor_msgs/msg/Image", on_debug, depth=10)
+    return rec
+
+
+class _Player:
+    """Plays the bag's camera stream and boxes to the node (lock-step, or paced by `rate`), keeping the ground
+    truth it passes and when each image was published."""
+
+    def __init__(self, s: _Session, opts: ReplayOptions) -> None:
+        self.s, self.opts = s, opts
+        reliable = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
+        self.pubs = {
+            s.image_topic: s.player.create_publisher(Image, s.image_topic, reliable),
+            s.info_topic: s.player.create_publisher(CameraInfo, s.info_topic, reliable),
+        }
+        self.by_name = {o.name: o for o in s.node.estimator.config.objects} if opts.use_rois else {}
+        for name in self.by_name:
+            self.pubs[ROI_PREFIX + name] = s.player.create_publisher(RegionOfInterest, s.node.resolve_topic_name(f"~/roi/{name}"), 10)
+        self.truth = _Truth()
+        self.published_at: dict[int, float] = {}
+        self.frames = 0
+        self._start = 0.0
+        self._first_ns: int | None = None
+
+    def play(self, bag: str | Path) -> None:
+        """Every frame of `bag` in turn; in lock-step, each once the node has finished the one before."""
+        self._start = time.perf_counter()
         # Let discovery match the player's publishers with the node's subscriptions before the first frame.
-        _spin_until(exe, lambda: all(p.get_subscription_count() > 0 for p in pubs.values()), 10.0)
-        bar = tqdm(desc="replay", unit="frame", disable=not progress)
+        _spin_until(self.s.exe, lambda: all(p.get_subscription_count() > 0 for p in self.pubs.values()), 10.0)
+        bar = tqdm(desc="replay", unit="frame", disable=not self.opts.progress)
         try:
             for stamp, group in _by_stamp(read_bag(bag)):
-                stream = []
-                for m in group:
-                    if m.topic.startswith(MODELS_PREFIX):
-                        points[m.topic[len(MODELS_PREFIX) :]] = cloud_points(deserialize(m))
-                    elif m.topic.startswith(GT_PREFIX):
-                        gt[stamp][m.topic[len(GT_PREFIX) :]].append(_pose_rt(deserialize(m).pose))
-                    elif m.topic in pubs:
-                        stream.append((m.topic, _ros_message(m)))
-                if not stream:
-                    continue
-                if rate is not None:
-                    first_ns = stamp if first_ns is None else first_ns
-                    due = start + (stamp - first_ns) / 1e9 / rate
-                    while (left := due - time.perf_counter()) > 0:
-                        exe.spin_once(timeout_sec=min(POLL_S, left))
-                rois = {t[len(ROI_PREFIX) :]: msg for t, msg in stream if t.startswith(ROI_PREFIX)}
-                for name in by_name:  # an object without box in this frame gets an empty one: its old box is void
-                    roi = rois.get(name, RegionOfInterest())
-                    if name in rois:
-                        boxes[(stamp, name)] = (roi.x_offset, roi.y_offset, roi.width, roi.height)
-                    pubs[ROI_PREFIX + name].publish(roi)
-                if rate is None:  # the boxes must be in place before the image is processed
-                    want = {by_name[n].obj_id: rois.get(n, RegionOfInterest()) for n in by_name}
-                    _spin_until(exe, lambda want=want: all(node.rois.latest(i) == roi for i, roi in want.items()), 10.0)
-                for topic, msg in stream:
-                    if topic == info_topic:
-                        cameras[_stamp_ns(msg.header)] = np.array(msg.k, dtype=float).reshape(3, 3)
-                        pubs[topic].publish(msg)
-                for topic, msg in stream:
-                    if topic == image_topic:
-                        published_at[_stamp_ns(msg.header)] = time.perf_counter()
-                        pubs[topic].publish(msg)
-                        frames += 1
-                        bar.update(1)
-                        if rate is None:
-                            _await_frame(exe, node, frames, frame_timeout)
+                stream = [(m.topic, _ros_message(m)) for m in group if not self.truth.take(stamp, m) and m.topic in self.pubs]
+                if stream:
+                    self._frame(stamp, stream, bar)
         finally:
             bar.close()
-            _await_frame(exe, node, frames, frame_timeout)
-            _spin_until(exe, lambda: len(arrays) >= node.counts["frames_processed"], 5.0)
-            _spin_until(exe, lambda: False, 0.3)  # last per-object poses and debug images
 
-    latency = {s: 1000 * (arrays[s] - published_at[s]) for s in sorted(arrays) if s in published_at}
-    counts = dict(node.counts)
-    report = None
-    if gt and points:
-        report = _report(node, gt, poses, cameras, boxes, points, arrays, latency, counts, {"bag": str(bag), "rate": rate})
-    return ReplayResult(out_bag, frames, counts, list(latency.values()), report, overlay_paths)
+    def _frame(self, stamp: int, stream: list[tuple[str, object]], bar: tqdm) -> None:
+        """One frame: its boxes, its CameraInfo, then its image (in lock-step, waiting for the node to finish it)."""
+        s, lock_step = self.s, self.opts.rate is None
+        if not lock_step:
+            self._pace(stamp)
+        self._boxes(stamp, {t[len(ROI_PREFIX) :]: msg for t, msg in stream if t.startswith(ROI_PREFIX)})
+        for topic, msg in stream:
+            if topic == s.info_topic:
+                self.truth.cameras[_stamp_ns(msg.header)] = np.array(msg.k, dtype=float).reshape(3, 3)
+                self.pubs[topic].publish(msg)
+        for topic, msg in stream:
+            if topic == s.image_topic:
+                self.published_at[_stamp_ns(msg.header)] = time.perf_counter()
+                self.pubs[topic].publish(msg)
+                self.frames += 1
+                bar.update(1)
+                if lock_step:
+                    _await_frame(s.exe, s.node, self.frames, self.opts.frame_timeout)
+
+    def _pace(self, stamp: int) -> None:
+        """Spin until the frame of bag time `stamp` is due: the bag's timing scaled by `rate`."""
+        self._first_ns = stamp if self._first_ns is None else self._first_ns
+        due = self._start + (stamp - self._first_ns) / 1e9 / self.opts.rate
+        while (left := due - time.perf_counter()) > 0:
+            self.s.exe.spin_once(timeout_sec=min(POLL_S, left))
+
+    def _boxes(self, stamp: int, rois: dict[str, RegionOfInterest]) -> None:
+        """Publish every object's box of this frame; one without a box gets an empty one, so its old box is void.
+        In lock-step, wait until the node holds them all, so that they are in place before the image is processed."""
+        for name in self.by_name:
+            roi = rois.get(name, RegionOfInterest())
+            if name in rois:
+                self.truth.boxes[(stamp, name)] = (roi.x_offset, roi.y_offset, roi.width, roi.height)
+            self.pubs[ROI_PREFIX + name].publish(roi)
+        if self.opts.rate is None:
+            want = {self.by_name[n].obj_id: rois.get(n, RegionOfInterest()) for n in self.by_name}
+            node = self.s.node
+            _spin_until(self.s.exe, lambda: all(node.rois.latest(i) == roi for i, roi in want.items()), 10.0)
 
 
 def _by_stamp(messages: Iterable[BagMessage]) -> Iterator[tuple[int, list[BagMessage]]]:
@@ -363,15 +422,16 @@ def _await_frame(exe, node: AxisPoseNode, n: int, timeout: float, settle: float 
     raise TimeoutError(f"the node did not finish frame {n} within {timeout} s")
 
 
-def _report(node, gt, poses, cameras, boxes, points, arrays, latency, counts, config) -> dict:
+def _report(node: AxisPoseNode, truth: _Truth, poses: dict, latency: dict[int, float], counts: dict[str, int], config: dict) -> dict:
     """Per-instance scores as `axispose eval`: each GT instance matched to the nearest estimate of its object in
     the same frame (one-to-one); a frame the node dropped or an instance without estimate counts as wrong."""
     by_name = {o.name: o for o in node.estimator.config.objects}
+    gt, points = truth.gt, truth.points
     records: list[Record] = []
     for k, stamp in enumerate(sorted(gt)):
         n_inst = max(1, sum(len(v) for v in gt[stamp].values()))
         seconds = latency.get(stamp, 0.0) / 1000 / n_inst
-        K = cameras.get(stamp)
+        K = truth.cameras.get(stamp)
         for name, instances in gt[stamp].items():
             spec = by_name.get(name)
             if spec is None or name not in points or name not in node.published.values() or K is None:
@@ -395,11 +455,12 @@ def _report(node, gt, poses, cameras, boxes, points, arrays, latency, counts, co
                         best is not None,
                         K,
                         None,
-                        boxes.get((stamp, name), (0, 0, 0, 0)),
+                        truth.boxes.get((stamp, name), (0, 0, 0, 0)),
                     )
                 )
     objects = [o for o in node.estimator.config.objects if o.name in node.published.values()]
-    used = {"ddim_steps": node.get_parameter("ddim_steps").value, "hypotheses": node.hypotheses(), "precision": node.precision}
+    settings = node.settings()
+    used = {"ddim_steps": settings.ddim_steps, "hypotheses": settings.hypotheses, "precision": node.precision}
     report = summarize(records, objects, config | used)
     lat = np.array(list(latency.values())) if latency else np.zeros(1)
     report["frame_latency_ms"] = {"median": float(np.median(lat)), "p90": float(np.percentile(lat, 90))}

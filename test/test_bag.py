@@ -20,9 +20,9 @@ from axispose_core.data.synth.generate import generate
 from axispose_core.estimator import Estimator, EstimatorConfig, PoseEstimate
 from axispose_core.objects import objects_from_models
 from axispose_core.tbm.reader import SHIPPED_READER, load_reader
-from axispose_ros.bag import IMAGE_TOPIC, INFO_TOPIC, BagError, bag_topics, cloud_points, deserialize, make_bag, read_bag
+from axispose_ros.bag import IMAGE_TOPIC, INFO_TOPIC, BagError, BagOptions, bag_topics, cloud_points, deserialize, make_bag, read_bag
 from axispose_ros.cli import main
-from axispose_ros.replay import replay
+from axispose_ros.replay import ReplayOptions, replay
 
 OBJECTS = (1, 5, 8)  # ape, can, driller
 
@@ -56,7 +56,7 @@ def checkpoint(tmp_path_factory, objects):
 @pytest.fixture(scope="module", params=["sqlite3", "mcap"])
 def bag(request, scene, objects, lmo_dir, tmp_path_factory):
     path = tmp_path_factory.mktemp(request.param) / "scene.bag"
-    summary = make_bag(scene, path, objects, lmo_dir / "models_eval", storage=request.param, progress=False)
+    summary = make_bag(scene, path, objects, lmo_dir / "models_eval", BagOptions(storage=request.param, progress=False))
     assert summary.frames == 3 and summary.instances > 0
     return path
 
@@ -107,7 +107,7 @@ def test_replay_of_ground_truth_scores_perfectly(bag, scene, checkpoint, monkeyp
         return out
 
     monkeypatch.setattr(Estimator, "estimate", gt_estimate)
-    result = replay(bag, checkpoint, tmp_path / "out", progress=False)
+    result = replay(bag, checkpoint, tmp_path / "out", ReplayOptions(progress=False))
     assert result.frames_published == 3 and result.counts["frames_processed"] == 3
     assert not any(k.startswith("dropped_") for k in result.counts)
     report = result.report
@@ -153,7 +153,7 @@ def test_replay_cli_with_a_real_checkpoint(bag, checkpoint, tmp_path, capsys):
 
 
 def test_replay_at_a_rate_keeps_bag_timing(bag, checkpoint, tmp_path):
-    result = replay(bag, checkpoint, tmp_path / "out", rate=2.0, params={"num_threads": 1}, progress=False)
+    result = replay(bag, checkpoint, tmp_path / "out", ReplayOptions(rate=2.0, params={"num_threads": 1}, progress=False))
     assert result.frames_published == 3
     assert result.counts["frames_processed"] + result.counts.get("dropped_stale", 0) == 3
 
@@ -178,17 +178,26 @@ def test_damaged_bags_give_clear_errors_and_keep_the_output_valid(bag, checkpoin
 
 def test_make_bag_refuses_bad_arguments(scene, objects, lmo_dir, tmp_path):
     with pytest.raises(ValueError, match="storage"):
-        make_bag(scene, tmp_path / "a", objects, lmo_dir / "models_eval", storage="rosbag1")
+        make_bag(scene, tmp_path / "a", objects, lmo_dir / "models_eval", BagOptions(storage="rosbag1"))
     (tmp_path / "exists").mkdir()
     with pytest.raises(FileExistsError):
         make_bag(scene, tmp_path / "exists", objects, lmo_dir / "models_eval")
+    with pytest.raises(ValueError, match="fps"):
+        BagOptions(fps=0.0)
+
+
+def test_replay_options_refuse_bad_values():
+    with pytest.raises(ValueError, match="rate"):
+        ReplayOptions(rate=0.0)
+    with pytest.raises(ValueError, match="storage"):
+        ReplayOptions(storage="rosbag1")
 
 
 def test_make_bag_of_a_scene_as_real_data_comes(scene, objects, lmo_dir, tmp_path, official_like):
     """No scene_gt_info.json or masks: the ROIs are the boxes of the models at the GT pose, as the files'."""
     real = official_like(scene, tmp_path / "real")
-    make_bag(real, tmp_path / "real.bag", objects, lmo_dir / "models", storage="mcap", progress=False)
-    make_bag(scene, tmp_path / "synth.bag", objects, lmo_dir / "models", storage="mcap", progress=False)
+    make_bag(real, tmp_path / "real.bag", objects, lmo_dir / "models", BagOptions(storage="mcap", progress=False))
+    make_bag(scene, tmp_path / "synth.bag", objects, lmo_dir / "models", BagOptions(storage="mcap", progress=False))
 
     def rois(path):
         return sorted((m.topic, m.stamp_ns, bytes(m.raw)) for m in read_bag(path) if m.topic.startswith("/roi/"))
