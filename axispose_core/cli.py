@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import sys
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import TypeVar
 
@@ -409,11 +409,17 @@ def _run_options(args: argparse.Namespace):
     return RunOptions(resume=args.resume, device=args.device, max_minutes=args.max_minutes, stop_at=args.stop_at)
 
 
-def _ids(text: str) -> list[int]:
+def object_ids(text: str) -> list[int]:
+    """The argparse type of `--objects`: comma-separated object ids (the ROS commands' too)."""
     return [int(v) for v in text.split(",") if v.strip()]
 
 
-def build_parser() -> argparse.ArgumentParser:
+AddParser = Callable[..., argparse.ArgumentParser]
+"""`add_parser` of the subcommands: what `build_parser`'s `commands` gets to add commands with."""
+
+
+def build_parser(commands: Callable[[AddParser], None] | None = None) -> argparse.ArgumentParser:
+    """The core's commands, then those `commands` adds (the ROS ones, `axispose_ros.cli`) with the same parser."""
     parser = argparse.ArgumentParser(prog="axispose", description="AxisPose: 6D object pose from one RGB image by axis generation.")
     sub = parser.add_subparsers(dest="command", required=True)
 
@@ -444,7 +450,7 @@ def build_parser() -> argparse.ArgumentParser:
     sy.add_argument("--recipe", default="desk", help="scenes and looks: desk (default: on a table among everyday "
                     "meshes, shadows, a camera's lens and sensor), plain (objects in front of a photograph: the data of "
                     "earlier models), desk-held-out (the desk's held-out meshes and photographs: stress sets)")  # fmt: skip
-    sy.add_argument("--objects", type=_ids, default=[], help="comma-separated object ids (default: all in models_info.json)")
+    sy.add_argument("--objects", type=object_ids, default=[], help="comma-separated object ids (default: all in models_info.json)")
     sy.add_argument("--width", type=int, default=640)
     sy.add_argument("--height", type=int, default=480)
     sy.add_argument("--camera", help="BOP camera.json (fx, fy, cx, cy, width, height); default: the LM-O camera")
@@ -480,7 +486,7 @@ def build_parser() -> argparse.ArgumentParser:
     ev.add_argument("--checkpoint", required=True)
     ev.add_argument("--data", required=True, help="a BOP split folder of scenes, or one scene folder")
     ev.add_argument("--models", required=True, help="models for the metrics (BOP models_eval folder)")
-    ev.add_argument("--objects", type=_ids, default=[], help="comma-separated object ids (default: all the checkpoint knows)")
+    ev.add_argument("--objects", type=object_ids, default=[], help="comma-separated object ids (default: all the checkpoint knows)")
     ev.add_argument("--steps", type=int, default=None, help="DDIM steps (default: the checkpoint's)")
     ev.add_argument("--guidance", type=float, default=None, help="run-time guidance scale (0: off)")
     ev.add_argument(
@@ -538,12 +544,14 @@ def build_parser() -> argparse.ArgumentParser:
     st.add_argument(
         "--models", default=str(SHARED_LMO / "models"), help="BOP models folder (default: ../shared/data/lmo/models beside the clone)"
     )
-    st.add_argument("--objects", type=_ids, default=[], help="comma-separated object ids (default: all in models_info.json)")
+    st.add_argument("--objects", type=object_ids, default=[], help="comma-separated object ids (default: all in models_info.json)")
     st.add_argument("--seed", type=int, default=0)
     st.add_argument("--start", type=int, default=0, help="first sample index")
     st.add_argument("--count", type=int, default=32)
     st.add_argument("--size", type=int, default=64, help="crop size in pixels")
     st.set_defaults(func=_stream_preview)
+    if commands is not None:
+        commands(sub.add_parser)
     return parser
 
 

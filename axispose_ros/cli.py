@@ -10,7 +10,7 @@ import sys
 from collections.abc import Sequence
 from pathlib import Path
 
-from axispose_core.cli import _ids, build_parser
+from axispose_core.cli import AddParser, build_parser, object_ids
 from axispose_core.cli import main as core_main
 
 
@@ -71,20 +71,23 @@ def _replay(args: argparse.Namespace) -> int:
 
 
 def build_ros_parser() -> argparse.ArgumentParser:
-    parser = build_parser()
-    sub = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction))
+    """The core's commands plus the ROS ones."""
+    return build_parser(_add_ros_commands)
 
-    mb = sub.add_parser("make-bag", help="write a BOP scene as a rosbag2: camera stream, GT poses, GT boxes, model points")
+
+def _add_ros_commands(add_parser: AddParser) -> None:
+    """`make-bag` and `replay`: their handlers import ROS, the parser does not."""
+    mb = add_parser("make-bag", help="write a BOP scene as a rosbag2: camera stream, GT poses, GT boxes, model points")
     mb.add_argument("--data", required=True, help="one BOP scene folder (rgb/, scene_gt.json, scene_camera.json)")
     mb.add_argument("--out", required=True, help="bag folder to create")
     mb.add_argument("--models", required=True, help="BOP models folder (names, metrics points; models_eval is enough)")
     mb.add_argument("--format", choices=["sqlite3", "mcap"], default="mcap")
-    mb.add_argument("--objects", type=_ids, default=[], help="comma-separated object ids (default: all in models_info.json)")
+    mb.add_argument("--objects", type=object_ids, default=[], help="comma-separated object ids (default: all in models_info.json)")
     mb.add_argument("--fps", type=float, default=10.0, help="frame rate the stamps are spaced by")
     mb.add_argument("--limit", type=int, default=None, help="first N images only")
     mb.set_defaults(func=_make_bag)
 
-    rp = sub.add_parser("replay", help="run the node in-process on a bag, record its outputs, score them against the bag's GT")
+    rp = add_parser("replay", help="run the node in-process on a bag, record its outputs, score them against the bag's GT")
     rp.add_argument("bag", help="rosbag2 folder (sqlite3 or mcap)")
     rp.add_argument("--checkpoint", required=True)
     rp.add_argument("--out", required=True, help="bag folder to record the node's outputs into")
@@ -106,7 +109,6 @@ def build_ros_parser() -> argparse.ArgumentParser:
     )
     rp.add_argument("--threads", type=int, default=2)
     rp.set_defaults(func=_replay)
-    return parser
 
 
 def main(argv: Sequence[str] | None = None) -> int:

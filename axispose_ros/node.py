@@ -34,6 +34,7 @@ from __future__ import annotations
 import os
 import sys
 import time
+from collections.abc import MutableMapping
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -246,7 +247,7 @@ def shipped_fastdds_profile() -> Path | None:
     return next((p for p in candidates if p.is_file()), None)
 
 
-def use_shipped_fastdds_profile(environ: dict[str, str] | os._Environ = os.environ) -> Path | None:
+def use_shipped_fastdds_profile(environ: MutableMapping[str, str] = os.environ) -> Path | None:
     """Point Fast DDS at the shipped profile, unless the user chose a profile (either variable set, even empty) or
     another middleware (RMW_IMPLEMENTATION not Fast DDS). Must run before the process's first DDS participant:
     Fast DDS reads the variable once. Returns the profile set, or None."""
