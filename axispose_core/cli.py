@@ -228,7 +228,7 @@ def _eval(args: argparse.Namespace) -> int:
     from axispose_core.checkpoint import read_metadata
     from axispose_core.data.bop import BopFormatError
     from axispose_core.estimator import EstimateOptions, Estimator
-    from axispose_core.evaluate import Prediction, evaluate
+    from axispose_core.evaluate import EvalOptions, Prediction, evaluate
     from axispose_core.stress import PERTURBATIONS
 
     torch.set_num_threads(args.threads)
@@ -238,17 +238,16 @@ def _eval(args: argparse.Namespace) -> int:
     except BopFormatError as err:
         print(f"axispose eval: {err}", file=sys.stderr)
         return 2
-    bop: list = []
     if read_metadata(args.checkpoint, None)["kind"] == DIRECT_KIND:  # the direct-regression baseline
         if args.crops == "detect":
             print("axispose eval: the direct-regression baseline has no localiser; use --crops gt", file=sys.stderr)
             return 2
         direct = DirectEstimator.load(args.checkpoint)
         objects = [o for o in direct.model.config.objects if not args.objects or o.obj_id in args.objects]
-        notes: dict = {}
-        records = evaluate(lambda image, K, boxes: [Prediction(p.R, p.t, p.ok) for p in direct.estimate(image, K, boxes)],
-                           args.data, args.models, objects, limit=args.limit, visib=tuple(args.visib), perturb=perturb,
-                           notes=notes, targets=targets, bop=bop)  # fmt: skip
+        eval_options = EvalOptions(limit=args.limit, visib=tuple(args.visib), perturb=perturb, targets=targets, bop=True)
+        run = evaluate(lambda image, K, boxes: [Prediction(p.R, p.t, p.ok) for p in direct.estimate(image, K, boxes)],
+                       args.data, args.models, objects, eval_options)  # fmt: skip
+        records, notes, bop = run.records, run.notes, run.bop
         config = {"checkpoint": str(args.checkpoint), "data": str(args.data), "model": DIRECT_KIND, "crops": args.crops,
                   "visib": list(args.visib), "perturb": args.perturb, "targets": targets_path, **notes}  # fmt: skip
         return _report(args, records, objects, config, None, bop)
@@ -261,17 +260,17 @@ def _eval(args: argparse.Namespace) -> int:
         poses = est.estimate(image, K, boxes, options)
         return [Prediction(p.R, p.t, p.ok, p.spread_deg, p.covariance) for p in poses]
 
-    detector, counts = None, None
+    detector = None
     if args.crops == "detect":
         if est.localiser is None:
             print(
                 f"axispose eval: {args.checkpoint} has no localiser (attach one with `axispose train-localiser --attach`)", file=sys.stderr
             )
             return 2
-        detector, counts = est.detect, {}
-    notes = {}
-    records = evaluate(predict, args.data, args.models, objects, limit=args.limit, detector=detector, detection_counts=counts,
-                       visib=tuple(args.visib), perturb=perturb, notes=notes, targets=targets, bop=bop)  # fmt: skip
+        detector = est.detect
+    eval_options = EvalOptions(limit=args.limit, detector=detector, visib=tuple(args.visib), perturb=perturb, targets=targets, bop=True)
+    run = evaluate(predict, args.data, args.models, objects, eval_options)
+    records, notes, counts, bop = run.records, run.notes, run.detection_counts, run.bop
     config = {"checkpoint": str(args.checkpoint), "data": str(args.data), "steps": args.steps or est.config.ddim_steps,
               "guidance": est.config.guidance_scale if args.guidance is None else args.guidance, "crops": args.crops,
               "hypotheses": args.hypotheses, "precision": precision, "visib": list(args.visib), "perturb": args.perturb,

@@ -17,6 +17,7 @@ import zlib
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import cv2
 import numpy as np
@@ -48,7 +49,9 @@ class Prediction:
     """(6, 6) pose covariance the estimator reports (x, y, z, rotation about X, Y, Z; camera frame), if any."""
 
 
-Predictor = Callable[[np.ndarray, np.ndarray, list[tuple[int, tuple[float, float, float, float]]]], list[Prediction]]
+ObjectBox = tuple[int, tuple[float, float, float, float]]
+"""(obj_id, box): an instance's object and its box (x, y, w, h) in image pixels, as BOP's bbox_obj."""
+Predictor = Callable[[np.ndarray, np.ndarray, list[ObjectBox]], list[Prediction]]
 """(rgb image, K, [(obj_id, box)]) -> one Prediction per box."""
 
 
@@ -86,122 +89,164 @@ def instance_scores(
     return pose_scores(*pose, R_gt, t_gt, K, points, spec.diameter, spec.symmetric)
 
 
-def evaluate(
-    predict: Predictor,
-    data: str | Path,
-    models_dir: str | Path,
-    objects: list[ObjectSpec],
-    limit: int | None = None,
-    progress: bool = True,
-    detector: Callable[[np.ndarray], list[Detection]] | None = None,
-    detection_counts: dict[int, dict[str, int]] | None = None,
-    visib: tuple[float, float] = (MIN_VISIB, 1.0),
-    perturb: Callable[[np.ndarray, np.random.Generator], np.ndarray] | None = None,
-    notes: dict | None = None,
-    targets: dict[tuple[int, int], dict[int, int]] | None = None,
-    bop: list[ImageErrors] | None = None,
-) -> list[Record]:
-    """Run `predict` on every frame's boxes (one batch per frame) and score each instance.
+Detector = Callable[[np.ndarray], list[Detection]]
+"""rgb image -> the localiser's detections."""
+Perturbation = Callable[[np.ndarray, np.random.Generator], np.ndarray]
+"""(rgb image, seeded generator) -> the degraded image (stress.py)."""
+Targets = dict[tuple[int, int], dict[int, int]]
+"""(scene id, image id) -> {obj_id: inst_count}: test_targets_bop19.json (`bop.load_test_targets`)."""
 
-    Instances count when their visib_fract lies in `visib` (lower bound at least MIN_VISIB); `perturb`, seeded
-    by scene and frame, degrades each RGB frame first.
 
-    The boxes are the GT boxes, or with `detector` the detections matched to the GT instances (same object,
-    IoU >= 0.5, greedy by score); an instance no detection matches counts as a pose failure, and per object
-    `detection_counts` (filled in) gets the true positives, false positives and instances.
+@dataclass(frozen=True)
+class EvalOptions:
+    """How `evaluate` runs, as against what it scores.
 
-    `notes` (filled in) says what the data needed: scenes whose visibility was estimated from the models (no
-    scene_gt_info.json) and GT rotations projected to the nearest rotation (`bop.read_scene_gt`).
+    Instances count when their visib_fract lies in `visib` (lower bound at least MIN_VISIB); `perturb`, seeded by
+    scene and frame, degrades each RGB frame first. The boxes are the GT boxes, or with `detector` the detections
+    matched to the GT instances (same object, IoU >= 0.5, greedy by score); an instance no detection matches
+    counts as a pose failure. `targets` limits the instances to BOP's: only the images it names, and per image and
+    object the `inst_count` most visible instances (within `visib`). `bop` also computes each image's BOP19
+    errors (`Evaluation.bop`). `limit` stops after that many instances (at a frame's end)."""
 
-    `targets` (test_targets_bop19.json, `bop.load_test_targets`) limits the instances to BOP's: only the images
-    it names, and per image and object the `inst_count` most visible instances (within `visib`). `bop` (filled
-    in) gets each image's BOP19 errors (`bop19.image_errors`): every estimate with its score (1 for a GT crop, the
-    localiser's otherwise; with the localiser, every detection of a known object is posed) against the image's
-    instances, VSD where the scene has depth images.
-    """
-    if not MIN_VISIB <= visib[0] <= visib[1]:
-        raise ValueError(f"visib must be a band ({MIN_VISIB} <= low <= high), got {visib}")
-    specs = {o.obj_id: o for o in objects}
-    if bop is not None:
-        infos = load_models_info(Path(models_dir) / "models_info.json")
-        bop_objects = {i: BopObject.load(models_dir, infos[i]) for i in specs}
-        points = {i: o.points for i, o in bop_objects.items()}
-    else:
-        points = {i: load_ply(model_path(models_dir, i)).vertices for i in specs}
-    records: list[Record] = []
-    frames = bop_frames([data], gt_info_from_models(models_dir))
-    scenes = list({scene.root: scene for scene, _ in frames}.values())
-    if notes is not None:
-        notes["visibility_estimated_scenes"] = sorted(s.root.name for s in scenes if s.visibility_estimated)
-        notes["gt_rotations_projected"] = sum(s.rotations_projected for s in scenes)
-    scene_ids = {scene.root: _scene_id(scene, k) for k, scene in enumerate(scenes)}
-    for scene, im_id in tqdm(frames, desc="eval", disable=not progress):
-        if targets is not None and (scene_ids[scene.root], im_id) not in targets:
-            continue
+    limit: int | None = None
+    progress: bool = True
+    detector: Detector | None = None
+    visib: tuple[float, float] = (MIN_VISIB, 1.0)
+    perturb: Perturbation | None = None
+    targets: Targets | None = None
+    bop: bool = False
+
+    def __post_init__(self) -> None:
+        if not MIN_VISIB <= self.visib[0] <= self.visib[1]:
+            raise ValueError(f"visib must be a band ({MIN_VISIB} <= low <= high), got {self.visib}")
+
+
+@dataclass
+class Evaluation:
+    """What `evaluate` gives: a Record per counted instance, and what the data needed (`notes`: scenes whose
+    visibility was estimated from the models, having no scene_gt_info.json, and GT rotations projected to the
+    nearest rotation, `bop.read_scene_gt`). With a detector, `detection_counts` per object: true positives, false
+    positives and instances. With `EvalOptions.bop`, `bop`: each image's BOP19 errors (`bop19.image_errors`): every
+    estimate with its score (1 for a GT crop, the localiser's otherwise; with the localiser, every detection of a
+    known object is posed) against the image's instances, VSD where the scene has depth images."""
+
+    records: list[Record]
+    notes: dict[str, Any]
+    detection_counts: dict[int, dict[str, int]] | None = None
+    bop: list[ImageErrors] | None = None
+
+
+@dataclass(frozen=True)
+class _Frame:
+    """One frame to pose: its scene and ids, every GT instance (`pairs`) and those that count (`insts`)."""
+
+    scene: BopScene
+    im_id: int
+    scene_id: int
+    pairs: list[tuple[GTInstance, GTInfo]]
+    insts: list[tuple[GTInstance, GTInfo]]
+
+
+class _Evaluator:
+    """`evaluate`'s frame-by-frame work: the predictor, the objects' models and what has been gathered so far."""
+
+    def __init__(self, predict: Predictor, models_dir: str | Path, objects: list[ObjectSpec], options: EvalOptions) -> None:
+        self.predict, self.options = predict, options
+        self.specs = {o.obj_id: o for o in objects}
+        self.bop_objects: dict[int, BopObject] = {}
+        if options.bop:
+            infos = load_models_info(Path(models_dir) / "models_info.json")
+            self.bop_objects = {i: BopObject.load(models_dir, infos[i]) for i in self.specs}
+            self.points = {i: o.points for i, o in self.bop_objects.items()}
+        else:
+            self.points = {i: load_ply(model_path(models_dir, i)).vertices for i in self.specs}
+        self.records: list[Record] = []
+        self.counts: dict[int, dict[str, int]] | None = {} if options.detector is not None else None
+        self.bop: list[ImageErrors] | None = [] if options.bop else None
+
+    def frame(self, scene: BopScene, im_id: int, scene_id: int) -> _Frame | None:
+        """The frame with the instances that count (object evaluated, visibility in the band, a BOP target where
+        targets are given), or None without any."""
+        targets, (low, high) = self.options.targets, self.options.visib
+        if targets is not None and (scene_id, im_id) not in targets:
+            return None
         pairs = scene.instances(im_id)
-        wanted = _target_instances(pairs, targets[scene_ids[scene.root], im_id]) if targets is not None else range(len(pairs))
-        insts = [pairs[k] for k in wanted if pairs[k][0].obj_id in specs and visib[0] <= pairs[k][1].visib_fract <= visib[1]]
-        if not insts:
-            continue
-        if limit is not None and len(records) >= limit:
-            break
+        wanted = _target_instances(pairs, targets[scene_id, im_id]) if targets is not None else range(len(pairs))
+        insts = [pairs[k] for k in wanted if pairs[k][0].obj_id in self.specs and low <= pairs[k][1].visib_fract <= high]
+        return _Frame(scene, im_id, scene_id, pairs, insts) if insts else None
+
+    def pose(self, frame: _Frame) -> None:
+        """Pose the frame's boxes in one batch, timed with the detection, and score every instance that counts."""
+        scene, im_id, insts = frame.scene, frame.im_id, frame.insts
         K = scene.cameras[im_id]
         rgb = scene.rgb(im_id)
-        if perturb is not None:
-            rgb = perturb(rgb, np.random.default_rng([zlib.crc32(scene.root.name.encode()), im_id]))
+        if self.options.perturb is not None:
+            rgb = self.options.perturb(rgb, np.random.default_rng([zlib.crc32(scene.root.name.encode()), im_id]))
         start = time.perf_counter()
-        boxes = [(g.obj_id, info.bbox_obj) for g, info in insts]
-        box_scores = [1.0] * len(insts)
-        if detector is not None:
-            dets = [d for d in detector(rgb) if d.obj_id in specs]
-            everyone = [(g.obj_id, info.bbox_obj) for g, info in pairs]
-            hits = match(dets, everyone)  # detections of barely visible instances are neither hits nor false alarms
-            found = dict(zip(map(id, scene.gt[im_id]), hits, strict=True))
-            boxes, box_scores = [(d.obj_id, d.box) for d in dets], [d.score for d in dets]
-            if detection_counts is not None:
-                for g, _ in insts:
-                    c = detection_counts.setdefault(g.obj_id, {"tp": 0, "fp": 0, "n": 0})
-                    c["n"] += 1
-                    c["tp"] += found[id(g)] is not None
-                for d in (dets[k] for k in false_alarms(hits, len(dets))):
-                    detection_counts.setdefault(d.obj_id, {"tp": 0, "fp": 0, "n": 0})["fp"] += 1
-        posed = predict(rgb, K, boxes) if boxes else []
+        boxes, box_scores, found = [(g.obj_id, info.bbox_obj) for g, info in insts], [1.0] * len(insts), None
+        if self.options.detector is not None:
+            boxes, box_scores, found = self._detect(frame, rgb)
+        posed = self.predict(rgb, K, boxes) if boxes else []
         frame_seconds = time.perf_counter() - start
-        per_object = frame_seconds / len(insts)
         missed = Prediction(np.eye(3), np.zeros(3), False)
-        if detector is None:
+        if found is None:
             preds = posed
         else:
             preds = [posed[found[id(g)]] if found[id(g)] is not None else missed for g, _ in insts]
-        if bop is not None:
-            sid = scene_ids[scene.root]
-            made = [BopEstimate(sid, im_id, obj_id, score, p.R, p.t, frame_seconds)
+        if self.bop is not None:
+            made = [BopEstimate(frame.scene_id, im_id, obj_id, score, p.R, p.t, frame_seconds)
                     for (obj_id, _), score, p in zip(boxes, box_scores, posed, strict=True) if p.ok]  # fmt: skip
-            image = BopImage(sid, im_id, K, rgb.shape[1], rgb.shape[0], scene.depth(im_id))
-            bop.append(image_errors(image, made, [(g.obj_id, g.R, g.t) for g, _ in insts], bop_objects))
-        for (g, info), p in zip(insts, preds, strict=True):
-            scores = instance_scores(specs[g.obj_id], points[g.obj_id], K, g.R, g.t, (p.R, p.t) if p.ok else None)
-            records.append(
-                Record(
-                    g.obj_id,
-                    scene.root.name,
-                    im_id,
-                    scores,
-                    per_object,
-                    g.R,
-                    g.t,
-                    p.R,
-                    p.t,
-                    p.ok,
-                    K,
-                    scene.rgb_path(im_id),
-                    info.bbox_obj,
-                    p.spread_deg,
-                    info.visib_fract,
-                    p.covariance,
-                )
-            )
-    return records
+            image = BopImage(frame.scene_id, im_id, K, rgb.shape[1], rgb.shape[0], scene.depth(im_id))
+            self.bop.append(image_errors(image, made, [(g.obj_id, g.R, g.t) for g, _ in insts], self.bop_objects))
+        self._score(frame, K, preds, frame_seconds / len(insts))
+
+    def _detect(self, frame: _Frame, rgb: np.ndarray) -> tuple[list[ObjectBox], list[float], dict[int, int | None]]:
+        """The detections of evaluated objects as boxes with their scores, which detection (if any) each GT
+        instance got (by id of its GTInstance), and the detection counts of the instances that count."""
+        dets = [d for d in self.options.detector(rgb) if d.obj_id in self.specs]
+        everyone = [(g.obj_id, info.bbox_obj) for g, info in frame.pairs]
+        hits = match(dets, everyone)  # detections of barely visible instances are neither hits nor false alarms
+        found = dict(zip(map(id, frame.scene.gt[frame.im_id]), hits, strict=True))
+        if self.counts is not None:
+            for g, _ in frame.insts:
+                c = self.counts.setdefault(g.obj_id, {"tp": 0, "fp": 0, "n": 0})
+                c["n"] += 1
+                c["tp"] += found[id(g)] is not None
+            for d in (dets[k] for k in false_alarms(hits, len(dets))):
+                self.counts.setdefault(d.obj_id, {"tp": 0, "fp": 0, "n": 0})["fp"] += 1
+        return [(d.obj_id, d.box) for d in dets], [d.score for d in dets], found
+
+    def _score(self, frame: _Frame, K: np.ndarray, preds: list[Prediction], seconds: float) -> None:
+        """A Record per instance that counts, with its prediction and its share of the frame's time."""
+        for (g, info), p in zip(frame.insts, preds, strict=True):
+            scores = instance_scores(self.specs[g.obj_id], self.points[g.obj_id], K, g.R, g.t, (p.R, p.t) if p.ok else None)
+            self.records.append(
+                Record(g.obj_id, frame.scene.root.name, frame.im_id, scores, seconds, g.R, g.t, p.R, p.t, p.ok, K,
+                       frame.scene.rgb_path(frame.im_id), info.bbox_obj, p.spread_deg, info.visib_fract, p.covariance)
+            )  # fmt: skip
+
+
+def evaluate(
+    predict: Predictor, data: str | Path, models_dir: str | Path, objects: list[ObjectSpec], options: EvalOptions = EvalOptions()
+) -> Evaluation:
+    """Run `predict` on every frame's boxes of the BOP scenes in `data` (one batch per frame) and score each
+    instance of `objects` that counts, as `options` say (GT or detected boxes, visibility band, BOP targets)."""
+    ev = _Evaluator(predict, models_dir, objects, options)
+    frames = bop_frames([data], gt_info_from_models(models_dir))
+    scenes = list({scene.root: scene for scene, _ in frames}.values())
+    notes = {
+        "visibility_estimated_scenes": sorted(s.root.name for s in scenes if s.visibility_estimated),
+        "gt_rotations_projected": sum(s.rotations_projected for s in scenes),
+    }
+    scene_ids = {scene.root: _scene_id(scene, k) for k, scene in enumerate(scenes)}
+    for scene, im_id in tqdm(frames, desc="eval", disable=not options.progress):
+        frame = ev.frame(scene, im_id, scene_ids[scene.root])
+        if frame is None:
+            continue
+        if options.limit is not None and len(ev.records) >= options.limit:
+            break
+        ev.pose(frame)
+    return Evaluation(ev.records, notes, ev.counts, ev.bop)
 
 
 def _scene_id(scene: BopScene, index: int) -> int:

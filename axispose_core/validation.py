@@ -16,7 +16,7 @@ from pathlib import Path
 import numpy as np
 
 from axispose_core.estimator import EstimateOptions, Estimator
-from axispose_core.evaluate import MIN_VISIB, Prediction, Record, evaluate, plot_cdfs, summarize
+from axispose_core.evaluate import MIN_VISIB, EvalOptions, Prediction, Record, evaluate, plot_cdfs, summarize
 
 CROPS = ("gt", "detect")
 
@@ -42,14 +42,9 @@ def run_crops(
         poses = est.estimate(image, K, boxes, EstimateOptions(steps=settings.steps, hypotheses=settings.hypotheses))
         return [Prediction(p.R, p.t, p.ok, p.spread_deg, p.covariance) for p in poses]
 
-    detector, counts = None, None
-    if crops == "detect":
-        detector, counts = (lambda rgb: est.detect(rgb, settings.score_threshold)), {}
-    bop: list = []
-    notes: dict = {}
-    records = evaluate(predict, data, models, objects, progress=progress, detector=detector, detection_counts=counts,
-                       visib=settings.visib, notes=notes, bop=bop)  # fmt: skip
-    return records, summarize(records, objects, {"crops": crops, **notes}, counts, bop)
+    detector = (lambda rgb: est.detect(rgb, settings.score_threshold)) if crops == "detect" else None
+    run = evaluate(predict, data, models, objects, EvalOptions(progress=progress, detector=detector, visib=settings.visib, bop=True))
+    return run.records, summarize(run.records, objects, {"crops": crops, **run.notes}, run.detection_counts, run.bop)
 
 
 def validate(

@@ -107,7 +107,7 @@ def main() -> None:
             dense.append((float(t_dense[2]) if t_dense is not None and t_dense[2] > 0 else float("nan"), z_pnp, R_pnp, z_fus, R_fus))
         return [Prediction(p.R, p.t, p.ok) for p in poses]
 
-    records = evaluate(predict, args.data, args.models, objects)
+    records = evaluate(predict, args.data, args.models, objects).records
     assert len(head_depths) == len(records)  # GT crops: one prediction per record, in order
     weights = [float(w) for w in args.weights.split(",")]
     specs = {o.obj_id: o for o in objects}

@@ -20,7 +20,7 @@ import torch
 from write_results import write_results
 
 from axispose_core.estimator import EstimateOptions, Estimator
-from axispose_core.evaluate import Prediction, evaluate, summarize
+from axispose_core.evaluate import EvalOptions, Prediction, evaluate, summarize
 
 KEYS = ("add_0.1d", "add_0.2d", "reproj_5px", "reproj_15px", "rot_err_median_deg", "trans_err_median_mm")
 
@@ -50,7 +50,7 @@ def main() -> None:
                     poses = est.estimate(image, K, boxes, EstimateOptions(steps=steps, guidance_scale=guidance))
                     return [Prediction(p.R, p.t, p.ok) for p in poses]
 
-                records = evaluate(predict, args.data, args.models, objects, limit=args.limit, progress=False)
+                records = evaluate(predict, args.data, args.models, objects, EvalOptions(limit=args.limit, progress=False)).records
                 report = summarize(records, objects, {})
                 row = {"model": label, "steps": steps, "guidance": guidance, "n": len(records)} | {k: report["mean"][k] for k in KEYS}
                 row["ms_per_object"] = report["ms_per_object"]["median"]

@@ -21,7 +21,7 @@ from axispose_core.data.bop import (
 )
 from axispose_core.data.synth.config import SynthConfig
 from axispose_core.data.synth.generate import generate
-from axispose_core.evaluate import Prediction, evaluate, summarize
+from axispose_core.evaluate import EvalOptions, Prediction, evaluate, summarize
 from axispose_core.metrics import mspd, mssd, symmetry_transformations, vsd
 from axispose_core.objects import objects_from_models
 
@@ -228,15 +228,16 @@ def test_depth_images_hold_the_objects_depth(depth_scenes):
 
 def test_eval_of_true_poses_has_full_average_recall_and_writes_the_results(depth_scenes, lmo_dir, tmp_path):
     objects = objects_from_models(depth_scenes)
-    bop: list = []
-    records = evaluate(_truth(depth_scenes / "000000"), depth_scenes, lmo_dir / "models_eval", objects, progress=False, bop=bop)
-    ar = summarize(records, objects, {}, bop=bop)["bop19"]
+    run = evaluate(_truth(depth_scenes / "000000"), depth_scenes, lmo_dir / "models_eval", objects, EvalOptions(progress=False, bop=True))
+    records = run.records
+    ar = summarize(records, objects, {}, bop=run.bop)["bop19"]
     assert ar["kinds"] == ["vsd", "mssd", "mspd"] and ar["targets"] == len(records)
     assert ar["ar"] == ar["ar_vsd"] == ar["ar_mssd"] == ar["ar_mspd"] == 1.0
     assert {e["name"] for e in ar["objects"].values()} <= {"ape", "can", "eggbox"}
-    bop = []
-    records = evaluate(_truth(depth_scenes / "000000", shift=0.5), depth_scenes, lmo_dir / "models_eval", objects, progress=False, bop=bop)
-    assert summarize(records, objects, {}, bop=bop)["bop19"]["ar"] == 0.0
+    run = evaluate(
+        _truth(depth_scenes / "000000", shift=0.5), depth_scenes, lmo_dir / "models_eval", objects, EvalOptions(progress=False, bop=True)
+    )
+    assert summarize(run.records, objects, {}, bop=run.bop)["bop19"]["ar"] == 0.0
     # The command line: the report's AR, the results file, and the targets file that narrows the instances.
     scene = BopScene(depth_scenes / "000000")
     first = scene.gt[0][0].obj_id

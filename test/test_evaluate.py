@@ -13,12 +13,13 @@ from axispose_core.data.bop import BopFormatError, BopScene
 from axispose_core.data.synth.config import SynthConfig
 from axispose_core.data.synth.generate import generate
 from axispose_core.data.synth.preview import contact_sheet
-from axispose_core.evaluate import Prediction, evaluate, plot_cdfs, plot_grid, plot_uncertainty, summarize, write_report
+from axispose_core.evaluate import EvalOptions, Prediction, evaluate, plot_cdfs, plot_grid, plot_uncertainty, summarize, write_report
 from axispose_core.objects import objects_from_models
 from axispose_core.stress import low_light, motion_blur
 
 KEYS = {"n", "name", "add_0.1d", "add_0.2d", "reproj_5px", "reproj_15px", "rot_err_median_deg", "trans_err_median_mm",
         "depth_log_abs_mean", "depth_ratio_median"}  # fmt: skip
+QUIET = EvalOptions(progress=False)
 
 
 @pytest.fixture(scope="module")
@@ -58,7 +59,7 @@ def _gt_predictor(scene_dir, scramble=False, tilt_deg=None, seen=None):
 
 def test_ground_truth_predictor_scores_perfectly(scenes, lmo_dir, tmp_path):
     objects = objects_from_models(scenes)
-    records = evaluate(_gt_predictor(scenes / "000000"), scenes, lmo_dir / "models_eval", objects, progress=False)
+    records = evaluate(_gt_predictor(scenes / "000000"), scenes, lmo_dir / "models_eval", objects, QUIET).records
     assert records
     report = summarize(records, objects, {"note": "gt"})
     write_report(report, tmp_path / "r.json")
@@ -91,17 +92,20 @@ def test_evaluation_of_a_scene_as_real_data_comes(scenes, lmo_dir, tmp_path, off
     estimated from the models, the rotations are projected, and the report says both."""
     real = official_like(scenes / "000000", tmp_path / "real" / "000000")
     objects = objects_from_models(scenes)
-    notes: dict = {}
-    records = evaluate(_gt_predictor(real), real.parent, lmo_dir / "models_eval", objects, progress=False, notes=notes)
-    assert notes == {"visibility_estimated_scenes": ["000000"], "gt_rotations_projected": sum(len(v) for v in BopScene(real).gt.values())}
+    run = evaluate(_gt_predictor(real), real.parent, lmo_dir / "models_eval", objects, QUIET)
+    records = run.records
+    assert run.notes == {
+        "visibility_estimated_scenes": ["000000"],
+        "gt_rotations_projected": sum(len(v) for v in BopScene(real).gt.values()),
+    }
     assert records and all(r.scores["add_0.1d"] == 1.0 for r in records)
     # Unannotated distractors and cut-outs hide nothing in the estimate: it counts at least the files' instances.
-    assert len(records) >= len(evaluate(_gt_predictor(scenes / "000000"), scenes, lmo_dir / "models_eval", objects, progress=False))
+    assert len(records) >= len(evaluate(_gt_predictor(scenes / "000000"), scenes, lmo_dir / "models_eval", objects, QUIET).records)
 
 
 def test_failed_poses_count_as_wrong(scenes, lmo_dir):
     objects = objects_from_models(scenes)
-    records = evaluate(_gt_predictor(scenes / "000000", scramble=True), scenes, lmo_dir / "models_eval", objects, progress=False)
+    records = evaluate(_gt_predictor(scenes / "000000", scramble=True), scenes, lmo_dir / "models_eval", objects, QUIET).records
     report = summarize(records, objects, {})
     assert report["mean"]["add_0.2d"] == 0.0 and report["mean"]["reproj_15px"] == 0.0
     assert all(np.isinf(r.scores["trans_err_mm"]) for r in records)
@@ -111,7 +115,7 @@ def test_low_visibility_instances_are_skipped(scenes, lmo_dir):
     objects = objects_from_models(scenes)
     scene = BopScene(scenes / "000000")
     visible = sum(i.visib_fract >= 0.1 for im in scene.image_ids for i in scene.gt_info[im])
-    assert len(evaluate(_gt_predictor(scenes / "000000"), scenes, lmo_dir / "models_eval", objects, progress=False)) == visible
+    assert len(evaluate(_gt_predictor(scenes / "000000"), scenes, lmo_dir / "models_eval", objects, QUIET).records) == visible
 
 
 def test_eval_cli_writes_the_report(scenes, lmo_dir, tmp_path, official_like):
@@ -150,10 +154,12 @@ def test_visibility_band_keeps_only_its_instances(scenes, lmo_dir):
     objects = objects_from_models(scenes)
     scene = BopScene(scenes / "000000")
     band = sum(0.1 <= i.visib_fract <= 0.7 for im in scene.image_ids for i in scene.gt_info[im])
-    records = evaluate(_gt_predictor(scenes / "000000"), scenes, lmo_dir / "models_eval", objects, progress=False, visib=(0.1, 0.7))
+    records = evaluate(
+        _gt_predictor(scenes / "000000"), scenes, lmo_dir / "models_eval", objects, EvalOptions(progress=False, visib=(0.1, 0.7))
+    ).records
     assert len(records) == band
     with pytest.raises(ValueError, match="visib"):
-        evaluate(_gt_predictor(scenes / "000000"), scenes, lmo_dir / "models_eval", objects, visib=(0.0, 1.0))
+        evaluate(_gt_predictor(scenes / "000000"), scenes, lmo_dir / "models_eval", objects, EvalOptions(visib=(0.0, 1.0)))
 
 
 def test_perturbation_reaches_the_predictor_seeded_per_frame(scenes, lmo_dir):
@@ -161,7 +167,13 @@ def test_perturbation_reaches_the_predictor_seeded_per_frame(scenes, lmo_dir):
     runs = []
     for perturb in (None, low_light, low_light):
         seen = []
-        evaluate(_gt_predictor(scenes / "000000", seen=seen), scenes, lmo_dir / "models_eval", objects, progress=False, perturb=perturb)
+        evaluate(
+            _gt_predictor(scenes / "000000", seen=seen),
+            scenes,
+            lmo_dir / "models_eval",
+            objects,
+            EvalOptions(progress=False, perturb=perturb),
+        )
         runs.append(seen)
     clean, dim, dim_again = runs
     assert all(d.mean() < 0.35 * c.mean() for c, d in zip(clean, dim, strict=True))
@@ -171,7 +183,7 @@ def test_perturbation_reaches_the_predictor_seeded_per_frame(scenes, lmo_dir):
 def test_spread_that_tracks_the_error_is_reported_as_predictive(scenes, lmo_dir, tmp_path):
     objects = objects_from_models(scenes)
     predict = _gt_predictor(scenes / "000000", tilt_deg=lambda k: [1.0, 40.0, 3.0, 90.0, 2.0, 60.0][k % 6] + 0.01 * k)
-    records = evaluate(predict, scenes, lmo_dir / "models_eval", objects, progress=False)
+    records = evaluate(predict, scenes, lmo_dir / "models_eval", objects, QUIET).records
     assert len(records) >= 4
     q = summarize(records, objects, {})["spread"]
     assert q["spearman_vs_rot_err"] == pytest.approx(1.0)
@@ -198,7 +210,7 @@ def test_covariance_is_checked_against_the_errors(scenes, lmo_dir, tmp_path):
     def predict(image, K, boxes):
         return [Prediction(p.R, p.t, p.ok, covariance=cov(p.spread_deg)) for p in inner(image, K, boxes)]
 
-    records = evaluate(predict, scenes, lmo_dir / "models_eval", objects, progress=False)
+    records = evaluate(predict, scenes, lmo_dir / "models_eval", objects, QUIET).records
     report = summarize(records, objects, {})
     q = report["calibration"]
     assert q["n"] == sum(not o.symmetric for o in objects for r in records if r.obj_id == o.obj_id) >= 4
