@@ -6,12 +6,13 @@ import dataclasses
 import json
 import subprocess
 from pathlib import Path
-from types import UnionType
-from typing import Any, TypeVar, Union, get_args, get_origin, get_type_hints
+from typing import Any, TypeVar
 
 import torch
 from safetensors import SafetensorError, safe_open
 from safetensors.torch import load_file, save_file
+
+from axispose_core.config import config_from_dict
 
 FORMAT = "axispose/1"
 ESTIMATOR = "estimator"
@@ -30,80 +31,6 @@ def git_commit() -> str:
         return out.stdout.strip()
     except (OSError, subprocess.SubprocessError):
         return "unknown"
-
-
-def kind_of(cls: type) -> str | None:
-    """The `kind` a config class declares (a field of that name with a default), or None."""
-    f = next((f for f in dataclasses.fields(cls) if f.name == "kind"), None)
-    return None if f is None or f.default is dataclasses.MISSING else f.default
-
-
-def _pick_kind(options: list[type], data: dict[str, Any], source: str) -> type:
-    """The config class among `options` (the dataclasses a field's type allows) that `data` names by its `kind`;
-    without one, the only option. Never the first that happens to fit."""
-    kinds = {kind_of(c): c for c in options}
-    if "kind" in data:
-        if data["kind"] not in kinds:
-            raise CheckpointError(f"{source}: kind {data['kind']!r} is not one of {sorted(k for k in kinds if k)}")
-        return kinds[data["kind"]]
-    if len(options) > 1:
-        raise CheckpointError(f"{source}: 'kind' must say which of {sorted(k for k in kinds if k)} this is")
-    return options[0]
-
-
-def nest_moved_keys(cls: type, data: dict[str, Any]) -> dict[str, Any]:
-    """`data`, a config dict an earlier version wrote, with the keys that have since moved into a nested section
-    put there, at every depth: a key `cls` no longer has goes into the one section that has a field of that name
-    and that `data` does not hold yet (e.g. the optimiser's fields before `optim` gathered them)."""
-    fields = {f.name for f in dataclasses.fields(cls)}  # type: ignore[arg-type]
-    hints = get_type_hints(cls)
-    sections = {n: t for n, t in hints.items() if n in fields and isinstance(t, type) and dataclasses.is_dataclass(t)}
-    out = dict(data)
-    for key in [k for k in data if k not in fields and k not in getattr(cls, "RETIRED", ())]:
-        homes = [n for n, t in sections.items() if n not in data and key in {f.name for f in dataclasses.fields(t)}]
-        if len(homes) == 1:
-            out.setdefault(homes[0], {})[key] = out.pop(key)
-    return {k: nest_moved_keys(sections[k], v) if k in sections and isinstance(v, dict) else v for k, v in out.items()}
-
-
-def config_from_dict(cls: type[C], data: dict[str, Any], source: str = "config") -> C:
-    """Build a (possibly nested) config dataclass from a dict, naming any missing or unknown key. Where a field
-    may hold one of several config classes (a union), their `kind` fields tell them apart. Keys a class lists in
-    its `RETIRED` (fields earlier versions wrote that no longer configure anything) are ignored, keys that have
-    moved into a nested section are read from where they were (`nest_moved_keys`), and a class with an
-    `upgrade_config(data) -> data` rewrites what an earlier version wrote first."""
-    if not isinstance(data, dict):
-        raise CheckpointError(f"{source}: expected a mapping for {cls.__name__}")
-    if callable(upgrade := getattr(cls, "upgrade_config", None)):
-        data = upgrade(data)
-    fields = {f.name: f for f in dataclasses.fields(cls)}  # type: ignore[arg-type]
-    hints = get_type_hints(cls)
-    data = {k: v for k, v in nest_moved_keys(cls, data).items() if k not in getattr(cls, "RETIRED", ())}
-    unknown = sorted(set(data) - set(fields))
-    if unknown:
-        raise CheckpointError(f"{source}: unknown key(s) {unknown} for {cls.__name__}")
-    kwargs = {}
-    for name, f in fields.items():
-        if name not in data:
-            if f.default is dataclasses.MISSING and f.default_factory is dataclasses.MISSING:
-                raise CheckpointError(f"{source}: missing key '{name}' for {cls.__name__}")
-            continue
-        value = data[name]
-        ftype = hints.get(name)
-        item = get_args(ftype)[0] if get_origin(ftype) is tuple and get_args(ftype) else None
-        union = get_args(ftype) if get_origin(ftype) in (Union, UnionType) else ()
-        options = [a for a in union if isinstance(a, type) and dataclasses.is_dataclass(a)]
-        if isinstance(ftype, type) and dataclasses.is_dataclass(ftype):
-            value = config_from_dict(_pick_kind([ftype], value, f"{source}.{name}") if isinstance(value, dict) else ftype, value,
-                                     f"{source}.{name}")  # fmt: skip
-        elif options and isinstance(value, dict):  # `AConfig | BConfig | None` holding one of them
-            value = config_from_dict(_pick_kind(options, value, f"{source}.{name}"), value, f"{source}.{name}")
-        elif isinstance(item, type) and dataclasses.is_dataclass(item) and isinstance(value, list):
-            value = tuple(config_from_dict(item, v, f"{source}.{name}[{k}]") for k, v in enumerate(value))
-        elif isinstance(value, list):
-            value = tuple(tuple(v) if isinstance(v, list) else v for v in value)
-        kwargs[name] = value
-    return cls(**kwargs)
 
 
 def save_checkpoint(

@@ -128,11 +128,11 @@ def _config(cls: type[C], path: str | None) -> C:
         return cls()
     import yaml
 
-    from axispose_core.checkpoint import CheckpointError, config_from_dict
+    from axispose_core.config import ConfigError, config_from_dict
 
     try:
         return config_from_dict(cls, yaml.safe_load(Path(path).read_text()) or {}, path)
-    except (OSError, yaml.YAMLError, CheckpointError) as err:
+    except (OSError, yaml.YAMLError, ConfigError) as err:
         print(f"axispose: {path}: not a readable {cls.__name__} ({err})", file=sys.stderr)
         raise SystemExit(2) from err
 

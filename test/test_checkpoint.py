@@ -1,4 +1,3 @@
-import dataclasses
 import json
 from dataclasses import dataclass, field
 
@@ -7,7 +6,7 @@ import torch
 from safetensors import safe_open
 from safetensors.torch import save_file
 
-from axispose_core.checkpoint import CheckpointError, config_from_dict, nest_moved_keys, read_checkpoint, save_checkpoint
+from axispose_core.checkpoint import CheckpointError, read_checkpoint, save_checkpoint
 
 
 @dataclass(frozen=True)
@@ -20,41 +19,6 @@ class Outer:
     name: str
     inner: Inner = field(default_factory=Inner)
     scales: tuple[float, ...] = (1.0,)
-
-
-@dataclass(frozen=True)
-class NetA:
-    """One of two network configs that can fill a slot, told apart by their `kind`."""
-
-    kind: str = "a"
-    width: int = 8
-
-
-@dataclass(frozen=True)
-class NetB:
-    """The other: the same fields as NetA and one more, so that a dict without a kind fits both."""
-
-    kind: str = "b"
-    width: int = 8
-    depth: int = 2
-
-
-@dataclass(frozen=True)
-class Slots:
-    either: NetA | NetB | None = None
-    only: NetA = field(default_factory=NetA)
-
-
-def test_a_config_union_is_resolved_by_kind_never_by_the_first_class_that_fits():
-    assert config_from_dict(Slots, {"either": {"kind": "b", "width": 4}}).either == NetB(width=4)
-    assert config_from_dict(Slots, {"either": {"kind": "a", "width": 4}}).either == NetA(width=4)  # NetB would fit too
-    with pytest.raises(CheckpointError, match="'kind' must say which of"):
-        config_from_dict(Slots, {"either": {"width": 4}})
-    with pytest.raises(CheckpointError, match="kind 'c' is not one of"):
-        config_from_dict(Slots, {"either": {"kind": "c"}})
-    with pytest.raises(CheckpointError, match="kind 'b' is not one of"):  # a single-class slot checks the kind too
-        config_from_dict(Slots, {"only": {"kind": "b", "width": 4}})
-    assert config_from_dict(Slots, {"only": {"width": 4}}).only == NetA(width=4)  # written before kinds: the only class
 
 
 def test_shipped_checkpoint_written_before_kinds_loads_with_its_classes_kinds():
@@ -88,21 +52,6 @@ def test_a_section_reads_alone_whatever_the_rest_of_the_config_holds(tmp_path):
     assert read_checkpoint(path, "test", Inner, section="absent")[0] is None
 
 
-def test_keys_that_moved_into_a_section_are_read_from_where_an_earlier_version_wrote_them():
-    from axispose_core.train.agm import TrainConfig
-
-    cfg = TrainConfig()
-    now = dataclasses.asdict(cfg)
-    # Before `optim` gathered the optimiser's fields (`seed` is also one of the stream's, which was written), and
-    # before `agm.encoder_loss` gathered the encoder's loss weights.
-    old = {k: v for k, v in now.items() if k != "optim"} | now["optim"]
-    old["agm"] = {k: v for k, v in now["agm"].items() if k != "encoder_loss"} | now["agm"]["encoder_loss"]
-    assert nest_moved_keys(TrainConfig, old) == now
-    assert config_from_dict(TrainConfig, old) == cfg
-    with pytest.raises(CheckpointError, match=r"unknown key.*no_such_field"):
-        config_from_dict(TrainConfig, old | {"no_such_field": 1})
-
-
 def test_half_storage_halves_the_file_and_loads_back_into_float32(tmp_path):
     from axispose_core.checkpoint import load_state
 
@@ -116,15 +65,6 @@ def test_half_storage_halves_the_file_and_loads_back_into_float32(tmp_path):
     load_state(again, states["net"], "half")
     assert again[0].weight.dtype == torch.float32
     torch.testing.assert_close(again[0].weight, net[0].weight, atol=1e-3, rtol=1e-3)
-
-
-def test_config_errors_name_the_key():
-    with pytest.raises(CheckpointError, match="missing key 'name'"):
-        config_from_dict(Outer, {})
-    with pytest.raises(CheckpointError, match=r"unknown key\(s\) \['colour'\]"):
-        config_from_dict(Outer, {"name": "x", "colour": 1})
-    with pytest.raises(CheckpointError, match=r"inner.*unknown key"):
-        config_from_dict(Outer, {"name": "x", "inner": {"size": 3, "depth": 2}})
 
 
 def test_foreign_safetensors_file_is_refused(tmp_path):

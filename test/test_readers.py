@@ -143,9 +143,9 @@ def test_bad_checkpoints_are_refused_clearly(tmp_path):
 
 
 def test_reader_config_of_an_earlier_version_loads_without_its_retired_training_keys():
-    from axispose_core.checkpoint import config_from_dict
+    from axispose_core.config import ConfigError, config_from_dict
 
     old = {"size": 32, "channels": 16, "blocks": [1, 2], "steps": 3000, "batch": 32, "lr": 0.002, "degrade_prob": 0.7, "seed": 0}
     assert config_from_dict(ReaderConfig, old) == ReaderConfig(size=32, channels=16, blocks=(1, 2))
-    with pytest.raises(CheckpointError, match="unknown key"):
+    with pytest.raises(ConfigError, match="unknown key"):
         config_from_dict(ReaderConfig, {"size": 32, "depth": 3})

@@ -17,7 +17,8 @@ from torch import nn
 from axispose_core.agm.denoiser import CropEncoder, DenoiserConfig, EncoderConfig
 from axispose_core.agm.model import AGMConfig, AxisGenerator
 from axispose_core.agm.sampler import sample
-from axispose_core.checkpoint import config_from_dict, load_state
+from axispose_core.checkpoint import load_state
+from axispose_core.config import config_from_dict
 from axispose_core.localiser.model import Localiser, LocaliserConfig
 from axispose_core.train.loop import OptimConfig, RunOptions, TrainJob, fit, param_groups, start_pretrained
 from axispose_core.trunks import TRUNKS, EfficientNetLiteConfig, ResidualBNConfig, ResidualGNConfig, build_trunk

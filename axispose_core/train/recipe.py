@@ -33,7 +33,8 @@ from typing import Any
 import torch
 import yaml
 
-from axispose_core.checkpoint import ESTIMATOR, CheckpointError, config_from_dict, read_metadata
+from axispose_core.checkpoint import ESTIMATOR, read_metadata
+from axispose_core.config import ConfigError, config_from_dict
 from axispose_core.data.synth.config import SynthConfig
 from axispose_core.data.synth.config import recipe as synth_recipe
 from axispose_core.data.synth.generate import generate
@@ -219,7 +220,7 @@ def load_recipe(path: str | Path) -> Recipe:
         config = _merge(base, s.get("changes") or {})
         try:
             cfg = config_from_dict(CONFIGS[trainer], config, f"stage {name}")
-        except (CheckpointError, TypeError, ValueError) as err:
+        except (ConfigError, TypeError, ValueError) as err:
             raise RecipeError(str(err)) from err
         schedule = _schedule(name, s.get("schedule"), cfg.optim.steps)
         config = _merge(config, {"optim": {"steps": schedule[-1].steps}})

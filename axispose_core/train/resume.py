@@ -11,7 +11,7 @@ from typing import Any
 
 import torch
 
-from axispose_core.checkpoint import nest_moved_keys
+from axispose_core.config import nest_moved_keys
 
 
 def state_path(out: Path) -> Path:

@@ -7,7 +7,7 @@ import json
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from axispose_core.checkpoint import config_from_dict
+from axispose_core.config import config_from_dict
 from axispose_core.lmo import LMO_K
 
 PHOTOS = (
