@@ -185,6 +185,7 @@ def test_sampler_is_deterministic_under_a_seed():
     assert torch.equal(m7[1], a[1]) and not torch.equal(m8[1], m7[1])
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("guided", [False, True])
 def test_loss_falls_on_a_tiny_set(guided, rng):
     torch.manual_seed(0)

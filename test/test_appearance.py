@@ -69,6 +69,7 @@ def test_surface_changes_only_the_objects_pixels():
     assert np.array_equal(out[~mask], image[~mask]) and not np.allclose(out[mask], image[mask])
 
 
+@pytest.mark.slow
 def test_crop_stream_with_appearance_is_seeded_and_keeps_its_targets(lmo_dir):
     rand = dataclasses.replace(STREAM_RANDOMIZATION, photometric=STRONG, surface=SurfaceConfig(detail_prob=1.0, response_prob=1.0))
     plain = StreamConfig(objects=(1, 5), seed=4)

@@ -144,6 +144,7 @@ def test_distractor_meshes_are_drawn_when_asked_and_only_then(models, monkeypatc
     assert calls == []
 
 
+@pytest.mark.slow
 def test_held_out_meshes_never_reach_the_training_split():
     train, held_out, every = (set(clutter.library(s)) for s in ("train", "held_out", "all"))
     assert train.isdisjoint(held_out) and train | held_out == every

@@ -56,6 +56,7 @@ def test_exact_keypoints_give_the_exact_pose():
         est.estimate(image, K, [(99, box)])
 
 
+@pytest.mark.slow
 def test_loss_falls_on_a_tiny_set(data):
     objects = [o for o in lmo_objects() if o.obj_id in (1, 5, 6)]
     ds = KeypointCropDataset([data], objects, 64, jitter=None, color_aug=False)

@@ -118,6 +118,7 @@ def test_low_visibility_instances_are_skipped(scenes, lmo_dir):
     assert len(evaluate(_gt_predictor(scenes / "000000"), scenes, lmo_dir / "models_eval", objects, QUIET).records) == visible
 
 
+@pytest.mark.slow
 def test_eval_cli_writes_the_report(scenes, lmo_dir, tmp_path, official_like):
     from conftest import TINY_AGM
 

@@ -7,6 +7,7 @@ from pathlib import Path
 
 import numpy as np
 import pybullet_data
+import pytest
 import yaml
 
 from axispose_core.data.bop import model_path
@@ -17,6 +18,7 @@ from axispose_ros.cli import main
 DUCK = Path(pybullet_data.getDataPath()) / "duck.obj"  # textured: map_Kd duckCM.png
 
 
+@pytest.mark.slow
 def test_textured_duck_from_mesh_to_node(tmp_path, capsys):
     data = tmp_path / "duck_data"
     assert main(["synth", "--models", str(DUCK), "--mesh-units", "0.08", "--out", str(data), "--scenes", "1",

@@ -46,6 +46,7 @@ def test_line_fit_recovers_rotation_from_clean_images():
     assert rate >= 0.95
 
 
+@pytest.mark.slow
 def test_network_reader_recovers_rotation_from_clean_images(shipped):
     samples = _clean_samples(200, shipped.config.size)
     rate = _rotation_success(lambda img: shipped.read(img)[0], samples)
@@ -90,6 +91,7 @@ def test_degrade_is_seeded_and_bounded():
     assert not torch.equal(degrade(clean, torch.Generator().manual_seed(1), 1.0), clean)
 
 
+@pytest.mark.slow
 def test_training_fits_rendered_axis_images_and_resumes(tmp_path):
     import csv
 

@@ -40,6 +40,7 @@ def _same(a, b) -> bool:
     ) and a.obj_id == b.obj_id
 
 
+@pytest.mark.slow
 def test_same_seed_same_samples_in_any_order_and_another_seed_differs(stream, samples, lmo_dir, tmp_path):
     again = CropStream(StreamConfig(seed=5), lmo_dir / "models", tmp_path)
     assert all(_same(again[i], samples[i]) for i in (7, 3, 0))  # out of order: sample i depends on (seed, i) only
@@ -61,6 +62,7 @@ def test_crop_intrinsics_and_axis_target_are_the_poses(samples):
         assert np.all((0 <= s.axes) & (s.axes <= 1))
 
 
+@pytest.mark.slow
 def test_masks_agree_with_the_model_at_the_gt_pose(samples, stream, lmo_dir):
     """Model points on the object's visible side (a render of the full mesh alone) project into its silhouette;
     the visible mask lies inside it and gives the visible fraction; unoccluded samples show every such point."""
@@ -88,6 +90,7 @@ def test_masks_agree_with_the_model_at_the_gt_pose(samples, stream, lmo_dir):
     assert inside_vis / total_vis >= 0.98, inside_vis / total_vis
 
 
+@pytest.mark.slow
 def test_visibility_ranges_are_met(stream, samples, lmo_dir, tmp_path):
     vis = np.array([s.visib for s in samples])
     assert np.all((vis >= 0.1) & (vis <= 1.0))
@@ -193,6 +196,7 @@ def test_bad_input_is_refused_before_any_work(lmo_dir, tmp_path, caplog):
     assert good[0].crop.shape == (32, 32, 3)  # a user's small coloured mesh streams
 
 
+@pytest.mark.slow
 def test_stream_preview_writes_a_sheet_and_refuses_bad_input(lmo_dir, tmp_path, capsys):
     out = tmp_path / "sheet.png"
     assert cli_main(["stream-preview", "--models", str(lmo_dir / "models"), "--out", str(out), "--count", "3"]) == 0
@@ -239,6 +243,7 @@ def test_every_photograph_and_texture_loads(rng):
         assert 0.0 <= img.min() and img.max() <= 1.0 and img.std() > 0.01, kind
 
 
+@pytest.mark.slow
 def test_distractor_meshes_stand_in_for_primitives_when_asked_and_only_then(lmo_dir, tmp_path, monkeypatch):
     from dataclasses import replace
 

@@ -134,6 +134,7 @@ def test_axis_targets_line_up_with_the_object_in_the_crop(dataset):
     assert hits / n >= 0.8  # BOP models are centred: the origin projects onto the object
 
 
+@pytest.mark.slow
 def test_same_seed_same_bytes_whatever_the_workers(dataset, lmo_dir, tmp_path):
     small = SynthConfig(seed=11, scenes=2, images_per_scene=3, objects=CFG.objects)
     other = tmp_path / "again"

@@ -49,6 +49,7 @@ def test_more_objects_than_the_config_has_rows_need_no_edit(data, tmp_path):
     assert len(est.config.objects) == 3 and est.config.agm.denoiser.encoder.objects == 3
 
 
+@pytest.mark.slow
 def test_short_run_then_resume(data, tmp_path):
     out = tmp_path / "agm.safetensors"
     cfg = _config(tmp_path)
