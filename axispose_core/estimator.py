@@ -21,8 +21,8 @@ from axispose_core.agm.correspondences import dense_correspondences
 from axispose_core.agm.denoiser import Encoding
 from axispose_core.agm.guidance import AxisGeometry, self_consistency_target
 from axispose_core.agm.model import VERSION, AGMConfig, AxisGenerator, depth_from_log
-from axispose_core.agm.sampler import Guidance, sample
-from axispose_core.axis_image import AxisSpec
+from axispose_core.agm.sampler import Guidance, Start, sample
+from axispose_core.axis_image import AxisSpec, render_axis_image
 from axispose_core.camera import InstanceCrop, instance_crop, off_axis, validate_intrinsics
 from axispose_core.checkpoint import ESTIMATOR, CheckpointError, load_state, read_checkpoint, read_metadata, save_checkpoint
 from axispose_core.consensus import Consensus, consensus
@@ -121,6 +121,10 @@ class EstimateOptions:
     and covariance."""
     mode_sample: bool | None = None
     """Whether each crop's first sample starts from the prior's mode."""
+    warm_steps: int = 1
+    """DDIM steps for a box that comes with a prior pose (`estimate`'s `priors`: a tracked object)..."""
+    warm_strength: float = 0.5
+    """...which start from the prior's axis image noised to this fraction of the schedule (`agm.sampler.Start`)."""
 
     def __post_init__(self) -> None:
         if self.hypotheses < 1:
@@ -141,6 +145,8 @@ class _Batch:
     hypotheses: int
     K_rows: np.ndarray
     length_rows: np.ndarray
+    priors: list[tuple[np.ndarray, np.ndarray] | None] | None = None
+    """Per box a pose to start its samples from (None: from noise)."""
 
 
 @dataclass(frozen=True)
@@ -271,17 +277,24 @@ class Estimator:
         boxes: list[tuple[int, tuple[float, float, float, float]]],
         options: EstimateOptions | None = None,
         cancelled: Callable[[], bool] | None = None,
+        priors: list[tuple[np.ndarray, np.ndarray] | None] | None = None,
     ) -> list[PoseEstimate]:
         """Poses for (obj_id, (x, y, w, h)) boxes in an RGB uint8 image; all crops go through the AGM as one batch.
 
         The data flow's stages, each one method: crop, sample (the AGM), read (the reader), solve (the TBM and the
         samples' consensus), fuse (the dense points). `options` holds the per-call settings (None: the checkpoint's
-        defaults); `cancelled()` is asked between DDIM steps, and True raises `Cancelled`.
+        defaults); `cancelled()` is asked between DDIM steps, and True raises `Cancelled`. `priors` gives per box a
+        pose (R, t) it is likely near (None: none), e.g. a track's prediction: its samples start from that pose's axis
+        image, `warm_steps` steps from `warm_strength` of the schedule.
         """
         options = options or EstimateOptions()
+        if priors is not None and len(priors) != len(boxes):
+            raise ValueError(f"{len(priors)} priors for {len(boxes)} boxes")
         batch = self._crop(image_rgb, K, boxes, options)
         if batch is None:
             return []
+        if priors is not None and any(p is not None for p in priors):
+            batch = replace(batch, priors=list(priors))
         enc, images = self._sample(batch, options, cancelled)
         readings = self.reader.read(images)
         solved = self._solve(batch, readings, enc)
@@ -316,13 +329,35 @@ class Estimator:
         noise_scale = torch.ones(len(batch.cuts) * k)
         if self.config.mode_sample if options.mode_sample is None else options.mode_sample:
             noise_scale[::k] = 0.0  # each crop's first sample from the prior's mode
+        guidance = Guidance(target, scale) if scale > 0 else None
+        steps = options.steps or self.config.ddim_steps
         with torch.inference_mode(scale <= 0), torch.autocast(self.device.type, dtype=torch.bfloat16, enabled=self.bf16):
             enc = self.agm.encode(batch.pixels.to(self.device), batch.objects)
-            axes = self.sampler(
-                self.agm, enc.repeat(k), options.steps or self.config.ddim_steps, generator=gen,
-                guidance=Guidance(target, scale) if scale > 0 else None, cancelled=cancelled, noise_scale=noise_scale,
-            )  # fmt: skip
+            rows = enc.repeat(k)
+            if batch.priors is None:
+                axes = self.sampler(self.agm, rows, steps, generator=gen, guidance=guidance, cancelled=cancelled, start=Start(noise_scale))
+            else:
+                axes = self._sample_warm(batch, rows, (steps, noise_scale, gen), options, (guidance, cancelled))
         return enc, ((axes.float() + 1) * 0.5).clamp(0, 1)
+
+    def _sample_warm(self, batch: _Batch, rows: Encoding, cold: tuple, options: EstimateOptions, run: tuple) -> torch.Tensor:
+        """Boxes without a prior from noise (`cold`: steps, noise scale, generator), those with one from their
+        prior's axis image; `run` is (guidance, cancelled)."""
+        steps, noise_scale, gen = cold
+        guidance, cancelled = run
+        k = batch.hypotheses
+        warm = torch.tensor([p is not None for p in batch.priors for _ in range(k)])
+        guesses = [render_axis_image(c.K_patch, *p, lengths, self.size) for c, p, lengths in zip(batch.cuts, batch.priors, batch.lengths,
+                   strict=True) if p is not None]  # fmt: skip
+        x0 = torch.from_numpy(np.stack(guesses)).permute(0, 3, 1, 2).repeat_interleave(k, dim=0) * 2 - 1
+        out = torch.empty((len(warm), 3, self.size, self.size))
+        for pick, start, n in ((~warm, Start(noise_scale[~warm]), steps),
+                               (warm, Start(noise_scale[warm], x0, options.warm_strength), options.warm_steps)):  # fmt: skip
+            if pick.any():
+                idx = torch.nonzero(pick)[:, 0]
+                out[idx] = self.sampler(self.agm, rows.select(idx.to(rows.context.device)), n, generator=gen, guidance=guidance,
+                                        cancelled=cancelled, start=start).float().cpu()  # fmt: skip
+        return out
 
     def _solve(self, batch: _Batch, readings: list[AxisKeypoints], enc: Encoding) -> list[_Solved]:
         """The TBM's pose of every sample (all boxes' in one refinement), its depth fused with the encoder's
