@@ -128,6 +128,10 @@ class BagOptions:
     """A key of FORMATS."""
     fps: float = 10.0
     """Frame rate the stamps are spaced by."""
+    stamp_by_id: bool = False
+    """Stamp each image at its image id / fps rather than its position / fps: a BOP split that keeps every n-th
+    frame of a recording (LM-O's test images) then keeps the recording's timing, which a tracker's motion model
+    needs."""
     limit: int | None = None
     """The scene's first N images only; None: all."""
     model_points: int = 1000
@@ -170,7 +174,7 @@ def make_bag(
             write(MODELS_PREFIX + name, "sensor_msgs/msg/PointCloud2", _cloud(pts, _header(STAMP_ORIGIN_NS, name)), STAMP_ORIGIN_NS)
 
         for k, im_id in enumerate(tqdm(im_ids, desc="make-bag", disable=not opts.progress)):
-            stamp = STAMP_ORIGIN_NS + round(k * 1e9 / opts.fps)
+            stamp = STAMP_ORIGIN_NS + round(((im_id - im_ids[0]) if opts.stamp_by_id else k) * 1e9 / opts.fps)
             header = _header(stamp, FRAME_ID)
             try:
                 rgb = scene.rgb(im_id)

@@ -19,7 +19,8 @@ def _make_bag(args: argparse.Namespace) -> int:
     from axispose_ros.bag import BagOptions, make_bag
 
     objects = objects_from_models(args.models, args.objects or None)
-    s = make_bag(args.data, args.out, objects, args.models, BagOptions(storage=args.format, fps=args.fps, limit=args.limit))
+    options = BagOptions(storage=args.format, fps=args.fps, limit=args.limit, stamp_by_id=args.stamp_by_id)
+    s = make_bag(args.data, args.out, objects, args.models, options)
     print(f"wrote {s.path} ({args.format}): {s.frames} frames, {s.instances} GT instances, {s.bytes / 1e6:.1f} MB")
     return 0
 
@@ -38,6 +39,10 @@ def _replay(args: argparse.Namespace) -> int:
         params["guidance_scale"] = args.guidance
     if args.precision is not None:
         params["precision"] = args.precision
+    if args.tracking is not None:
+        params["tracking"] = args.tracking == "on"
+    if args.redetect_period is not None:
+        params["redetect_period"] = args.redetect_period
     options = ReplayOptions(
         rate=None if args.as_fast_as_possible else args.rate, params=params, image_topic=args.image_topic,
         info_topic=args.camera_info_topic, storage=args.format, overlays=args.overlays, use_rois=not args.ignore_rois,
@@ -55,6 +60,9 @@ def _replay(args: argparse.Namespace) -> int:
         print(format_table(result.report))
         lat = result.report["frame_latency_ms"]
         print(f"frame latency: median {lat['median']:.0f} ms, p90 {lat['p90']:.0f} ms")
+        jit = result.report["tracking"]
+        print(f"tracking {'on' if jit['on'] else 'off'}: jitter {jit['jitter_mm']:.1f} mm, {jit['jitter_deg']:.2f} deg "
+              f"(median over {jit['n']} consecutive frame pairs)")  # fmt: skip
         if args.report:
             write_report(result.report, args.report)
             print(f"report: {args.report}")
@@ -84,6 +92,8 @@ def _add_ros_commands(add_parser: AddParser) -> None:
     mb.add_argument("--format", choices=["sqlite3", "mcap"], default="mcap")
     mb.add_argument("--objects", type=object_ids, default=[], help="comma-separated object ids (default: all in models_info.json)")
     mb.add_argument("--fps", type=float, default=10.0, help="frame rate the stamps are spaced by")
+    mb.add_argument("--stamp-by-id", action="store_true", help="stamp each image at its image id / fps: a split that keeps every "
+                    "n-th frame of a recording keeps the recording's timing")  # fmt: skip
     mb.add_argument("--limit", type=int, default=None, help="first N images only")
     mb.set_defaults(func=_make_bag)
 
@@ -107,6 +117,8 @@ def _add_ros_commands(add_parser: AddParser) -> None:
     rp.add_argument(
         "--ignore-rois", action="store_true", help="do not play the bag's /roi/<name> boxes: the checkpoint's localiser finds the objects"
     )
+    rp.add_argument("--tracking", choices=["on", "off"], default=None, help="tracking parameter of the node (default: its own)")
+    rp.add_argument("--redetect-period", type=int, default=None, help="redetect_period parameter of the node (with tracking)")
     rp.add_argument("--threads", type=int, default=2)
     rp.set_defaults(func=_replay)
 

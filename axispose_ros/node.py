@@ -49,7 +49,7 @@ from rclpy.qos_overriding_options import QoSOverridingOptions
 from sensor_msgs.msg import CameraInfo, Image, RegionOfInterest
 
 from axispose_core.checkpoint import CheckpointError
-from axispose_core.estimator import EstimateOptions, Estimator
+from axispose_core.estimator import Estimator
 from axispose_ros import params
 from axispose_ros.conversions import InputError, Undistorter, camera_for_image, camera_from_info, image_to_rgb
 from axispose_ros.counters import Counters
@@ -57,6 +57,7 @@ from axispose_ros.health import Health, HealthConfig
 from axispose_ros.outputs import PoseOutputs
 from axispose_ros.params import DEFAULT_CHECKPOINT as DEFAULT_CHECKPOINT  # re-exported: the node's default
 from axispose_ros.params import NodeSettings
+from axispose_ros.posing import FramePoser
 from axispose_ros.sync import RoiStore, StampAudit, StampSynchronizer
 from axispose_ros.warmup import warm_up
 from axispose_ros.worker import InferenceWorker
@@ -116,6 +117,7 @@ class AxisPoseNode(Node):
         for obj_id, name in self.published.items():
             self.create_subscription(RegionOfInterest, f"~/roi/{name}", lambda m, i=obj_id: self._on_roi(i, m), 10)
         self.outputs = PoseOutputs(self, self.published)
+        self.poser = FramePoser(self.estimator, self.published, self.stats.add)
         self.pub_diag = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
         self.create_timer(1.0, self._publish_diagnostics)
 
@@ -203,17 +205,11 @@ class AxisPoseNode(Node):
         camera = camera_for_image(camera_from_info(frame.info, s.use_rectified), rgb.shape[1], rgb.shape[0])
         if not s.use_rectified and Undistorter.needed(frame.info):
             rgb = self.undistort(frame.info, camera.K, rgb)
-        boxes, outside = self.rois.fresh(time.monotonic(), s.roi_timeout, rgb.shape[1], rgb.shape[0])
+        rois, outside = self.rois.fresh(time.monotonic(), s.roi_timeout, rgb.shape[1], rgb.shape[0])
         if outside:
             self.stats.add("roi_outside", outside)
-        scores = [1.0] * len(boxes)
-        if not boxes and self.estimator.localiser is not None:
-            dets = [d for d in self.estimator.detect(rgb, s.score_threshold) if d.obj_id in self.published]
-            boxes, scores = [(d.obj_id, d.box) for d in dets], [d.score for d in dets]
-        options = EstimateOptions(steps=s.ddim_steps, guidance_scale=s.guidance_scale, scales=s.scales(self.names), hypotheses=s.hypotheses)
-        estimates = self.estimator.estimate(rgb, camera.K, boxes, options=options, cancelled=self.worker.cancelled)
-        box_xywh = [b for _, b in boxes]
-        refused = self.outputs.publish(frame.image.header, estimates, scores, box_xywh, self.estimator, rgb, camera.K, s.marker_lifetime)
+        posed = self.poser.pose(rgb, camera.K, _stamp_seconds(frame.image.header), rois, s, self.worker.cancelled)
+        refused = self.outputs.publish(frame.image.header, posed, self.estimator, rgb, camera.K, s.marker_lifetime)
         if refused:
             self.stats.add("pose_refused", refused)
         self.stats.add("frames_processed")

@@ -16,8 +16,7 @@ from axispose_core.camera import crop_transform
 from axispose_core.estimator import Estimator, PoseEstimate
 from axispose_msgs.msg import Detection, DetectionArray
 from axispose_ros.conversions import rgb_to_image
-
-Box = tuple[float, float, float, float]
+from axispose_ros.posing import Box, Posed
 
 
 class PoseOutputs:
@@ -34,22 +33,22 @@ class PoseOutputs:
         self.pub_markers = node.create_publisher(MarkerArray, "~/markers", 10)
         self.pub_debug = node.create_publisher(Image, "~/debug/axis_image", 1)
 
-    def publish(self, header, estimates: list[PoseEstimate], scores: list[float], boxes: list[Box], estimator: Estimator,
-                rgb: np.ndarray, K: np.ndarray, marker_lifetime: float) -> int:  # fmt: skip
-        """Publish one frame's estimates (those refused are left out); returns how many were refused. `~/pose`
-        and `~/pose_cov` get each object's highest-scoring instance; the overlay is drawn only while subscribed."""
+    def publish(self, header, posed: Posed, estimator: Estimator, rgb: np.ndarray, K: np.ndarray, marker_lifetime: float) -> int:
+        """Publish one frame's poses (those refused are left out); returns how many were refused. `~/pose` and
+        `~/pose_cov` get each object's highest-scoring instance; the overlay is drawn only while subscribed."""
+        estimates = posed.estimates
         array = PoseArray(header=header)
         detections = DetectionArray(header=header)
         markers = MarkerArray(markers=[Marker(header=header, action=Marker.DELETEALL)])  # the last frame's go
         best: dict[int, tuple[float, PoseStamped, np.ndarray | None]] = {}
         refused = 0
-        for k, (est, score, box) in enumerate(zip(estimates, scores, boxes, strict=True)):
+        for k, (est, score, box, track) in enumerate(zip(estimates, posed.scores, posed.boxes, posed.track_ids, strict=True)):
             if not est.ok:
                 refused += 1
                 continue
             pose = _pose(est.R, est.t)
             array.poses.append(pose)
-            detections.detections.append(_detection(est, self.names[est.obj_id], score, pose, box))
+            detections.detections.append(_detection(est, self.names[est.obj_id], score, pose, box, track))
             stamped = PoseStamped(header=header, pose=pose)
             self.pub_object[est.obj_id].publish(stamped)
             if est.obj_id not in best or score > best[est.obj_id][0]:
@@ -78,9 +77,9 @@ def _pose(R: np.ndarray, t: np.ndarray) -> Pose:
     return pose
 
 
-def _detection(est: PoseEstimate, name: str, score: float, pose: Pose, box: Box) -> Detection:
+def _detection(est: PoseEstimate, name: str, score: float, pose: Pose, box: Box, track: int) -> Detection:
     """One posed instance as axispose_msgs/Detection; covariance all zeros (unknown) where the estimator gave none."""
-    msg = Detection(obj_id=int(est.obj_id), name=name, score=float(score), box=[float(v) for v in box])
+    msg = Detection(obj_id=int(est.obj_id), name=name, score=float(score), box=[float(v) for v in box], track_id=int(track))
     msg.pose.pose = pose
     if est.covariance is not None:
         msg.pose.covariance = [float(v) for v in est.covariance.ravel()]

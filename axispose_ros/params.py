@@ -72,6 +72,13 @@ SPECS = (
     Spec("roi_timeout", 1.0, "age in s after which an ROI is ignored", floats=(0.0, 3600.0)),
     Spec("score_threshold", 0.3, "least localiser score of an instance", floats=(0.0, 1.0)),
     Spec("marker_lifetime", 1.0, "lifetime of ~/markers in s (0: until replaced)", floats=(0.0, 3600.0)),
+    Spec("tracking", False, "follow objects across frames: crops from predicted poses, the localiser every "
+         "redetect_period frames, each pose filtered (constant velocity, gated)"),
+    Spec("redetect_period", 5, "with tracking, run the localiser on every n-th frame (and when a track is lost)", ints=(1, 1000)),
+    Spec("warm_strength", 0.5, "with tracking, a tracked object's samples start from its predicted axis image noised to "
+         "this fraction of the schedule (0: from noise, with ddim_steps)", floats=(0.0, 1.0)),
+    Spec("warm_steps", 1, "with tracking, DDIM steps of a warm-started sample", ints=(1, 1000)),
+    Spec("track_timeout", 1.0, "with tracking, seconds without an accepted pose after which a track ends", floats=(0.0, 3600.0)),
     Spec("latency_budget", 2.0, "median latency (s) over which /diagnostics warns; at start", floats=(0.01, 60.0), at_start=True),
 )
 AT_START = frozenset(s.name for s in SPECS if s.at_start)
@@ -96,6 +103,11 @@ class NodeSettings:
     roi_timeout: float
     score_threshold: float
     marker_lifetime: float
+    tracking: bool
+    redetect_period: int
+    warm_strength: float
+    warm_steps: int
+    track_timeout: float
     latency_budget: float
     object_scales: Mapping[str, float] = field(default_factory=dict)
     """`object_scales.<name>` by name (0: not set)."""

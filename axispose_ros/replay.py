@@ -39,6 +39,7 @@ from visualization_msgs.msg import MarkerArray
 
 import axispose_msgs
 from axispose_core.evaluate import Record, instance_scores, summarize
+from axispose_core.tracking.jitter import PosePair, half_turn_symmetries, jitter
 from axispose_msgs.msg import DetectionArray
 from axispose_ros.bag import (
     FORMATS,
@@ -422,6 +423,14 @@ def _await_frame(exe, node: AxisPoseNode, n: int, timeout: float, settle: float 
     raise TimeoutError(f"the node did not finish frame {n} within {timeout} s")
 
 
+def _jitter(records: list[Record], objects: list, points: dict[str, np.ndarray]) -> dict:
+    """Frame-to-frame jitter of the posed instances (`tracking/jitter.py`); a symmetric object's equivalent poses
+    from its points' half-turn symmetries."""
+    pairs = [PosePair(r.im_id, r.obj_id, r.R, r.t, r.R_gt, r.t_gt) for r in records if r.ok]
+    syms = {o.obj_id: half_turn_symmetries(points[o.name], o.diameter) for o in objects if o.symmetric and o.name in points}
+    return jitter(pairs, syms)
+
+
 def _report(node: AxisPoseNode, truth: _Truth, poses: dict, latency: dict[int, float], counts: dict[str, int], config: dict) -> dict:
     """Per-instance scores as `axispose eval`: each GT instance matched to the nearest estimate of its object in
     the same frame (one-to-one); a frame the node dropped or an instance without estimate counts as wrong."""
@@ -460,8 +469,10 @@ def _report(node: AxisPoseNode, truth: _Truth, poses: dict, latency: dict[int, f
                 )
     objects = [o for o in node.estimator.config.objects if o.name in node.published.values()]
     settings = node.settings()
-    used = {"ddim_steps": settings.ddim_steps, "hypotheses": settings.hypotheses, "precision": node.precision}
+    used = {"ddim_steps": settings.ddim_steps, "hypotheses": settings.hypotheses, "precision": node.precision,
+            "tracking": settings.tracking, "redetect_period": settings.redetect_period}  # fmt: skip
     report = summarize(records, objects, config | used)
+    report["tracking"] = {"on": settings.tracking, **_jitter(records, objects, points)}
     lat = np.array(list(latency.values())) if latency else np.zeros(1)
     report["frame_latency_ms"] = {"median": float(np.median(lat)), "p90": float(np.percentile(lat, 90))}
     report["counts"] = counts

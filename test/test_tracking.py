@@ -238,3 +238,41 @@ def test_jitter_of_a_symmetric_object_ignores_a_flip_between_equivalent_poses():
     pairs = [PosePair(k, 3, R_gt @ (flip if k % 2 else np.eye(3)), t_gt, R_gt, t_gt) for k in range(6)]
     assert jitter(pairs, syms)["jitter_deg"] == pytest.approx(0.0, abs=1e-4)
     assert jitter(pairs)["jitter_deg"] == pytest.approx(180.0, abs=1e-4)
+
+
+def test_half_turn_symmetries_of_the_lmo_models():
+    from axispose_core.data.meshes import load_ply
+    from axispose_core.lmo import LMO_DIAMETERS, SHARED_LMO
+    from axispose_core.tracking.jitter import half_turn_symmetries
+
+    models = SHARED_LMO / "models_eval"
+    if not models.is_dir():
+        pytest.skip("needs ../shared/data/lmo")
+    found = {}
+    for obj_id, diameter in LMO_DIAMETERS.items():
+        syms = half_turn_symmetries(load_ply(models / f"obj_{obj_id:06d}.ply").vertices, diameter)
+        found[obj_id] = [float(np.degrees(np.linalg.norm(Rotation.from_matrix(R).as_rotvec()))) for R, _ in syms]
+    assert found[10] == pytest.approx([0.0, 180.0]) and found[11] == pytest.approx([0.0, 180.0])  # eggbox, glue: about z
+    assert all(v == [0.0] for k, v in found.items() if k not in (10, 11))
+
+
+def test_a_track_the_localiser_stops_finding_ends():
+    """A false detection starts a track; when later localiser runs do not find it again, it ends."""
+    scene, tracker = _scene(), Tracker(TrackingConfig(redetect_period=1, max_unseen=2))
+    real = scene.detect
+    scene.poses[9], scene.hidden = (np.eye(3), np.array([0.3, -0.2, 0.9])), {9}  # posed if cropped, never detected...
+    scene.detect = lambda: [*real(), Det(9, 0.5, scene.box(9))] if scene.detect_calls == 0 else real()  # ...but once
+    _run(tracker, scene, [0.0])
+    assert len(tracker.tracks) == 3
+    _run(tracker, scene, [0.1, 0.2, 0.3])
+    assert len(tracker.tracks) == 2 and tracker.counts["ended_unseen"] == 1
+
+
+def test_a_fast_object_keeps_its_track_when_its_box_moved_far():
+    scene, tracker = _scene(), Tracker(TrackingConfig(redetect_period=1))
+    _run(tracker, scene, [0.0, 0.1])
+    ids = {tr.obj_id: tr.id for tr in tracker.tracks}
+    R, t = scene.poses[1]
+    scene.poses[1] = (R, t + np.array([0.04, 0.0, 0.0]))  # 25 px at once: no overlap with the predicted box
+    poses = _run(tracker, scene, [0.2])[0]
+    assert {p.obj_id: p.track_id for p in poses} == ids and tracker.counts["tracks_started"] == 2

@@ -2,11 +2,11 @@
 
 A tracked object's crop comes from its predicted pose (the box it had, moved with the pose's projection and scaled
 with its depth), so the localiser runs only every `redetect_period` frames, while nothing is tracked, or after a
-track missed a frame or ended; its detections then refresh the tracks' boxes (matched by object and overlap) and start
-tracks for new objects. Every crop goes through the estimator in one batch, and each pose that comes back is a
-measurement for its track's `PoseFilter`. Tracks end after `track_timeout` seconds without a measurement or
-`max_misses` frames in a row without a pose; all end when the stamps go backwards (a looped bag) or the camera's
-intrinsics change.
+track missed a frame or ended; its detections then refresh the tracks' boxes (matched by object and nearness) and
+start tracks for new objects. Every crop goes through the estimator in one batch, and each pose that comes back is
+a measurement for its track's `PoseFilter`. Tracks end after `track_timeout` seconds without a measurement,
+`max_misses` frames in a row without a pose, or `max_unseen` localiser runs in a row that do not find them; all
+end when the stamps go backwards (a looped bag) or the camera's intrinsics change.
 """
 
 from __future__ import annotations
@@ -37,7 +37,13 @@ class TrackingConfig:
     """Measurements in a row refused at the gate after which the track restarts at the latest one: the object
     really moved (or the filter had locked onto a wrong pose)."""
     match_iou: float = 0.3
-    """Least overlap of a detection with a track's predicted box to refresh that track rather than start one."""
+    """A detection refreshes the track of its object whose predicted box it overlaps at least this much..."""
+    match_distance: float = 0.5
+    """...or whose predicted box's centre lies within this fraction of the larger box's diagonal of its own: a
+    prediction that lags a fast camera still finds its object."""
+    max_unseen: int = 2
+    """Localiser runs in a row that do not find a track's object near it, after which the track ends: a track
+    started by a false detection, or one whose object left."""
     same_distance: float = 0.1
     """A new detection's pose this close to an unmeasured track of its object (a fraction of the depth) is that
     track's measurement, not a new track: its predicted box had drifted off the detection's."""
@@ -93,6 +99,7 @@ class Track:
     """When a measurement was last accepted (s)."""
     misses: int = 0
     rejects: int = 0
+    unseen: int = 0
     measured: bool = False
     """This frame gave a pose (accepted or refused at the gate)."""
 
@@ -110,6 +117,8 @@ class TrackedPose:
     measurement: Measurement
     accepted: bool
     """The measurement went into the filter (False: refused at the gate; the pose is the prediction)."""
+    box: Box
+    """The box the object was cropped from."""
 
 
 def _project(K: np.ndarray, t: np.ndarray) -> np.ndarray:
@@ -194,22 +203,30 @@ class Tracker:
         return due
 
     def _with_detections(self, crops: list[Crop], detections: Sequence[Detected]) -> list[Crop]:
-        """Each detection refreshes the box of the track it overlaps most (same object, IoU ≥ match_iou), or
-        becomes a new crop."""
+        """Each detection refreshes the box of the nearest track of its object (`match_iou`, `match_distance`) or
+        becomes a new crop; a track no detection refreshed is unseen once more (`max_unseen`)."""
         crops = list(crops)
-        pairs = sorted(
-            ((_iou(c.box, d.box), i, j) for i, c in enumerate(crops) for j, d in enumerate(detections) if c.obj_id == d.obj_id),
-            reverse=True,
-        )
+        pairs = sorted((d, i, j) for i, c in enumerate(crops) for j, det in enumerate(detections)
+                       if c.obj_id == det.obj_id and (d := self._match(c.box, det.box)) is not None)  # fmt: skip
         taken_c, taken_d = set(), set()
-        for iou, i, j in pairs:
-            if iou < self.config.match_iou or i in taken_c or j in taken_d:
+        for _, i, j in pairs:
+            if i in taken_c or j in taken_d:
                 continue
             taken_c.add(i)
             taken_d.add(j)
             d = detections[j]
             crops[i] = Crop(d.obj_id, tuple(d.box), d.score, crops[i].track, crops[i].prior)
+        for i, c in enumerate(crops):
+            tr = next(t for t in self.tracks if t.id == c.track)
+            tr.unseen = 0 if i in taken_c else tr.unseen + 1
         return crops + [Crop(d.obj_id, tuple(d.box), d.score) for j, d in enumerate(detections) if j not in taken_d]
+
+    def _match(self, a: Box, b: Box) -> float | None:
+        """How far detection box `b` is from track box `a` (centre distance over the larger diagonal); None when
+        they do not match."""
+        diag = max(np.hypot(a[2], a[3]), np.hypot(b[2], b[3]), 1e-9)
+        dist = float(np.hypot(a[0] + a[2] / 2 - b[0] - b[2] / 2, a[1] + a[3] / 2 - b[1] - b[3] / 2)) / diag
+        return dist if dist <= self.config.match_distance or _iou(a, b) >= self.config.match_iou else None
 
     def _noise(self, m: Measurement) -> np.ndarray:
         if m.covariance is not None and np.all(np.isfinite(m.covariance)):
@@ -259,13 +276,15 @@ class Tracker:
         centre = np.array([box[0] + box[2] / 2, box[1] + box[3] / 2])
         tr.box, tr.anchor = box, (centre - _project(K, tr.filter.t), float(tr.filter.t[2]))
         f = tr.filter
-        return TrackedPose(tr.id, tr.obj_id, f.R.copy(), f.t.copy(), f.covariance, tr.score, m, accepted)
+        return TrackedPose(tr.id, tr.obj_id, f.R.copy(), f.t.copy(), f.covariance, tr.score, m, accepted, box)
 
     def _end_tracks(self) -> None:
-        kept = [tr for tr in self.tracks if tr.misses < self.config.max_misses]
-        self._count("ended_misses", len(self.tracks) - len(kept))
-        self._lost |= len(kept) < len(self.tracks)
-        self.tracks = kept
+        c = self.config
+        for reason, ends in (("misses", lambda tr: tr.misses >= c.max_misses), ("unseen", lambda tr: tr.unseen >= c.max_unseen)):
+            kept = [tr for tr in self.tracks if not ends(tr)]
+            self._count(f"ended_{reason}", len(self.tracks) - len(kept))
+            self._lost |= len(kept) < len(self.tracks)
+            self.tracks = kept
 
     def _count(self, key: str, n: int = 1) -> None:
         if n:

@@ -1,0 +1,88 @@
+"""From a frame to the poses the node publishes: the boxes of fresh ROIs, else the localiser's, each posed on its
+own; or, with `tracking`, every object followed by a `Tracker` (crops from predicted poses, the localiser only
+where due, filtered poses with their filter's covariance and a track id)."""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+from axispose_core.estimator import EstimateOptions, Estimator, PoseEstimate
+from axispose_core.tracking.tracker import Crop, Tracker, TrackingConfig
+from axispose_ros.params import NodeSettings
+
+Box = tuple[float, float, float, float]
+
+
+@dataclass(frozen=True)
+class Posed:
+    """One frame's poses, one entry per box: the estimate (refused ones included), its score, its box, its track
+    (0: untracked)."""
+
+    estimates: list[PoseEstimate]
+    scores: list[float]
+    boxes: list[Box]
+    track_ids: list[int]
+
+
+class FramePoser:
+    """The estimator's side of the node's frame: which boxes, posed how, and the tracker across frames. What it
+    counts (`tracking_<event>`, `pose_refused` of tracked crops) goes to `count(key, n)`."""
+
+    def __init__(self, estimator: Estimator, published: dict[int, str], count: Callable[[str, int], None]) -> None:
+        self.estimator, self.published, self.count = estimator, published, count
+        self.tracker = Tracker(TrackingConfig())
+        self._reported: dict[str, int] = {}
+
+    def pose(
+        self, rgb: np.ndarray, K: np.ndarray, stamp: float, rois: Sequence[tuple[int, Box]], s: NodeSettings, cancelled: Callable[[], bool]
+    ) -> Posed:
+        """ROIs where fresh ones came; else the localiser's boxes, each posed on its own or through the tracker."""
+        options = EstimateOptions(steps=s.ddim_steps, guidance_scale=s.guidance_scale, scales=s.scales(self.published),
+                                  hypotheses=s.hypotheses, warm_steps=s.warm_steps, warm_strength=max(s.warm_strength, 1e-3))  # fmt: skip
+
+        def estimate(boxes: list[tuple[int, Box]], priors: list | None = None) -> list[PoseEstimate]:
+            return self.estimator.estimate(rgb, K, boxes, options=options, cancelled=cancelled, priors=priors)
+
+        if rois or self.estimator.localiser is None:
+            return _each(list(rois), [1.0] * len(rois), estimate)
+        dets = lambda: [d for d in self.estimator.detect(rgb, s.score_threshold) if d.obj_id in self.published]  # noqa: E731
+        if not s.tracking:
+            if self.tracker.tracks:
+                self.tracker.reset("disabled")
+            found = dets()
+            return _each([(d.obj_id, d.box) for d in found], [d.score for d in found], estimate)
+        self.tracker.config = TrackingConfig(redetect_period=s.redetect_period, track_timeout=s.track_timeout)
+        return self._tracked(stamp, K, dets, estimate, s.warm_strength > 0)
+
+    def _tracked(self, stamp: float, K: np.ndarray, detect, estimate, warm: bool) -> Posed:
+        """The tracked objects' filtered poses on this frame, warm-started from their predictions where `warm`;
+        crops the estimator refused are counted."""
+
+        def measure(crops: list[Crop]) -> list[PoseEstimate]:
+            out = estimate([(c.obj_id, c.box) for c in crops], [c.prior for c in crops] if warm else None)
+            if refused := sum(not e.ok for e in out):
+                self.count("pose_refused", refused)
+            return out
+
+        tracked = self.tracker.step(stamp, K, detect, measure)
+        for key, n in self._new_counts().items():
+            self.count(f"tracking_{key}", n)
+        estimates = [dataclasses.replace(tp.measurement, R=tp.R, t=tp.t, covariance=tp.covariance) for tp in tracked]
+        return Posed(estimates, [tp.score for tp in tracked], [tp.box for tp in tracked], [tp.track_id for tp in tracked])
+
+    def _new_counts(self) -> dict[str, int]:
+        """The tracker's counts (`tracks_started`, `reset_stamps_backwards`, ...) added since the last call."""
+        now = dict(self.tracker.counts)
+        new = {k: n - self._reported.get(k, 0) for k, n in now.items() if n != self._reported.get(k, 0)}
+        self._reported = now
+        return new
+
+
+def _each(boxes: list[tuple[int, Box]], scores: list[float], estimate: Callable[[list[tuple[int, Box]]], list[PoseEstimate]]) -> Posed:
+    """Every box posed on its own."""
+    estimates = estimate(boxes)
+    return Posed(estimates, scores, [b for _, b in boxes], [0] * len(estimates))
