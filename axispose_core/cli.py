@@ -38,7 +38,7 @@ def _train_reader(args: argparse.Namespace) -> int:
 
 def _synth(args: argparse.Namespace) -> int:
     from axispose_core.data.bop import BopFormatError, load_camera
-    from axispose_core.data.synth.config import SynthConfig, recipe
+    from axispose_core.data.synth.config import CameraPathConfig, SynthConfig, recipe
     from axispose_core.data.synth.generate import generate
 
     K = SynthConfig().K
@@ -65,6 +65,7 @@ def _synth(args: argparse.Namespace) -> int:
         scene=scene,
         randomization=randomization,
         depth=args.depth,
+        camera_path=None if args.camera_path is None else CameraPathConfig(orbit_deg=args.camera_path),
     )
     models = Path(args.models[0])
     if len(args.models) > 1 or not models.is_dir():
@@ -455,6 +456,8 @@ def build_parser(commands: Callable[[AddParser], None] | None = None) -> argpars
     sy.add_argument("--camera", help="BOP camera.json (fx, fy, cx, cy, width, height); default: the LM-O camera")
     sy.add_argument("--workers", type=int, default=1, help="worker processes")
     sy.add_argument("--depth", action="store_true", help="also write depth images (BOP depth/, for the VSD error of `axispose eval`)")
+    sy.add_argument("--camera-path", type=float, default=None, metavar="DEG", help="film each scene along a camera path: "
+                    "one world, the camera orbiting it by DEG per image and shaking as a hand-held one (tracking's video)")  # fmt: skip
     sy.set_defaults(func=_synth)
 
     tn = sub.add_parser("train", help="train the AGM (axis generation) on the crop stream, or on BOP folders")

@@ -68,7 +68,7 @@ def test_the_message_package_generates_every_message_it_holds():
     from axispose_msgs.msg import Detection, DetectionArray  # built and installed by `make test` (tools/build_msgs.sh)
 
     assert DetectionArray.get_fields_and_field_types() == {"header": "std_msgs/Header", "detections": "sequence<axispose_msgs/Detection>"}
-    assert set(Detection.get_fields_and_field_types()) == {"obj_id", "name", "score", "pose", "box"}
+    assert set(Detection.get_fields_and_field_types()) == {"obj_id", "name", "track_id", "score", "pose", "box"}
 
 
 @pytest.fixture(scope="module")
@@ -197,6 +197,43 @@ def test_axispose_core_has_no_import_circle_and_never_imports_ros():
             assert not [m for m in mods if m.split(".")[0] in ros], f"{path} imports ROS ({mods})"
     # the BOP reader never renders
     assert not {d for d in graph["axispose_core.data.bop"] if ".synth." in d or d.endswith(("visibility", "meshes"))}
+
+
+def _wide_or_long(tree: ast.AST, most_lines: int, most_params: int) -> list[str]:
+    """Functions over `most_lines` lines or `most_params` parameters (self/cls not counted), argparse builders
+    aside (a parser's options are its content)."""
+    found = []
+    for node in ast.walk(tree):
+        if not isinstance(node, ast.FunctionDef | ast.AsyncFunctionDef) or "parser" in node.name:
+            continue
+        a = node.args
+        params = [*a.posonlyargs, *a.args, *a.kwonlyargs, *([a.vararg] if a.vararg else []), *([a.kwarg] if a.kwarg else [])]
+        n = len([p for p in params if p.arg not in ("self", "cls")])
+        lines = node.end_lineno - node.lineno + 1
+        if lines > most_lines or n > most_params:
+            found.append(f"{node.name} ({lines} lines, {n} parameters)")
+    return found
+
+
+def test_coordinators_stay_narrow():
+    """Functions read as their steps: none over 80 lines or 8 parameters; the node wires its parts in ≤ 150 lines."""
+    assert _wide_or_long(ast.parse("def f(a, b, c):\n    pass\n"), 1, 2) == ["f (2 lines, 3 parameters)"]  # it counts
+    offenders = {}
+    for package in ("axispose_core", "axispose_ros"):
+        for path in sorted((REPO / package).rglob("*.py")):
+            if found := _wide_or_long(ast.parse(path.read_text(), str(path)), 80, 8):
+                offenders[str(path.relative_to(REPO))] = found
+    assert not offenders, f"functions to split or whose parameters to group: {offenders}"
+    node = next(n for n in ast.parse((REPO / "axispose_ros" / "node.py").read_text()).body if getattr(n, "name", "") == "AxisPoseNode")
+    assert node.end_lineno - node.lineno + 1 <= 150, "AxisPoseNode grew past 150 lines: move a part into a module of its own"
+
+
+def test_tbm_never_reaches_back_into_the_agm():
+    """The data flow runs AGM -> axis image -> reader -> back-projection: the TBM imports nothing of the AGM."""
+    graph = _core_import_graph()
+    tbm = {m: deps for m, deps in graph.items() if m.startswith("axispose_core.tbm")}
+    back = {m: sorted(d for d in deps if d.startswith("axispose_core.agm")) for m, deps in tbm.items()}
+    assert not any(back.values()), f"tbm imports agm: {back}"
 
 
 def test_the_node_loads_no_data_or_training_code():

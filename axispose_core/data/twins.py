@@ -14,10 +14,10 @@ import json
 import shutil
 from pathlib import Path
 
+import cv2
 import numpy as np
-from PIL import Image
 
-from axispose_core.data.bop import BopScene, GTInstance, scene_dirs
+from axispose_core.data.bop import BopScene, GTInstance, read_bgr, scene_dirs
 from axispose_core.data.meshes import load_render_mesh
 from axispose_core.data.synth.raster import Light, RenderMesh, render
 
@@ -55,9 +55,9 @@ def write_twins(data: str | Path, models: str | Path, out: str | Path, light: Li
             for g in gts:
                 if g.obj_id not in meshes:
                     meshes[g.obj_id] = load_render_mesh(models, g.obj_id)
-            rgb = np.asarray(Image.open(scene.rgb_path(im_id)).convert("RGB"))
+            rgb = read_bgr(scene.rgb_path(im_id))[..., ::-1]
             twin = twin_frame(rgb, scene.cameras[im_id], gts, [meshes[g.obj_id] for g in gts], light)
-            Image.fromarray(twin).save(target / "rgb" / f"{im_id:06d}.png")
+            cv2.imwrite(str(target / "rgb" / f"{im_id:06d}.png"), twin[..., ::-1])
         for name in _COPIED:
             if (scene_dir / name).exists():
                 shutil.copy2(scene_dir / name, target / name)
