@@ -83,6 +83,27 @@ def build_ros_parser() -> argparse.ArgumentParser:
     return build_parser(_add_ros_commands)
 
 
+def _soak(args: argparse.Namespace) -> int:
+    from axispose_core.estimator import SHIPPED_ESTIMATOR
+    from axispose_ros.bag import BagError
+    from axispose_ros.soak import SoakOptions, soak
+
+    opts = SoakOptions(seconds=args.minutes * 60, rate=args.rate, tracking=args.tracking == "on", faults=not args.no_faults,
+                       precision=args.precision, threads=args.threads)  # fmt: skip
+    try:
+        r = soak(args.bag, args.checkpoint or SHIPPED_ESTIMATOR, opts, args.out)
+    except (BagError, RuntimeError) as err:
+        print(f"axispose soak: {err}", file=sys.stderr)
+        return 2
+    uncounted = [f["fault"] for f in r["faults"] if not f["counted"]]
+    print(f"node {'alive' if r['alive'] else 'DIED'}; frames sent {r['frames_sent']}, arrived {r['frames_in']}, processed "
+          f"{r['frames_processed']}, dropped {r['dropped']}; RSS {r['rss_mb']['after_first_minute']:.0f} -> "
+          f"{r['rss_mb']['end']:.0f} MB ({100 * r['rss_growth']:+.1f} %); faults {len(r['faults'])}, not counted "
+          f"{uncounted or 'none'}; tracking {r['tracking'] or '-'}; diagnostics {r['diagnostics_levels']}; "
+          f"report {Path(args.out) / 'soak.json'}")  # fmt: skip
+    return 0 if r["alive"] and not uncounted else 1
+
+
 def _add_ros_commands(add_parser: AddParser) -> None:
     """`make-bag` and `replay`: their handlers import ROS, the parser does not."""
     mb = add_parser("make-bag", help="write a BOP scene as a rosbag2: camera stream, GT poses, GT boxes, model points")
@@ -121,6 +142,19 @@ def _add_ros_commands(add_parser: AddParser) -> None:
     rp.add_argument("--redetect-period", type=int, default=None, help="redetect_period parameter of the node (with tracking)")
     rp.add_argument("--threads", type=int, default=2)
     rp.set_defaults(func=_replay)
+
+    sk = add_parser("soak", help="the node in its own process on a bag looped at a camera's rate, with faults injected: "
+                    "RSS, frames delivered and dropped, faults counted, tracks reset")  # fmt: skip
+    sk.add_argument("bag", help="rosbag2 folder with an Image and a CameraInfo topic")
+    sk.add_argument("--checkpoint", default=None, help="estimator checkpoint (default: the shipped one)")
+    sk.add_argument("--minutes", type=float, default=10.0)
+    sk.add_argument("--rate", type=float, default=30.0, help="frames per second sent")
+    sk.add_argument("--tracking", choices=["on", "off"], default="off")
+    sk.add_argument("--no-faults", action="store_true", help="the stream alone")
+    sk.add_argument("--precision", choices=["auto", "float32", "bfloat16"], default="float32")
+    sk.add_argument("--threads", type=int, default=2)
+    sk.add_argument("--out", default="out/soak", help="folder for soak.json, rss.png and the node's log")
+    sk.set_defaults(func=_soak)
 
 
 def main(argv: Sequence[str] | None = None) -> int:
