@@ -187,6 +187,14 @@ class PoseEstimate:
     and with the dense points (dense_fusion)."""
 
 
+def _guess(K_patch: np.ndarray, prior: tuple[np.ndarray, np.ndarray], lengths: np.ndarray, size: int) -> np.ndarray | None:
+    """The axis image of a prior pose in a crop; None where it cannot be drawn (an axis behind the camera)."""
+    try:
+        return render_axis_image(K_patch, *prior, lengths, size)
+    except ValueError:
+        return None
+
+
 class Estimator:
     """Holds the AGM and the keypoint reader; `estimate(image, K, boxes)` returns one pose per box."""
 
@@ -346,10 +354,12 @@ class Estimator:
         steps, noise_scale, gen = cold
         guidance, cancelled = run
         k = batch.hypotheses
-        warm = torch.tensor([p is not None for p in batch.priors for _ in range(k)])
-        guesses = [render_axis_image(c.K_patch, *p, lengths, self.size) for c, p, lengths in zip(batch.cuts, batch.priors, batch.lengths,
-                   strict=True) if p is not None]  # fmt: skip
-        x0 = torch.from_numpy(np.stack(guesses)).permute(0, 3, 1, 2).repeat_interleave(k, dim=0) * 2 - 1
+        guesses = [None if p is None else _guess(c.K_patch, p, lengths, self.size) for c, p, lengths in zip(batch.cuts, batch.priors,
+                   batch.lengths, strict=True)]  # fmt: skip
+        warm = torch.tensor([g is not None for g in guesses for _ in range(k)])
+        if not warm.any():
+            return self.sampler(self.agm, rows, steps, generator=gen, guidance=guidance, cancelled=cancelled, start=Start(noise_scale))
+        x0 = torch.from_numpy(np.stack([g for g in guesses if g is not None])).permute(0, 3, 1, 2).repeat_interleave(k, dim=0) * 2 - 1
         out = torch.empty((len(warm), 3, self.size, self.size))
         for pick, start, n in ((~warm, Start(noise_scale[~warm]), steps),
                                (warm, Start(noise_scale[warm], x0, options.warm_strength), options.warm_steps)):  # fmt: skip

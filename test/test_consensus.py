@@ -178,6 +178,9 @@ def test_a_box_with_a_prior_starts_from_its_axis_image(oracle_setup):
     assert (n_warm, steps_warm, start_warm.strength) == (2, 1, 0.4) and start_warm.x0.shape == (2, 3, est.size, est.size)
     assert re(cold.R, R) < 1.0 and re(warm.R, prior) < 1.0  # each row went back to its own box
     est.sampler.calls.clear()
+    behind = est.estimate(image, K, boxes, options, priors=[None, (prior, -t), None])  # a prior that cannot be drawn
+    assert len(est.sampler.calls) == 1 and re(behind[1].R, R) < 1.0  # the box samples from noise
+    est.sampler.calls.clear()
     est.estimate(image, K, boxes, options, priors=[None, None, None])
     assert len(est.sampler.calls) == 1  # no prior: one batch, as without priors
     with pytest.raises(ValueError, match="priors"):

@@ -276,3 +276,13 @@ def test_a_fast_object_keeps_its_track_when_its_box_moved_far():
     scene.poses[1] = (R, t + np.array([0.04, 0.0, 0.0]))  # 25 px at once: no overlap with the predicted box
     poses = _run(tracker, scene, [0.2])[0]
     assert {p.obj_id: p.track_id for p in poses} == ids and tracker.counts["tracks_started"] == 2
+
+
+def test_a_track_run_off_behind_the_camera_ends():
+    scene, tracker = _scene(), Tracker(TrackingConfig(redetect_period=100, track_timeout=100.0))
+    _run(tracker, scene, [0.0])
+    tr = next(t for t in tracker.tracks if t.obj_id == 1)
+    tr.filter.v = np.array([0.0, 0.0, -20.0])  # 20 m/s towards the camera: behind it within a frame
+    scene.refuse = {1}
+    _run(tracker, scene, [0.1])
+    assert all(t.obj_id != 1 for t in tracker.tracks) and tracker.counts["ended_behind"] == 1

@@ -21,6 +21,8 @@ from axispose_core.tracking.filter import FilterConfig, PoseFilter
 
 Box = tuple[float, float, float, float]
 """(x, y, w, h) in image pixels."""
+MIN_DEPTH = 0.05
+"""A track whose predicted depth (m) falls below this ends: its filter has run off."""
 
 
 @dataclass(frozen=True)
@@ -185,6 +187,10 @@ class Tracker:
         for tr in self.tracks:
             tr.filter.predict(stamp - tr.stamp)
             tr.stamp, tr.measured = stamp, False
+        ahead = [tr for tr in self.tracks if tr.filter.t[2] > MIN_DEPTH]  # a filter run off behind the camera
+        self._count("ended_behind", len(self.tracks) - len(ahead))
+        self._lost |= len(ahead) < len(self.tracks)
+        self.tracks = ahead
 
     def _predicted_box(self, tr: Track, K: np.ndarray) -> Box:
         offset, z = tr.anchor
