@@ -177,7 +177,8 @@ def _schedule(opts: SoakOptions, start: float) -> list[tuple[str, float, float]]
 
 
 def soak(bag: str | Path, checkpoint: str | Path, opts: SoakOptions, work: str | Path) -> dict:
-    """Run the soak (module docstring); the report, also written as `work`/soak.json with the RSS plot."""
+    """Run the soak (module docstring); the report, also written as `work`/soak.json with the RSS plot. Call it in
+    a fresh process (`axispose soak` is one): Fast DDS reads the transport profile at the process's first DDS use."""
     work = Path(work)
     work.mkdir(parents=True, exist_ok=True)
     frames = load_frames(bag)
