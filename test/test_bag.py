@@ -193,6 +193,7 @@ def test_replay_options_refuse_bad_values():
         ReplayOptions(storage="rosbag1")
 
 
+@pytest.mark.slow
 def test_make_bag_of_a_scene_as_real_data_comes(scene, objects, lmo_dir, tmp_path, official_like):
     """No scene_gt_info.json or masks: the ROIs are the boxes of the models at the GT pose, as the files'."""
     real = official_like(scene, tmp_path / "real")
@@ -209,6 +210,7 @@ def test_make_bag_of_a_scene_as_real_data_comes(scene, objects, lmo_dir, tmp_pat
 REPO = Path(__file__).resolve().parents[1]
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("ignore_rois", [False, True])
 def test_the_readme_demo_runs_the_shipped_checkpoint_on_the_shipped_bag(ignore_rois, tmp_path, capsys):
     """What `make demo` runs (no ../shared needed: the bag carries the model points), with the bag's boxes and
@@ -229,6 +231,7 @@ def test_the_readme_demo_runs_the_shipped_checkpoint_on_the_shipped_bag(ignore_r
     assert "axispose_node --ros-args -p checkpoint:=" in out and "-r image:=/camera/color/image_raw" in out
 
 
+@pytest.mark.slow
 def test_replay_with_tracking_publishes_stable_track_ids_and_reports_jitter(tmp_path, capsys):
     """The node with `tracking` on, through replay: every posed instance carries a track id that holds across
     frames, the localiser runs only on some frames, and the report has the jitter of both modes' definition."""

@@ -505,6 +505,7 @@ def test_an_unsupported_lens_model_drops_the_frame_with_a_reason(harness):
     assert not harness.got["array"]
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize(
     "param", ["ddim_steps:=0", "ddim_steps:=abc", "sync_slop:=-1.0", "num_threads:=0", "device:=cuda", "precision:=half"]
 )

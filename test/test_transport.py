@@ -10,6 +10,7 @@ import sys
 import time
 from pathlib import Path
 
+import pytest
 import rclpy
 from conftest import save_tiny_estimator
 from diagnostic_msgs.msg import DiagnosticArray
@@ -37,6 +38,7 @@ def _counters(msg: DiagnosticArray) -> dict[str, int]:
     return {kv.key: int(kv.value) for s in msg.status for kv in s.values if kv.value.isdigit()}
 
 
+@pytest.mark.slow
 def test_full_size_frames_from_another_process_all_arrive_and_are_answered(tmp_path):
     """300 frames of 640x480 rgb8 (921,600 B) with their CameraInfo at 15 Hz, from a camera process that carries
     the shipped profile (as the README tells), to `axispose_node` started by its entry point: every frame arrives,
