@@ -68,8 +68,16 @@ def validate(
     return report
 
 
-def _cell(value: float | None, fmt: str) -> str:
+def format_cell(value: float | None, fmt: str) -> str:
+    """A table cell: `value` in `fmt`, "-" where it is missing or NaN."""
     return "-" if value is None or np.isnan(value) else format(value, fmt)
+
+
+def report_value(report: dict, crops: str, field: str, obj: str = "mean") -> float | None:
+    """`field` of one pass (`crops`) of a validation report, for object key `obj` or the mean; None where absent."""
+    part = report.get(crops)
+    entry = None if part is None else (part["mean"] if obj == "mean" else part["objects"].get(obj))
+    return None if entry is None else entry.get(field)
 
 
 COLUMNS = (
@@ -93,14 +101,10 @@ def format_validation(report: dict) -> str:
     head = f"{'object':<12} {'n':>4} " + " ".join(f"{c[0]:>9}" for c in COLUMNS) + f" {'AR gt':>6}"
     lines = [head]
     for key, name in [*names.items(), ("mean", "mean")]:
-        cells = []
-        for _, crops, field, fmt in COLUMNS:
-            part = report.get(crops)
-            entry = None if part is None else (part["mean"] if key == "mean" else part["objects"].get(key))
-            cells.append(f"{_cell(None if entry is None else entry.get(field), fmt):>9}")
+        cells = [f"{format_cell(report_value(report, crops, field, key), fmt):>9}" for _, crops, field, fmt in COLUMNS]
         ar = gt["bop19"]["ar"] if key == "mean" else gt["bop19"]["objects"].get(key, {}).get("ar")
         n = "" if key == "mean" else str(gt["objects"][key]["n"])
-        lines.append(f"{name:<12} {n:>4} " + " ".join(cells) + f" {_cell(ar, '.3f'):>6}")
+        lines.append(f"{name:<12} {n:>4} " + " ".join(cells) + f" {format_cell(ar, '.3f'):>6}")
     for crops in CROPS:
         if crops not in report:
             continue

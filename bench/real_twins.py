@@ -21,45 +21,22 @@ import torch
 from axispose_core.data.twins import write_twins
 from axispose_core.estimator import SHIPPED_ESTIMATOR
 from axispose_core.lmo import REAL_SLICE, SHARED_LMO
-from axispose_core.validation import ValidationSettings, validate
-
-ROWS = (
-    ("localiser recall", "detect", "det_recall", ".3f"),
-    ("localiser precision", "detect", "det_precision", ".3f"),
-    ("node ADD(-S)@0.1d", "detect", "add_0.1d", ".3f"),
-    ("node Reproj@15px", "detect", "reproj_15px", ".3f"),
-    ("GT crops ADD(-S)@0.1d", "gt", "add_0.1d", ".3f"),
-    ("GT crops Reproj@15px", "gt", "reproj_15px", ".3f"),
-    ("GT crops rotation median", "gt", "rot_err_median_deg", ".1f"),
-    ("GT crops depth mean |log|", "gt", "depth_log_abs_mean", ".2%"),
-    ("GT crops depth median ratio", "gt", "depth_ratio_median", ".3f"),
-)
-
-
-def _value(report: dict, crops: str, key: str, obj: str | None) -> float | None:
-    part = report.get(crops)
-    if part is None:
-        return None
-    entry = part["mean"] if obj is None else part["objects"].get(obj, {})
-    return entry.get(key)
-
-
-def _fmt(value: float | None, fmt: str) -> str:
-    return "-" if value is None or value != value else format(value, fmt)
+from axispose_core.validation import COLUMNS, ValidationSettings, format_cell, report_value, validate
 
 
 def table(real: dict, twins: dict) -> str:
-    """Means real | twins per row, then per object the GT crops' Reproj@15px and rotation median, and the
-    localiser's recall."""
-    lines = [f"{'':<28} {'real':>8} {'twins':>8}"]
-    for name, crops, key, fmt in ROWS:
-        lines.append(f"{name:<28} {_fmt(_value(real, crops, key, None), fmt):>8} {_fmt(_value(twins, crops, key, None), fmt):>8}")
+    """`axispose validate`'s columns, means real | twins, then per object the GT crops' Reproj@15px and rotation
+    median, and the localiser's recall."""
+    lines = [f"{'':<12} {'real':>8} {'twins':>8}"]
+    for name, crops, key, fmt in COLUMNS:
+        cells = [format_cell(report_value(report, crops, key), fmt) for report in (real, twins)]
+        lines.append(f"{name:<12} {cells[0]:>8} {cells[1]:>8}")
     lines.append("")
     lines.append(f"{'object':<12} {'Rp15 real':>9} {'twins':>6} {'rot real':>9} {'twins':>6} {'det R real':>10} {'twins':>6}")
     for obj, entry in real["gt"]["objects"].items():
         cells = []
         for crops, key, fmt in (("gt", "reproj_15px", ".3f"), ("gt", "rot_err_median_deg", ".1f"), ("detect", "det_recall", ".2f")):
-            cells += [_fmt(_value(real, crops, key, obj), fmt), _fmt(_value(twins, crops, key, obj), fmt)]
+            cells += [format_cell(report_value(real, crops, key, obj), fmt), format_cell(report_value(twins, crops, key, obj), fmt)]
         lines.append(f"{entry['name']:<12} {cells[0]:>9} {cells[1]:>6} {cells[2]:>9} {cells[3]:>6} {cells[4]:>10} {cells[5]:>6}")
     return "\n".join(lines)
 

@@ -1,24 +1,12 @@
 import json
-from dataclasses import dataclass, field
 
 import pytest
 import torch
 from safetensors import safe_open
 from safetensors.torch import save_file
+from test_config import Inner, Outer  # the same small nested configs the parser is tested on
 
 from axispose_core.checkpoint import CheckpointError, read_checkpoint, save_checkpoint
-
-
-@dataclass(frozen=True)
-class Inner:
-    size: int = 64
-
-
-@dataclass(frozen=True)
-class Outer:
-    name: str
-    inner: Inner = field(default_factory=Inner)
-    scales: tuple[float, ...] = (1.0,)
 
 
 def test_shipped_checkpoint_written_before_kinds_loads_with_its_classes_kinds():
