@@ -49,7 +49,10 @@ class FramePoser:
 
         if rois or self.estimator.localiser is None:
             return _each(list(rois), [1.0] * len(rois), estimate)
-        dets = lambda: [d for d in self.estimator.detect(rgb, s.score_threshold) if d.obj_id in self.published]  # noqa: E731
+
+        def dets() -> list:
+            return [d for d in self.estimator.detect(rgb, s.score_threshold) if d.obj_id in self.published]
+
         if not s.tracking:
             if self.tracker.tracks:
                 self.tracker.reset("disabled")

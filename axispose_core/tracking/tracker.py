@@ -180,17 +180,11 @@ class Tracker:
         if self._K is not None and not np.allclose(K, self._K):
             self.reset("camera_changed")
         self._stamp, self._K = stamp, np.array(K, float)
-        kept = [tr for tr in self.tracks if stamp - tr.updated <= self.config.track_timeout]
-        self._count("ended_timeout", len(self.tracks) - len(kept))
-        self._lost |= len(kept) < len(self.tracks)
-        self.tracks = kept
+        self._end("timeout", lambda tr: stamp - tr.updated > self.config.track_timeout)
         for tr in self.tracks:
             tr.filter.predict(stamp - tr.stamp)
             tr.stamp, tr.measured = stamp, False
-        ahead = [tr for tr in self.tracks if tr.filter.t[2] > MIN_DEPTH]  # a filter run off behind the camera
-        self._count("ended_behind", len(self.tracks) - len(ahead))
-        self._lost |= len(ahead) < len(self.tracks)
-        self.tracks = ahead
+        self._end("behind", lambda tr: tr.filter.t[2] <= MIN_DEPTH)  # a filter run off behind the camera
 
     def _predicted_box(self, tr: Track, K: np.ndarray) -> Box:
         offset, z = tr.anchor
@@ -285,12 +279,15 @@ class Tracker:
         return TrackedPose(tr.id, tr.obj_id, f.R.copy(), f.t.copy(), f.covariance, tr.score, m, accepted, box)
 
     def _end_tracks(self) -> None:
-        c = self.config
-        for reason, ends in (("misses", lambda tr: tr.misses >= c.max_misses), ("unseen", lambda tr: tr.unseen >= c.max_unseen)):
-            kept = [tr for tr in self.tracks if not ends(tr)]
-            self._count(f"ended_{reason}", len(self.tracks) - len(kept))
-            self._lost |= len(kept) < len(self.tracks)
-            self.tracks = kept
+        self._end("misses", lambda tr: tr.misses >= self.config.max_misses)
+        self._end("unseen", lambda tr: tr.unseen >= self.config.max_unseen)
+
+    def _end(self, reason: str, ends: Callable[[Track], bool]) -> None:
+        """End the tracks for which `ends` holds (counted as `ended_<reason>`); look for their objects next frame."""
+        kept = [tr for tr in self.tracks if not ends(tr)]
+        self._count(f"ended_{reason}", len(self.tracks) - len(kept))
+        self._lost |= len(kept) < len(self.tracks)
+        self.tracks = kept
 
     def _count(self, key: str, n: int = 1) -> None:
         if n:
