@@ -125,10 +125,15 @@ class EstimateOptions:
     """DDIM steps for a box that comes with a prior pose (`estimate`'s `priors`: a tracked object)..."""
     warm_strength: float = 0.5
     """...which start from the prior's axis image noised to this fraction of the schedule (`agm.sampler.Start`)."""
+    max_boxes: int | None = None
+    """Most boxes in one AGM batch (None: all at once); more are posed in successive batches of this many, so the
+    memory a call takes and the batch shapes it runs stay within what a caller warmed up."""
 
     def __post_init__(self) -> None:
         if self.hypotheses < 1:
             raise ValueError(f"hypotheses must be >= 1, got {self.hypotheses}")
+        if self.max_boxes is not None and self.max_boxes < 1:
+            raise ValueError(f"max_boxes must be >= 1 or None, got {self.max_boxes}")
 
 
 @dataclass(frozen=True)
@@ -287,7 +292,8 @@ class Estimator:
         cancelled: Callable[[], bool] | None = None,
         priors: list[tuple[np.ndarray, np.ndarray] | None] | None = None,
     ) -> list[PoseEstimate]:
-        """Poses for (obj_id, (x, y, w, h)) boxes in an RGB uint8 image; all crops go through the AGM as one batch.
+        """Poses for (obj_id, (x, y, w, h)) boxes in an RGB uint8 image; the crops go through the AGM as one batch
+        (or batches of `options.max_boxes`).
 
         The data flow's stages, each one method: crop, sample (the AGM), read (the reader), solve (the TBM and the
         samples' consensus), fuse (the dense points). `options` holds the per-call settings (None: the checkpoint's
@@ -298,6 +304,23 @@ class Estimator:
         options = options or EstimateOptions()
         if priors is not None and len(priors) != len(boxes):
             raise ValueError(f"{len(priors)} priors for {len(boxes)} boxes")
+        size = options.max_boxes or max(1, len(boxes))
+        poses = []
+        for i in range(0, max(1, len(boxes)), size):  # no boxes: one call all the same, which checks K
+            part = None if priors is None else priors[i : i + size]
+            poses += self._estimate_batch(image_rgb, K, boxes[i : i + size], options, cancelled, part)
+        return poses
+
+    def _estimate_batch(
+        self,
+        image_rgb: np.ndarray,
+        K: np.ndarray,
+        boxes: list[tuple[int, tuple[float, float, float, float]]],
+        options: EstimateOptions,
+        cancelled: Callable[[], bool] | None,
+        priors: list[tuple[np.ndarray, np.ndarray] | None] | None,
+    ) -> list[PoseEstimate]:
+        """`estimate` on boxes that go through the AGM as one batch."""
         batch = self._crop(image_rgb, K, boxes, options)
         if batch is None:
             return []

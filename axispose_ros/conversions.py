@@ -32,8 +32,9 @@ def printable(text: str, limit: int = 32) -> str:
     return repr(text[:limit]) + ("…" if len(text) > limit else "")
 
 
-def image_to_rgb(msg: Image) -> np.ndarray:
-    """An HxWx3 uint8 RGB array (a copy) from an Image of a supported encoding and any row step."""
+def check_image(msg: Image) -> int:
+    """The Image's channels per pixel, or InputError: its encoding, size, row step and data length are checked
+    without touching the pixels, so a bad frame is refused as it arrives."""
     enc = msg.encoding.lower()
     if enc not in CHANNELS:
         # One counter for every unsupported encoding: a stream of distinct strings must not grow the diagnostics.
@@ -43,9 +44,24 @@ def image_to_rgb(msg: Image) -> np.ndarray:
         raise InputError("image_size", "image has zero size")
     if msg.step < w * c:
         raise InputError("image_step", f"row step {msg.step} is shorter than width {w} x {c} channels")
+    if len(msg.data) < msg.step * (h - 1) + w * c:
+        raise InputError("image_data", f"image data holds {len(msg.data)} bytes, {msg.step * (h - 1) + w * c} needed")
+    return c
+
+
+def check_frame(image: Image, info: CameraInfo, use_rectified: bool = False) -> Camera:
+    """The camera for this image, or InputError: the checks of `image_to_rgb`, `camera_from_info` and
+    `camera_for_image` that need no pixels, run where the frame arrives so that every bad frame is counted as what
+    it is (a busy node would otherwise replace most of them unseen) and none displaces a good one."""
+    check_image(image)
+    return camera_for_image(camera_from_info(info, use_rectified), image.width, image.height)
+
+
+def image_to_rgb(msg: Image) -> np.ndarray:
+    """An HxWx3 uint8 RGB array (a copy) from an Image of a supported encoding and any row step."""
+    c = check_image(msg)
+    enc, h, w = msg.encoding.lower(), msg.height, msg.width
     data = np.frombuffer(bytes(msg.data) if not isinstance(msg.data, np.ndarray) else msg.data.tobytes(), dtype=np.uint8)
-    if data.size < msg.step * (h - 1) + w * c:
-        raise InputError("image_data", f"image data holds {data.size} bytes, {msg.step * (h - 1) + w * c} needed")
     rows = np.lib.stride_tricks.as_strided(data, shape=(h, w, c), strides=(msg.step, c, 1))
     if enc == "mono8":
         return np.repeat(rows, 3, axis=2)

@@ -51,7 +51,7 @@ from sensor_msgs.msg import CameraInfo, Image, RegionOfInterest
 from axispose_core.checkpoint import CheckpointError
 from axispose_core.estimator import Estimator
 from axispose_ros import params
-from axispose_ros.conversions import InputError, Undistorter, camera_for_image, camera_from_info, image_to_rgb
+from axispose_ros.conversions import InputError, Undistorter, camera_for_image, camera_from_info, check_frame, image_to_rgb
 from axispose_ros.counters import Counters
 from axispose_ros.health import Health, HealthConfig
 from axispose_ros.outputs import PoseOutputs
@@ -165,6 +165,11 @@ class AxisPoseNode(Node):
         self.get_logger().warning(f"dropped a frame: {reason}", throttle_duration_sec=5.0)
 
     def _on_pair(self, image: Image, info: CameraInfo) -> None:
+        try:  # a frame the worker would refuse is counted here: it must neither go stale unseen nor displace a good one
+            check_frame(image, info, self.settings().use_rectified)
+        except InputError as err:
+            self._on_error(err)
+            return
         if self.worker.submit(Frame(image, info, time.monotonic())):
             self.stats.add("dropped_stale")
 
@@ -179,11 +184,12 @@ class AxisPoseNode(Node):
             self.get_logger().error(f"inference failed on a frame: {err!r}", throttle_duration_sec=5.0)
 
     def _warm_up(self) -> None:
-        """Blank-frame passes up to `warmup_boxes` boxes (`warmup.py`), so that the first frames skip the setup."""
+        """Blank-frame passes for 1..`warmup_boxes` boxes, at most a batch (`warmup.py`): the first frames skip the setup."""
         s, start = self.settings(), time.monotonic()
+        count = min(s.warmup_boxes, s.batch_boxes)
         try:
-            if warm_up(self.estimator, list(self.published), s.warmup_boxes, s.hypotheses, self.worker.cancelled):
-                self.get_logger().info(f"warmed up for 1-{s.warmup_boxes} boxes in {time.monotonic() - start:.1f} s")
+            if warm_up(self.estimator, list(self.published), count, s.hypotheses, self.worker.cancelled):
+                self.get_logger().info(f"warmed up for 1-{count} boxes in {time.monotonic() - start:.1f} s")
         except Exception as err:
             self.get_logger().warning(f"warm-up failed ({err!r}); the first frames will be slower")
 

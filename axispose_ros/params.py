@@ -69,6 +69,8 @@ SPECS = (
         ints=(0, 64),
         at_start=True,
     ),
+    Spec("batch_boxes", 8, "most boxes posed in one AGM batch; a frame with more runs several, so memory stays bounded "
+         "and the warm-up covers every batch shape", ints=(1, 64), at_start=True),
     Spec("roi_timeout", 1.0, "age in s after which an ROI is ignored", floats=(0.0, 3600.0)),
     Spec("score_threshold", 0.3, "least localiser score of an instance", floats=(0.0, 1.0)),
     Spec("marker_lifetime", 1.0, "lifetime of ~/markers in s (0: until replaced)", floats=(0.0, 3600.0)),
@@ -100,6 +102,7 @@ class NodeSettings:
     sync_slop: float
     num_threads: int
     warmup_boxes: int
+    batch_boxes: int
     roi_timeout: float
     score_threshold: float
     marker_lifetime: float

@@ -42,7 +42,8 @@ class FramePoser:
     ) -> Posed:
         """ROIs where fresh ones came; else the localiser's boxes, each posed on its own or through the tracker."""
         options = EstimateOptions(steps=s.ddim_steps, guidance_scale=s.guidance_scale, scales=s.scales(self.published),
-                                  hypotheses=s.hypotheses, warm_steps=s.warm_steps, warm_strength=max(s.warm_strength, 1e-3))  # fmt: skip
+                                  hypotheses=s.hypotheses, warm_steps=s.warm_steps, warm_strength=max(s.warm_strength, 1e-3),
+                                  max_boxes=s.batch_boxes)  # fmt: skip
 
         def estimate(boxes: list[tuple[int, Box]], priors: list | None = None) -> list[PoseEstimate]:
             return self.estimator.estimate(rgb, K, boxes, options=options, cancelled=cancelled, priors=priors)

@@ -378,3 +378,25 @@ def test_a_grown_encoder_starts_as_the_network_it_grew_from():
     for other in (wider, fewer):
         with pytest.raises(ValueError, match="only the residual trunk's blocks per stage and the objects may grow"):
             grow_into(AxisGenerator(AGMConfig(denoiser=other)), small)
+
+
+def test_max_boxes_poses_a_frame_in_batches_of_that_many(monkeypatch):
+    """A call with more boxes than `max_boxes` runs batches of at most that many, in order, each as a call with
+    just its boxes would: the caller's memory and batch shapes stay bounded."""
+    reader = load_reader(SHIPPED_READER)
+    cfg = EstimatorConfig(agm=AGMConfig(denoiser=TINY), reader=reader.config, objects=tuple(lmo_objects()[:2]), ddim_steps=2)
+    est = Estimator(cfg, AxisGenerator(cfg.agm), reader)
+    image = (np.random.default_rng(0).uniform(0, 255, (480, 640, 3))).astype(np.uint8)
+    K = np.array([[572.4, 0, 325.3], [0, 573.6, 242.0], [0, 0, 1]])
+    boxes = [(1 + 4 * (k % 2), (60.0 + 90 * k, 150.0, 70.0, 80.0)) for k in range(5)]
+    sizes, real = [], est.reader.read
+    monkeypatch.setattr(est.reader, "read", lambda images: sizes.append(len(images)) or real(images))
+    options = EstimateOptions(hypotheses=2, max_boxes=2)
+    poses = est.estimate(image, K, boxes, options)
+    assert sizes == [4, 4, 2] and [p.obj_id for p in poses] == [o for o, _ in boxes]
+    alone = est.estimate(image, K, boxes[2:4], options)
+    for a, b in zip(poses[2:4], alone, strict=True):
+        np.testing.assert_array_equal(a.axis_image, b.axis_image)
+    assert est.estimate(image, K, [], options) == []
+    with pytest.raises(ValueError, match="max_boxes"):
+        EstimateOptions(max_boxes=0)

@@ -70,12 +70,13 @@ class Harness:
                 return True
         return False
 
-    def frame(self, sec=1, encoding="rgb8", K=LMO_K, size=(640, 480), info_size=(640, 480), with_info=True):
+    def frame(self, sec=1, encoding="rgb8", K=LMO_K, size=(640, 480), info_size=(640, 480), with_info=True, rows=None):
+        """Publish a frame of random pixels and its CameraInfo; `rows`: send only that many rows of data."""
         w, h = size
         img = Image(height=h, width=w, encoding=encoding, step=w * 3)
         img.header.frame_id = "cam"
         img.header.stamp.sec = sec
-        img.data = np.random.default_rng(sec).integers(0, 255, h * w * 3, dtype=np.uint8).tobytes()
+        img.data = np.random.default_rng(sec).integers(0, 255, (h if rows is None else rows) * w * 3, dtype=np.uint8).tobytes()
         if with_info:
             info = CameraInfo(width=info_size[0], height=info_size[1])
             info.header = img.header
@@ -249,6 +250,30 @@ def test_bad_input_is_dropped_and_counted(harness, kwargs, counter):
     assert not calls and "dropped_error" not in harness.node.counters()
     harness.frame(sec=11)  # still alive and processing
     assert harness.spin_until(lambda: harness.node.counts["frames_processed"] >= 1)
+
+
+def test_bad_frames_are_counted_as_they_arrive_while_the_worker_is_busy(harness):
+    """Frames the worker would refuse are refused on arrival: each is counted under its reason even while a slow
+    frame holds the worker, and none of them takes the waiting good frame's place (no dropped_stale)."""
+    import time as _time
+
+    real = harness.node.poser.pose
+    harness.node.poser.pose = lambda *a, **k: _time.sleep(1.5) or real(*a, **k)
+    counts = harness.node.counts
+
+    def send(n: int, **kwargs) -> None:  # one at a time: a burst of large best-effort messages loses some in transport
+        harness.frame(**kwargs)
+        assert harness.spin_until(lambda: counts["frames_in"] >= n, 5.0)
+
+    send(1, sec=40)
+    assert harness.spin_until(lambda: not harness.node.worker.idle(), 5.0)
+    send(2, sec=41)  # waits in the slot behind the slow frame
+    for k in range(3):
+        send(3 + 2 * k, sec=42 + 2 * k, rows=100)
+        send(4 + 2 * k, sec=43 + 2 * k, info_size=(640, 400))
+    assert harness.spin_until(lambda: counts["dropped_image_data"] == 3 and counts["dropped_camera_info_mismatch"] == 3, 2.0)
+    assert harness.spin_until(lambda: counts["frames_processed"] >= 2, 10.0)
+    assert "dropped_stale" not in harness.node.counters()
 
 
 def test_diagnostics_stop_saying_ok_when_frames_stop_going_through(harness):

@@ -11,7 +11,7 @@ def test_every_setting_is_declared_once_and_start_only_ones_are_refused_later():
     names = [s.name for s in SPECS]
     assert len(names) == len(set(names)) and set(names) == {f.name for f in fields(NodeSettings)} - {"object_scales"}
     assert AT_START == {"checkpoint", "device", "precision", "objects", "use_rectified", "sync_slop", "num_threads",
-                        "warmup_boxes", "latency_budget"}  # fmt: skip
+                        "warmup_boxes", "batch_boxes", "latency_budget"}  # fmt: skip
     assert not check_change([Parameter("num_threads", value=4)]).successful
     assert check_change([Parameter("ddim_steps", value=8), Parameter("object_scales.ape", value=0.06)]).successful
     assert not check_change([Parameter("object_scales.ape", value=10.5)]).successful

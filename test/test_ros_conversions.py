@@ -4,7 +4,15 @@ from sensor_msgs.msg import CameraInfo, Image
 from std_msgs.msg import Header
 
 from axispose_core.lmo import LMO_K
-from axispose_ros.conversions import InputError, Undistorter, camera_for_image, camera_from_info, image_to_rgb, rgb_to_image
+from axispose_ros.conversions import (
+    InputError,
+    Undistorter,
+    camera_for_image,
+    camera_from_info,
+    check_frame,
+    image_to_rgb,
+    rgb_to_image,
+)
 from axispose_ros.sync import STAMP_ANOMALIES, StampAudit, StampSynchronizer
 
 
@@ -56,6 +64,9 @@ def test_bad_images_are_refused_with_a_reason(mutate, reason):
         image_to_rgb(msg)
     assert err.value.reason == reason
     assert "\n" not in str(err.value) and len(str(err.value)) < 200  # what the node logs: one short line
+    with pytest.raises(InputError) as early:  # the node's check on arrival finds the same, without the pixels
+        check_frame(msg, _info(w=4, h=4))
+    assert early.value.reason == reason
 
 
 def _info(K=LMO_K, w=640, h=480) -> CameraInfo:
@@ -123,6 +134,11 @@ def test_image_size_against_camera_info():
     with pytest.raises(InputError) as err:
         camera_for_image(cam, 640, 400)
     assert err.value.reason == "camera_info_mismatch"
+    image = _image(np.zeros((400, 640, 3), np.uint8), "rgb8")
+    with pytest.raises(InputError) as err:
+        check_frame(image, _info())
+    assert err.value.reason == "camera_info_mismatch"
+    assert check_frame(_image(np.zeros((240, 320, 3), np.uint8), "rgb8"), _info()).K[0, 0] == pytest.approx(LMO_K[0, 0] / 2)
 
 
 @pytest.mark.parametrize("model, D", [("plumb_bob", [-0.28, 0.09, 0.001, -0.002, 0.0]),
