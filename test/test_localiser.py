@@ -4,6 +4,7 @@ import argparse
 import json
 from dataclasses import replace
 
+import cv2
 import numpy as np
 import pytest
 import torch
@@ -14,6 +15,7 @@ from axispose_core.camera import crop_transform, instance_crop, project
 from axispose_core.checkpoint import CheckpointError, read_checkpoint, stored_half
 from axispose_core.cli import _score_and_attach, main
 from axispose_core.data.bop import BopFormatError, BopScene
+from axispose_core.data.synth.config import SurfaceConfig
 from axispose_core.estimator import Estimator, EstimatorConfig
 from axispose_core.localiser.decode import Detection, decode, draw_targets, focal_loss, iou, match
 from axispose_core.localiser.model import STRIDE, Localiser, LocaliserConfig
@@ -80,6 +82,23 @@ def test_occluded_instances_weigh_by_their_hidden_fraction(frames):
     visib = [info.visib_fract for g, info in zip(scene.gt[im_id], scene.gt_info[im_id], strict=True) if g.obj_id in (1, 5)]
     assert [w for _, _, w in plain.boxes(0)] == [1.0] * len(visib)
     assert [w for _, _, w in weighted.boxes(0)] == pytest.approx([1 + 2 * (1 - v) for v in visib])
+
+
+def test_surface_varies_the_objects_own_pixels_only(frames):
+    """The objects' look varies inside their visible masks and nowhere else; off (the default) draws nothing."""
+    looks = LocaliserDataset([frames], TINY, min_visib=0.0, surface=SurfaceConfig(response_prob=1.0, detail_prob=1.0))
+    scene, im_id = looks.frames[0]
+    rgb = scene.rgb(im_id).astype(np.float32) / 255
+    varied = looks._surfaces(np.random.default_rng(0), scene, im_id, rgb.copy())
+    masks = [cv2.imread(str(p), cv2.IMREAD_GRAYSCALE) > 0 for p in sorted((scene.root / "mask_visib").glob(f"{im_id:06d}_*.png"))]
+    known = np.zeros(rgb.shape[:2], bool)
+    for k, (gt, _) in enumerate(scene.instances(im_id)):
+        known |= masks[k] if gt.obj_id in (1, 5) else False
+    changed = np.abs(varied - rgb).max(axis=2) > 1e-6
+    assert known.any() and changed.any() and not (changed & ~known).any()
+    plain = LocaliserDataset([frames], TINY, min_visib=0.0)
+    default = LocaliserDataset([frames], TINY, min_visib=0.0, surface=SurfaceConfig())
+    assert torch.equal(plain[0]["image"], default[0]["image"])
 
 
 def test_the_loss_is_finite_under_bfloat16_autocast(frames):

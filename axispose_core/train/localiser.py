@@ -20,9 +20,9 @@ import torch.nn.functional as F
 from torch.utils.data import Dataset
 
 from axispose_core.checkpoint import save_checkpoint
-from axispose_core.data.bop import bop_frames
-from axispose_core.data.synth.appearance import photometric
-from axispose_core.data.synth.config import PhotometricConfig
+from axispose_core.data.bop import BopScene, bop_frames
+from axispose_core.data.synth.appearance import photometric, surface
+from axispose_core.data.synth.config import PhotometricConfig, SurfaceConfig
 from axispose_core.data.visibility import gt_info_from_models
 from axispose_core.localiser.decode import draw_targets, focal_loss
 from axispose_core.localiser.model import STRIDE, Localiser, LocaliserConfig, build_localiser
@@ -55,6 +55,9 @@ class LocaliserTrainConfig:
     val_frames: int = 40
     photometric: PhotometricConfig = field(default_factory=PhotometricConfig)
     """The appearance chain on each training frame, over the data's own randomisation (off by default)."""
+    surface: SurfaceConfig = field(default_factory=SurfaceConfig)
+    """Each object's own look (fine detail, colour response) varied on its visible pixels, one draw per instance, where
+    the frames have BOP `mask_visib` files (off by default)."""
 
 
 class LocaliserDataset(Dataset):
@@ -70,9 +73,11 @@ class LocaliserDataset(Dataset):
         occluded_weight: float = 0.0,
         models_dir: str | Path | None = None,
         photometric: PhotometricConfig | None = None,
+        surface: SurfaceConfig | None = None,
     ) -> None:
         self.config, self.augment, self.seed, self.epoch = config, augment, seed, 0
         self.photometric = photometric or PhotometricConfig()
+        self.surface = surface or SurfaceConfig()
         self.occluded_weight = occluded_weight
         self.classes = {o: k for k, o in enumerate(config.obj_ids)}
         self.frames = bop_frames(roots, gt_info_from_models(models_dir))
@@ -101,6 +106,8 @@ class LocaliserDataset(Dataset):
             z = rng.uniform(0.8, 1.25)
             tx, ty = rng.uniform(-0.1, 0.1) * w, rng.uniform(-0.1, 0.1) * h
             A = np.array([[z, 0, (1 - z) * w / 2 + tx], [0, z, (1 - z) * h / 2 + ty]]) @ np.vstack([A, [0, 0, 1]])
+        if self.augment and (self.surface.detail_prob > 0 or self.surface.response_prob > 0):
+            rgb = np.round(255 * self._surfaces(rng, scene, im_id, rgb.astype(np.float32) / 255)).astype(np.uint8)
         image = cv2.warpAffine(rgb, A, (w, h), flags=cv2.INTER_AREA, borderMode=cv2.BORDER_REFLECT101).astype(np.float32) / 255
         if self.augment:
             image = np.clip(image * rng.uniform(0.7, 1.3, 3) + rng.uniform(-0.1, 0.1), 0, 1)
@@ -116,6 +123,21 @@ class LocaliserDataset(Dataset):
             "offset": torch.from_numpy(offset),
             "mask": torch.from_numpy(mask),
         }
+
+
+    def _surfaces(self, rng: np.random.Generator, scene: BopScene, im_id: int, image: np.ndarray) -> np.ndarray:
+        """`appearance.surface` on each known instance's visible pixels (its mask's box only: the cost follows the
+        object's size); instances without a mask file keep their look."""
+        for k, (gt, _) in enumerate(scene.instances(im_id)):
+            path = scene.root / "mask_visib" / f"{im_id:06d}_{k:06d}.png"
+            if gt.obj_id not in self.classes or not path.exists():
+                continue
+            mask = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE) > 0
+            ys, xs = np.nonzero(mask)
+            if len(ys):
+                box = np.s_[ys.min() : ys.max() + 1, xs.min() : xs.max() + 1]
+                image[box] = surface(rng, self.surface, image[box], mask[box])
+        return image
 
 
 def localiser_loss(model: Localiser, batch: dict[str, torch.Tensor], cfg: LocaliserTrainConfig) -> torch.Tensor:
@@ -143,7 +165,8 @@ def train_localiser(
     out.parent.mkdir(parents=True, exist_ok=True)
     torch.manual_seed(cfg.optim.seed)
     train_set = LocaliserDataset(
-        data, cfg.localiser, cfg.min_visib, seed=cfg.optim.seed, occluded_weight=cfg.occluded_weight, photometric=cfg.photometric
+        data, cfg.localiser, cfg.min_visib, seed=cfg.optim.seed, occluded_weight=cfg.occluded_weight, photometric=cfg.photometric,
+        surface=cfg.surface,
     )
     if not len(train_set):
         raise ValueError(f"no frames in {data}")
