@@ -61,21 +61,21 @@ class LocaliserTrainConfig:
 
 
 class LocaliserDataset(Dataset):
-    """Resized uint8 frames with heatmap/size/offset targets; randomness depends on (seed, epoch, index)."""
+    """Training frames, resized, zoomed, shifted and recoloured at random, with heatmap/size/offset targets;
+    randomness depends on (seed, epoch, index)."""
 
     def __init__(
         self,
         roots: list[str | Path],
         config: LocaliserConfig,
         min_visib: float,
-        augment: bool = True,
         seed: int = 0,
         occluded_weight: float = 0.0,
         models_dir: str | Path | None = None,
         photometric: PhotometricConfig | None = None,
         surface: SurfaceConfig | None = None,
     ) -> None:
-        self.config, self.augment, self.seed, self.epoch = config, augment, seed, 0
+        self.config, self.seed, self.epoch = config, seed, 0
         self.photometric = photometric or PhotometricConfig()
         self.surface = surface or SurfaceConfig()
         self.occluded_weight = occluded_weight
@@ -102,16 +102,15 @@ class LocaliserDataset(Dataset):
         w, h = self.config.input_size
         sx, sy = w / rgb.shape[1], h / rgb.shape[0]
         A = np.array([[sx, 0, 0], [0, sy, 0]], np.float64)
-        if self.augment:  # zoom about the centre and shift; boxes follow the same affine map
-            z = rng.uniform(0.8, 1.25)
-            tx, ty = rng.uniform(-0.1, 0.1) * w, rng.uniform(-0.1, 0.1) * h
-            A = np.array([[z, 0, (1 - z) * w / 2 + tx], [0, z, (1 - z) * h / 2 + ty]]) @ np.vstack([A, [0, 0, 1]])
-        if self.augment and (self.surface.detail_prob > 0 or self.surface.response_prob > 0):
+        # zoom about the centre and shift; boxes follow the same affine map
+        z = rng.uniform(0.8, 1.25)
+        tx, ty = rng.uniform(-0.1, 0.1) * w, rng.uniform(-0.1, 0.1) * h
+        A = np.array([[z, 0, (1 - z) * w / 2 + tx], [0, z, (1 - z) * h / 2 + ty]]) @ np.vstack([A, [0, 0, 1]])
+        if self.surface.detail_prob > 0 or self.surface.response_prob > 0:
             rgb = np.round(255 * self._surfaces(rng, scene, im_id, rgb.astype(np.float32) / 255)).astype(np.uint8)
         image = cv2.warpAffine(rgb, A, (w, h), flags=cv2.INTER_AREA, borderMode=cv2.BORDER_REFLECT101).astype(np.float32) / 255
-        if self.augment:
-            image = np.clip(image * rng.uniform(0.7, 1.3, 3) + rng.uniform(-0.1, 0.1), 0, 1)
-            image, _ = photometric(rng, self.photometric, image, scale=A[0, 0])
+        image = np.clip(image * rng.uniform(0.7, 1.3, 3) + rng.uniform(-0.1, 0.1), 0, 1)
+        image, _ = photometric(rng, self.photometric, image, scale=A[0, 0])
         instances = self.boxes(i)
         boxes = [(c, (A[0, 0] * x + A[0, 2], A[1, 1] * y + A[1, 2], A[0, 0] * bw, A[1, 1] * bh)) for c, (x, y, bw, bh), _ in instances]
         weights = [wt for _, _, wt in instances]
