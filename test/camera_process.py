@@ -1,6 +1,6 @@
 """A camera driver in a process of its own, for test_transport.py: full-size rgb8 frames with their CameraInfo at a
-camera's rate, sensor-data QoS, stamped by the clock, plus the node's ROI for `ape` before each frame (so that
-every frame has a box to estimate). Prints one JSON line: the stamps sent (s)."""
+camera's rate, sensor-data QoS, stamped on the camera's schedule (its clock at exposure), plus the node's ROI for
+`ape` before each frame (so that every frame has a box to estimate). Prints one JSON line: the stamps sent (s)."""
 
 from __future__ import annotations
 
@@ -12,6 +12,7 @@ import time
 import numpy as np
 import rclpy
 from rclpy.qos import qos_profile_sensor_data
+from rclpy.time import Time
 from sensor_msgs.msg import CameraInfo, Image, RegionOfInterest
 
 from axispose_core.lmo import LMO_K
@@ -46,11 +47,14 @@ def main() -> int:
     pixels = np.random.default_rng(0).integers(0, 256, (h, w, 3), dtype=np.uint8)
     roi = RegionOfInterest(x_offset=280, y_offset=200, width=80, height=90)
     stamps, start = [], time.monotonic()
+    first = node.get_clock().now().nanoseconds
     for k in range(args.frames):
         pixels[0, 0, 0] = k % 256  # each frame differs
         img = Image(height=h, width=w, encoding="rgb8", step=w * 3, data=pixels.tobytes())
         img.header.frame_id = "camera_optical"
-        img.header.stamp = node.get_clock().now().to_msg()
+        # stamped at its exposure on the camera's schedule, as a camera's clock does: a publisher that runs late on a
+        # loaded machine must not read as frames lost in transport
+        img.header.stamp = Time(nanoseconds=first + round(k * 1e9 / args.rate)).to_msg()
         info = CameraInfo(header=img.header, width=w, height=h, distortion_model="plumb_bob", d=[0.0] * 5)
         info.k = [float(v) for v in np.asarray(LMO_K).ravel()]
         pub_roi.publish(roi)
