@@ -255,10 +255,8 @@ def test_bad_input_is_dropped_and_counted(harness, kwargs, counter):
 def test_bad_frames_are_counted_as_they_arrive_while_the_worker_is_busy(harness):
     """Frames the worker would refuse are refused on arrival: each is counted under its reason even while a slow
     frame holds the worker, and none of them takes the waiting good frame's place (no dropped_stale)."""
-    import time as _time
-
     real = harness.node.poser.pose
-    harness.node.poser.pose = lambda *a, **k: _time.sleep(1.5) or real(*a, **k)
+    harness.node.poser.pose = lambda *a, **k: time.sleep(1.5) or real(*a, **k)
     counts = harness.node.counts
 
     def send(n: int, **kwargs) -> None:  # one at a time: a burst of large best-effort messages loses some in transport

@@ -123,7 +123,6 @@ class LocaliserDataset(Dataset):
             "mask": torch.from_numpy(mask),
         }
 
-
     def _surfaces(self, rng: np.random.Generator, scene: BopScene, im_id: int, image: np.ndarray) -> np.ndarray:
         """`appearance.surface` on each known instance's visible pixels (its mask's box only: the cost follows the
         object's size); instances without a mask file keep their look."""
