@@ -48,10 +48,11 @@ from rclpy.qos import qos_profile_sensor_data
 from rclpy.qos_overriding_options import QoSOverridingOptions
 from sensor_msgs.msg import CameraInfo, Image, RegionOfInterest
 
+from axispose_core.camera import Camera
 from axispose_core.checkpoint import CheckpointError
 from axispose_core.estimator import Estimator
 from axispose_ros import params
-from axispose_ros.conversions import InputError, Undistorter, camera_for_image, camera_from_info, check_frame, image_to_rgb
+from axispose_ros.conversions import InputError, Undistorter, check_frame, image_to_rgb
 from axispose_ros.counters import Counters
 from axispose_ros.health import Health, HealthConfig
 from axispose_ros.outputs import PoseOutputs
@@ -88,6 +89,8 @@ def _load_estimator(checkpoint: str, device: str) -> Estimator:
 class Frame:
     image: Image
     info: CameraInfo
+    camera: Camera
+    """The image's pinhole camera, checked on arrival (`check_frame`)."""
     received: float
 
 
@@ -97,6 +100,7 @@ class AxisPoseNode(Node):
     def __init__(self, **kwargs) -> None:
         super().__init__("axispose", **kwargs)
         settings = params.declare(self)
+        self.rectified = settings.use_rectified  # start-only: read once, not per frame on the executor
         self.estimator = _load_estimator(settings.checkpoint, settings.device)
         self.precision = self.estimator.set_precision(settings.precision)
         self.names = {o.obj_id: o.name for o in self.estimator.config.objects}
@@ -166,11 +170,11 @@ class AxisPoseNode(Node):
 
     def _on_pair(self, image: Image, info: CameraInfo) -> None:
         try:  # a frame the worker would refuse is counted here: it must neither go stale unseen nor displace a good one
-            check_frame(image, info, self.settings().use_rectified)
+            camera = check_frame(image, info, self.rectified)
         except InputError as err:
             self._on_error(err)
             return
-        if self.worker.submit(Frame(image, info, time.monotonic())):
+        if self.worker.submit(Frame(image, info, camera, time.monotonic())):
             self.stats.add("dropped_stale")
 
     # ------------------------------------------------------------------ inference (on the worker's thread)
@@ -207,9 +211,8 @@ class AxisPoseNode(Node):
 
     def _process(self, frame: Frame) -> None:
         s = self.settings()  # one frame, one set of parameters
-        rgb = image_to_rgb(frame.image)
-        camera = camera_for_image(camera_from_info(frame.info, s.use_rectified), rgb.shape[1], rgb.shape[0])
-        if not s.use_rectified and Undistorter.needed(frame.info):
+        rgb, camera = image_to_rgb(frame.image), frame.camera
+        if not self.rectified and Undistorter.needed(frame.info):
             rgb = self.undistort(frame.info, camera.K, rgb)
         rois, outside = self.rois.fresh(time.monotonic(), s.roi_timeout, rgb.shape[1], rgb.shape[0])
         if outside:
