@@ -77,8 +77,9 @@ SPECS = (
     Spec("tracking", False, "follow objects across frames: crops from predicted poses, the localiser every "
          "redetect_period frames, each pose filtered (constant velocity, gated)"),
     Spec("redetect_period", 5, "with tracking, run the localiser on every n-th frame (and when a track is lost)", ints=(1, 1000)),
-    Spec("warm_strength", 0.5, "with tracking, a tracked object's samples start from its predicted axis image noised to "
-         "this fraction of the schedule (0: from noise, with ddim_steps)", floats=(0.0, 1.0)),
+    Spec("warm_strength", 0.0, "with tracking, a tracked object's samples start from its predicted axis image noised to "
+         "this fraction of the schedule (0: from noise, with ddim_steps); faster, but a wrong prediction's rotation "
+         "tends to stay", floats=(0.0, 1.0)),
     Spec("warm_steps", 1, "with tracking, DDIM steps of a warm-started sample", ints=(1, 1000)),
     Spec("track_timeout", 1.0, "with tracking, seconds without an accepted pose after which a track ends", floats=(0.0, 3600.0)),
     Spec("latency_budget", 2.0, "median latency (s) over which /diagnostics warns; at start", floats=(0.01, 60.0), at_start=True),

@@ -63,6 +63,45 @@ def test_constant_motion_is_followed_without_lag():
     assert np.all(np.abs(f.w - w) < 3 * sd_w) and sd_w.max() < 0.5 * np.abs(w).max()
 
 
+def test_process_noise_is_split_across_and_along_the_line_of_sight():
+    """Over dt the position's process noise is dt³/3 times the acceleration density: `accel_std`² across the ray
+    through the object, `depth_accel_std`² along it."""
+    t0, dt = np.array([0.3, -0.2, 0.9]), 0.1
+    f = PoseFilter.start(FilterConfig(accel_std=0.6, depth_accel_std=0.05), np.eye(3), t0, np.zeros((6, 6)))
+    f.P[:] = 0.0
+    f.predict(dt)
+    ray = t0 / np.linalg.norm(t0)
+    across = np.cross(ray, [0.0, 0.0, 1.0])
+    across /= np.linalg.norm(across)
+    P = f.P[0:3, 0:3]
+    assert ray @ P @ ray == pytest.approx(dt**3 / 3 * 0.05**2)
+    assert across @ P @ across == pytest.approx(dt**3 / 3 * 0.6**2)
+    assert across @ P @ ray == pytest.approx(0.0, abs=1e-15)
+
+
+def test_a_camera_that_turns_is_followed_sideways_while_depth_is_averaged():
+    """The object steps sideways at random (a shaking camera) at a constant depth; the measured depth is noisier
+    than the sideways position. With depth's own process noise the filter follows the steps and averages depth
+    down; isotropic noise as strong as the steps need would follow the depth noise as well."""
+    rng = np.random.default_rng(3)
+    cov = np.diag([0.003**2, 0.003**2, 0.03**2] + [SIGMA_R**2] * 3)
+    errors = {}
+    for name, cfg in {"split": FilterConfig(accel_std=0.5, depth_accel_std=0.02), "isotropic": FilterConfig(accel_std=0.5, depth_accel_std=None)}.items():
+        t = np.array([0.0, 0.0, 1.0])
+        f = PoseFilter.start(cfg, np.eye(3), t, cov)
+        lateral, depth = [], []
+        for k in range(120):
+            t = t + np.array([*rng.normal(0, 0.005, 2), 0.0])
+            f.predict(1 / 15)
+            f.update(np.eye(3), t + rng.normal(0, np.sqrt(np.diag(cov)[:3])), cov)
+            if k >= 20:
+                lateral.append(np.linalg.norm(f.t[:2] - t[:2]))
+                depth.append(abs(f.t[2] - t[2]))
+        errors[name] = (np.median(lateral), np.median(depth))
+    assert errors["split"][0] < 0.006  # the sideways steps are followed
+    assert errors["split"][1] < 0.5 * errors["isotropic"][1]
+
+
 def test_a_flip_is_refused_at_the_gate():
     rng = np.random.default_rng(2)
     R0, t0 = np.eye(3), np.array([0.0, 0.0, 1.0])

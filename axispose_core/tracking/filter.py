@@ -25,8 +25,12 @@ class FilterConfig:
     """Process noise of the constant-velocity model and the gate."""
 
     accel_std: float = 0.5
-    """Translational acceleration noise (m/s²): a hand-held camera or a robot arm's motion."""
-    angular_accel_std: float = 3.0
+    """Translational acceleration noise across the line of sight (m/s²): a camera that turns, hand-held or on an
+    arm, moves what it sees sideways far more than in depth."""
+    depth_accel_std: float | None = 0.02
+    """Translational acceleration noise along the line of sight (m/s²); None: `accel_std`. Small, so the depth,
+    a single image's weakest reading, is averaged over many frames."""
+    angular_accel_std: float = 0.5
     """Angular acceleration noise (rad/s²)."""
     velocity_std: float = 0.2
     """Prior on a new track's speed (m/s)."""
@@ -44,11 +48,17 @@ def _log(R: np.ndarray) -> np.ndarray:
     return Rotation.from_matrix(R).as_rotvec()
 
 
-def _white_acceleration(dt: float, std: float) -> np.ndarray:
-    """Process noise of (position, velocity) per axis over dt for white acceleration noise of spectral density std²."""
-    q = std * std
-    block = np.array([[dt**3 / 3.0, dt**2 / 2.0], [dt**2 / 2.0, dt]]) * q
-    return np.kron(block, np.eye(3))
+def _white_acceleration(dt: float, density: np.ndarray) -> np.ndarray:
+    """Process noise of (position, velocity) over dt for white acceleration noise of (3, 3) spectral density."""
+    block = np.array([[dt**3 / 3.0, dt**2 / 2.0], [dt**2 / 2.0, dt]])
+    return np.kron(block, density)
+
+
+def _ray_density(t: np.ndarray, across_std: float, along_std: float) -> np.ndarray:
+    """Acceleration density with `across_std` perpendicular to the line of sight through t and `along_std` on it."""
+    ray = t / max(float(np.linalg.norm(t)), 1e-9)
+    along = np.outer(ray, ray)
+    return across_std**2 * (np.eye(3) - along) + along_std**2 * along
 
 
 @dataclass
@@ -86,8 +96,10 @@ class PoseFilter:
         F[0:3, 3:6] = np.eye(3) * dt
         F[6:9, 9:12] = np.eye(3) * dt
         Q = np.zeros((12, 12))
-        Q[0:6, 0:6] = _white_acceleration(dt, self.config.accel_std)
-        Q[6:12, 6:12] = _white_acceleration(dt, self.config.angular_accel_std)
+        c = self.config
+        along = c.accel_std if c.depth_accel_std is None else c.depth_accel_std
+        Q[0:6, 0:6] = _white_acceleration(dt, _ray_density(self.t, c.accel_std, along))
+        Q[6:12, 6:12] = _white_acceleration(dt, np.eye(3) * c.angular_accel_std**2)
         self.P = F @ self.P @ F.T + Q
 
     def innovation(self, R: np.ndarray, t: np.ndarray, covariance: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:

@@ -43,7 +43,7 @@ class TrackingConfig:
     match_distance: float = 0.5
     """...or whose predicted box's centre lies within this fraction of the larger box's diagonal of its own: a
     prediction that lags a fast camera still finds its object."""
-    max_unseen: int = 2
+    max_unseen: int = 4
     """Localiser runs in a row that do not find a track's object near it, after which the track ends: a track
     started by a false detection, or one whose object left."""
     same_distance: float = 0.1
