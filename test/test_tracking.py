@@ -86,7 +86,8 @@ def test_a_camera_that_turns_is_followed_sideways_while_depth_is_averaged():
     rng = np.random.default_rng(3)
     cov = np.diag([0.003**2, 0.003**2, 0.03**2] + [SIGMA_R**2] * 3)
     errors = {}
-    for name, cfg in {"split": FilterConfig(accel_std=0.5, depth_accel_std=0.02), "isotropic": FilterConfig(accel_std=0.5, depth_accel_std=None)}.items():
+    configs = {"split": FilterConfig(accel_std=0.5, depth_accel_std=0.02), "isotropic": FilterConfig(accel_std=0.5, depth_accel_std=None)}
+    for name, cfg in configs.items():
         t = np.array([0.0, 0.0, 1.0])
         f = PoseFilter.start(cfg, np.eye(3), t, cov)
         lateral, depth = [], []

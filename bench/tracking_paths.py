@@ -1,0 +1,122 @@
+"""Tracking settings compared on rendered camera paths: the node's frame loop without ROS, per setting.
+
+Each setting runs every scene (a BOP folder from `axispose synth --camera-path`, frames in order at `--fps`),
+either single-frame (the localiser's boxes, each posed on its own: `{"tracking": false}`) or through a `Tracker`
+whose `TrackingConfig` fields and `filter` (a `FilterConfig`) the setting gives; `"warm": true` starts tracked
+samples from their predictions (`--warm-strength`, one step). Each GT instance is matched to the nearest pose of
+its object in its frame. Prints, per setting, ADD(-S)@0.1d and Reproj@15px (mean over scenes), and jitter
+(`tracking/jitter.py`) and the median frame time per scene, as one JSON line; `--out` writes them all.
+
+    python bench/tracking_paths.py --scene V777/000000 --scene V778/000000 \\
+        --setting '{"tracking": false}' --setting '{}' --setting '{"warm": true}'
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from axispose_core.data.bop import BopScene, model_path
+from axispose_core.data.meshes import load_ply
+from axispose_core.estimator import SHIPPED_ESTIMATOR, EstimateOptions, Estimator
+from axispose_core.evaluate import instance_scores
+from axispose_core.tracking.filter import FilterConfig
+from axispose_core.tracking.jitter import PosePair, half_turn_symmetries, jitter
+from axispose_core.tracking.tracker import Tracker, TrackingConfig
+
+Pose = tuple[int, np.ndarray, np.ndarray]
+
+
+class Bench:
+    def __init__(self, checkpoint: str, models: str, threshold: float, options: EstimateOptions, fps: float) -> None:
+        self.est = Estimator.load(checkpoint)
+        self.specs = {o.obj_id: o for o in self.est.config.objects}
+        self.points = {i: load_ply(model_path(models, i)).vertices for i in self.specs}
+        self.syms = {i: half_turn_symmetries(self.points[i], s.diameter) for i, s in self.specs.items() if s.symmetric}
+        self.threshold, self.options, self.fps = threshold, options, fps
+
+    def scene(self, setting: dict, scene: BopScene) -> dict:
+        """One setting on one scene: its scores, jitter, frame time and the tracker's counts."""
+        tracker = self._tracker(setting) if setting.get("tracking", True) else None
+        add, rp, pairs, times = [], [], [], []
+        for k, im in enumerate(scene.image_ids):
+            rgb, K = scene.rgb(im), scene.cameras[im]
+            start = time.perf_counter()
+            poses = self._frame(rgb, K, k / self.fps, tracker, setting.get("warm", False))
+            times.append(time.perf_counter() - start)
+            for g in scene.gt[im]:
+                if g.obj_id not in self.specs:
+                    continue
+                pose = _nearest(poses, g.obj_id, g.t)
+                s = instance_scores(self.specs[g.obj_id], self.points[g.obj_id], K, g.R, g.t, pose)
+                add.append(s["add_0.1d"])
+                rp.append(s["reproj_15px"])
+                if pose is not None:
+                    pairs.append(PosePair(k, g.obj_id, *pose, g.R, g.t))
+        return {"add": float(np.mean(add)), "rp15": float(np.mean(rp)), **jitter(pairs, self.syms),
+                "frame_ms": 1000 * float(np.median(times[1:])), "counts": tracker.counts if tracker else {}}  # fmt: skip
+
+    def _tracker(self, setting: dict) -> Tracker:
+        fields = {k: v for k, v in setting.items() if k in TrackingConfig.__dataclass_fields__ and k != "filter"}
+        return Tracker(TrackingConfig(**fields, filter=FilterConfig(**setting.get("filter", {}))))
+
+    def _frame(self, rgb: np.ndarray, K: np.ndarray, stamp: float, tracker: Tracker | None, warm: bool) -> list[Pose]:
+        def detect() -> list:
+            return self.est.detect(rgb, self.threshold)
+
+        if tracker is None:
+            found = detect()
+            estimates = self.est.estimate(rgb, K, [(d.obj_id, d.box) for d in found], options=self.options)
+            return [(d.obj_id, e.R, e.t) for d, e in zip(found, estimates, strict=True) if e.ok]
+
+        def measure(crops: list) -> list:
+            priors = [c.prior for c in crops] if warm else None
+            return self.est.estimate(rgb, K, [(c.obj_id, c.box) for c in crops], options=self.options, priors=priors)
+
+        return [(p.obj_id, p.R, p.t) for p in tracker.step(stamp, K, detect, measure)]
+
+
+def _nearest(poses: list[Pose], obj_id: int, t_gt: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
+    """The pose of `obj_id` nearest t_gt, taken out of `poses` (one GT instance per pose)."""
+    mine = [i for i, p in enumerate(poses) if p[0] == obj_id]
+    if not mine:
+        return None
+    _, R, t = poses.pop(min(mine, key=lambda i: np.linalg.norm(poses[i][2] - t_gt)))
+    return R, t
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--scene", action="append", required=True, help="BOP scene folder (repeat)")
+    ap.add_argument("--setting", action="append", default=None, help="JSON setting (repeat; default: the tracker's)")
+    ap.add_argument("--checkpoint", default=str(SHIPPED_ESTIMATOR))
+    ap.add_argument("--models", default="../shared/data/lmo/models_eval")
+    ap.add_argument("--fps", type=float, default=15.0)
+    ap.add_argument("--steps", type=int, default=3)
+    ap.add_argument("--warm-strength", type=float, default=0.5)
+    ap.add_argument("--threshold", type=float, default=0.3)
+    ap.add_argument("--threads", type=int, default=2)
+    ap.add_argument("--out", type=Path)
+    args = ap.parse_args()
+    torch.set_num_threads(args.threads)
+    options = EstimateOptions(steps=args.steps, warm_steps=1, warm_strength=args.warm_strength, max_boxes=8)
+    bench = Bench(args.checkpoint, args.models, args.threshold, options, args.fps)
+    scenes = [BopScene(Path(s)) for s in args.scene]
+    rows = []
+    for setting in [json.loads(s) for s in args.setting or ["{}"]]:
+        per = [bench.scene(setting, sc) for sc in scenes]
+        row = {"setting": setting, "add": float(np.mean([r["add"] for r in per])),
+               "rp15": float(np.mean([r["rp15"] for r in per])), "scenes": per}  # fmt: skip
+        rows.append(row)
+        print(json.dumps(row), flush=True)
+    if args.out:
+        args.out.write_text(json.dumps(rows, indent=1))
+
+
+if __name__ == "__main__":
+    main()
