@@ -237,7 +237,7 @@ def test_replay_with_tracking_publishes_stable_track_ids_and_reports_jitter(tmp_
     frames, the localiser runs only on some frames, and the report has the jitter of both modes' definition."""
     ckpt = REPO / "axispose_core" / "models" / "axispose_lmo.safetensors"
     args = ["replay", str(REPO / "demo" / "lmo_sample_bag"), "--checkpoint", str(ckpt), "--out", str(tmp_path / "out"),
-            "--report", str(tmp_path / "r.json"), "--ignore-rois", "--steps", "1", "--precision", "float32",
+            "--report", str(tmp_path / "r.json"), "--ignore-rois", "--steps", "3", "--precision", "float32",
             "--tracking", "on"]  # fmt: skip
     assert main(args) == 0
     report = json.loads((tmp_path / "r.json").read_text())
@@ -247,5 +247,7 @@ def test_replay_with_tracking_publishes_stable_track_ids_and_reports_jitter(tmp_
     frames = [deserialize(m).detections for m in read_bag(tmp_path / "out", ["/axispose/detections"])]
     ids = [{(d.name, d.track_id) for d in dets} for dets in frames]
     assert all(track > 0 for frame in ids for _, track in frame)
-    assert ids[0] and all(ids[0] <= later for later in ids[1:5])  # the first frame's tracks go on to frame 5
+    names = {}
+    assert all(names.setdefault(track, name) == name for frame in ids for name, track in frame)  # an id keeps its object
+    assert ids[0] and len(ids[0] & ids[4]) >= len(ids[0]) / 2  # most first-frame tracks go on to frame 5, same ids
     assert "tracking on: jitter" in capsys.readouterr().out
