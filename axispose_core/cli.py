@@ -464,8 +464,8 @@ def build_parser(commands: Callable[[AddParser], None] | None = None) -> argpars
     _training_args(tn, "estimator checkpoint", "TrainConfig", "config/train_agm.yaml",
                    data_help="BOP folders to train on instead of the crop stream (e.g. a user's own frames)", stream=True)  # fmt: skip
     tn.add_argument("--init", help="estimator checkpoint to start from (its weights; a fresh optimiser and schedule), e.g. the "
-                    "shipped model: the same AGM network, or one whose encoder has more blocks per stage "
-                    "(they start as the identity)")  # fmt: skip
+                    "shipped model: the same AGM network, one whose encoder has more blocks per stage "
+                    "(they start as the identity), or one on another trunk (the rest that fits is taken)")  # fmt: skip
     tn.add_argument("--recipe", help="a recipe (e.g. config/recipes/axispose_lmo.yaml): run all its stages into the folder "
                     "--out (resuming where a call stopped) and assemble its estimator checkpoint there")  # fmt: skip
     tn.add_argument("--adopt", nargs="*", default=[], metavar="STAGE=CHECKPOINT",

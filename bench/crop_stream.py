@@ -9,6 +9,7 @@ the first batches, while workers start and load their meshes, are not timed. Pri
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import datetime
 import os
 import platform
@@ -17,9 +18,11 @@ import time
 import torch
 from write_results import write_results
 
+from axispose_core.cli import _config
 from axispose_core.data.synth.config import StreamConfig
 from axispose_core.data.synth.stream import CropStream, stream_loader
 from axispose_core.lmo import SHARED_LMO
+from axispose_core.train.agm import TrainConfig
 
 
 def main() -> None:
@@ -29,11 +32,13 @@ def main() -> None:
     ap.add_argument("--size", type=int, default=64)
     ap.add_argument("--batch", type=int, default=32)
     ap.add_argument("--mesh-cell", type=float, default=None, help="override StreamConfig.mesh_cell")
+    ap.add_argument("--config", default=None, help="a TrainConfig YAML whose stream to measure (default: StreamConfig())")
     ap.add_argument("--models", default=str(SHARED_LMO / "models"))
     ap.add_argument("--json", default=None)
     args = ap.parse_args()
     torch.set_num_threads(1)
-    cfg = StreamConfig(size=args.size) if args.mesh_cell is None else StreamConfig(size=args.size, mesh_cell=args.mesh_cell)
+    cfg = _config(TrainConfig, args.config).stream if args.config else StreamConfig()
+    cfg = dataclasses.replace(cfg, size=args.size, mesh_cell=args.mesh_cell if args.mesh_cell is not None else cfg.mesh_cell)
     it = iter(stream_loader(CropStream(cfg, args.models), args.batch, workers=args.workers))
     for _ in range(max(1, args.workers)):  # warm-up: every worker has started and delivered once
         next(it)
@@ -47,6 +52,7 @@ def main() -> None:
         "workers": args.workers,
         "size": args.size,
         "mesh_cell": cfg.mesh_cell,
+        "config": args.config,
         "samples": n,
         "seconds": seconds,
         "cores": os.cpu_count(),

@@ -19,11 +19,16 @@ def main() -> None:
     ap.add_argument("--agm", required=True, help="a trained estimator checkpoint whose AGM to take")
     ap.add_argument("--base", default=str(SHIPPED_ESTIMATOR), help="the estimator whose other parts and settings to keep")
     ap.add_argument("--out", required=True)
+    ap.add_argument(
+        "--other-network",
+        action="store_true",
+        help="take an AGM of another network too (e.g. another trunk), under the base's inference settings",
+    )
     args = ap.parse_args()
     base, run = Estimator.load(args.base), Estimator.load(args.agm)
-    if run.config.agm != base.config.agm:
+    if run.config.agm != base.config.agm and not args.other_network:
         raise SystemExit(f"swap_agm: {args.agm}'s AGM config differs from {args.base}'s; assemble it with a recipe instead")
-    config = dataclasses.replace(base.config, training=run.config.training)
+    config = dataclasses.replace(base.config, agm=run.config.agm, training=run.config.training)
     Estimator(config, run.agm, base.reader, "cpu", base.localiser).save(args.out)
     print(f"wrote {args.out}")
 

@@ -14,7 +14,7 @@ from safetensors import safe_open
 from safetensors.torch import load_file, save_file
 
 from axispose_core.agm.guidance import AxisGeometry, axis_geometry, geo_loss, guided_eps, inject
-from axispose_core.agm.model import AGMConfig, AxisGenerator, EncoderLossConfig, depth_from_log, grow_into
+from axispose_core.agm.model import AGMConfig, AxisGenerator, EncoderLossConfig, depth_from_log, grow_into, transplant
 from axispose_core.agm.sampler import Start, sample
 from axispose_core.agm.scheduler import DDIMScheduler, SchedulerConfig
 from axispose_core.axis_image import axis_keypoints, render_axis_keypoints
@@ -26,6 +26,7 @@ from axispose_core.objects import lmo_objects
 from axispose_core.pose_sampling import sample_patch
 from axispose_core.tbm.reader import SHIPPED_READER, load_reader
 from axispose_core.train.losses import AGMObjective, log_depth_target
+from axispose_core.trunks import EfficientNetLiteConfig
 
 TINY = TINY_AGM.denoiser
 
@@ -378,6 +379,29 @@ def test_a_grown_encoder_starts_as_the_network_it_grew_from():
     for other in (wider, fewer):
         with pytest.raises(ValueError, match="only the residual trunk's blocks per stage and the objects may grow"):
             grow_into(AxisGenerator(AGMConfig(denoiser=other)), small)
+
+
+def test_a_transplant_keeps_the_new_trunk_and_takes_the_rest_that_fits():
+    """Another trunk under a trained denoiser: the trunk keeps its own weights, every tensor outside it of the
+    same name and shape is copied, and just the layers that read the trunk's widths start fresh."""
+    torch.manual_seed(0)
+    trained = AxisGenerator(AGMConfig(denoiser=TINY))
+    for p in trained.parameters():
+        p.data.normal_(0, 0.05)
+    lite = replace(TINY, encoder=replace(TINY.encoder, trunk=EfficientNetLiteConfig(stages=4, weights="none")))
+    model = AxisGenerator(AGMConfig(denoiser=lite))
+    own_trunk = {k: v.clone() for k, v in model.denoiser.encoder.trunk.state_dict().items()}
+    fresh = transplant(model, trained)
+    assert all(torch.equal(v, own_trunk[k]) for k, v in model.denoiser.encoder.trunk.state_dict().items())
+    new, old = model.state_dict(), trained.state_dict()
+    outside = [k for k in new if not k.startswith("denoiser.encoder.trunk.")]
+    assert set(fresh) == {k for k in outside if k not in old or old[k].shape != new[k].shape}
+    assert all(torch.equal(new[k], old[k]) for k in outside if k not in fresh)
+    assert any(k.startswith("denoiser.encoder.film.") for k in fresh) and "denoiser.encoder.context.1.weight" in fresh
+    assert "denoiser.out.2.weight" not in fresh and "denoiser.encoder.depth.1.weight" not in fresh
+    # only the trunk may differ: another denoiser width is refused
+    with pytest.raises(ValueError, match="only the encoder's trunk may differ"):
+        transplant(AxisGenerator(AGMConfig(denoiser=replace(lite, channels=2 * lite.channels))), trained)
 
 
 def test_max_boxes_poses_a_frame_in_batches_of_that_many(monkeypatch):

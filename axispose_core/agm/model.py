@@ -119,3 +119,19 @@ def grow_into(model: AxisGenerator, start: AxisGenerator) -> list[str]:
         nn.init.zeros_(conv.weight)
         nn.init.zeros_(conv.bias)
     return added
+
+
+def transplant(model: AxisGenerator, start: AxisGenerator) -> list[str]:
+    """Load `start`'s weights into `model` whose encoder stands on another trunk (e.g. an ImageNet one): the
+    trunk keeps its own weights, every other tensor whose name and shape `start` has is copied (the denoiser, the
+    dense and depth heads), and the layers that read the trunk's other widths (object FiLM, context input,
+    laterals, the denoiser's injections) start fresh. Returns the names of the tensors left fresh outside the
+    trunk, so a new trunk can be tried under a trained denoiser instead of from nothing."""
+    old, new = start.config.denoiser, model.config.denoiser
+    if replace(new, encoder=replace(new.encoder, trunk=old.encoder.trunk)) != old:
+        raise ValueError(f"cannot transplant an AGM {old} into {new}: only the encoder's trunk may differ")
+    trunk = "denoiser.encoder.trunk."
+    own = model.state_dict()
+    taken = {k: v for k, v in start.state_dict().items() if not k.startswith(trunk) and k in own and own[k].shape == v.shape}
+    model.load_state_dict(taken, strict=False)
+    return sorted(k for k in own if not k.startswith(trunk) and k not in taken)

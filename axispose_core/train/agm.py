@@ -27,7 +27,7 @@ import torch
 import torch.distributed as dist
 
 from axispose_core.agm.correspondences import dense_correspondences
-from axispose_core.agm.model import AGMConfig, AxisGenerator, depth_from_log, grow_into
+from axispose_core.agm.model import AGMConfig, AxisGenerator, depth_from_log, grow_into, transplant
 from axispose_core.agm.sampler import Start, sample
 from axispose_core.axis_image import axis_keypoints
 from axispose_core.data.synth.config import StreamConfig
@@ -197,6 +197,16 @@ def with_depth_target(batch: dict[str, torch.Tensor], scales: torch.Tensor, size
     return batch | {"log_depth": log_depth_target(batch["K"], batch["t"], scales[batch["object"]], size)}
 
 
+def start_from(model: AxisGenerator, start: AxisGenerator, name: str | Path) -> None:
+    """`model` from `start`'s weights: grown (the same trunk kind) or transplanted (another trunk)."""
+    if type(model.config.denoiser.encoder.trunk) is type(start.config.denoiser.encoder.trunk):
+        if grown := grow_into(model, start):  # the same network: a plain copy, nothing grown
+            print(f"started from {name}, its encoder grown by {len(grown)} block(s), each starting as the identity")
+        return
+    fresh = transplant(model, start)
+    print(f"started from {name} on a new trunk: {len(fresh)} tensors outside the trunk start fresh ({', '.join(fresh)})")
+
+
 def train_agm(
     cfg: TrainConfig,
     sources: CropSources,
@@ -210,7 +220,8 @@ def train_agm(
     Without BOP folders in `sources` the samples come from the crop stream of `cfg.stream` over its models
     folder; with them, from their annotated crops. `init`: an estimator checkpoint whose (EMA) weights a new
     run starts from, with a fresh optimiser and schedule, e.g. to train the shipped model on: the same AGM network,
-    or one whose encoder the config gives more blocks per stage (`grow_into`: more capacity without starting over);
+    one whose encoder the config gives more blocks per stage (`grow_into`: more capacity without starting over),
+    or one on another trunk (`transplant`: the denoiser and heads kept under a new, e.g. pretrained, trunk);
     a resumed run restores its own weights and keeps recording the checkpoint its first call started from.
     """
     distributed = "RANK" in os.environ and "WORLD_SIZE" in os.environ
@@ -248,9 +259,7 @@ def train_agm(
     if not run.resume:
         start_pretrained(model)
     if init and not run.resume:
-        start_from = Estimator.load(init)
-        if grown := grow_into(model, start_from.agm):  # the same network: a plain copy, nothing grown
-            print(f"started from {init}, its encoder grown by {len(grown)} block(s), each starting as the identity")
+        start_from(model, Estimator.load(init).agm, init)
     scales = torch.tensor([o.scale for o in objects], dtype=torch.float64)
     validate_ema = None
     items = sources.held_out(AxisCropDataset, objects, cfg.stream, cfg.val_seed, crop, cfg.val_samples, optim.seed) if rank == 0 else []
