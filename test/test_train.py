@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 import torch
 import yaml
-from conftest import TINY_AGM_YAML
+from conftest import REPO, TINY_AGM_YAML
 
 from axispose_core.cli import main
 from axispose_core.data.synth.config import SynthConfig
@@ -254,3 +254,25 @@ def test_a_resumed_run_may_change_its_stream_from_the_saved_step_on_but_not_befo
         resume(replace(easy, curriculum=(CurriculumStage(until=3, occluded_prob=0.5),)))
     with pytest.raises(ValueError, match="min_visib"):
         resume(replace(occluded, min_visib=0.5, curriculum=(CurriculumStage(until=7),)))
+
+
+def test_a_training_kit_trains_from_its_own_folder_and_returns_the_checkpoint_in_parts(lmo_dir, tmp_path):
+    """tools/train_kit.py packs what a bare machine lacks; its run.sh trains with the kit's models and leaves a
+    checkpoint that joins back from its parts, with the run's CSV and log beside them."""
+    kit, out = tmp_path / "kit", tmp_path / "back"
+    subprocess.run([sys.executable, str(REPO / "tools" / "train_kit.py"), "--out", str(kit), "--models", str(lmo_dir / "models_eval"),
+                    "--lite0-stages", "1"], cwd=REPO, check=True, capture_output=True)  # fmt: skip
+    weights = torch.load(next((kit / "site").glob("*/models/*.pth")), weights_only=True)
+    assert weights and all(k.startswith(("_conv_stem", "_bn0", "_blocks.0.")) for k in weights)  # stage 0 only
+    assert (kit / "photos" / "skimage" / "data" / "astronaut.png").is_file() and (kit / "models" / "models_info.json").is_file()
+    cfg = _config(tmp_path, steps=2, val_every=2, stream={"objects": [1]})
+    done = subprocess.run(["bash", str(kit / "run.sh"), str(out), "tiny", "--config", cfg, "--threads", "1", "--device", "cpu"],
+                          cwd=REPO, env={**os.environ, "PYTHON": sys.executable}, capture_output=True, text=True)  # fmt: skip
+    assert done.returncode == 0, done.stdout + done.stderr + (out / "tiny.log").read_text()
+    joined = tmp_path / "tiny.safetensors"
+    joined.write_bytes(b"".join(p.read_bytes() for p in sorted(out.glob("tiny.part*"))))
+    assert [o.obj_id for o in Estimator.load(joined).config.objects] == [1]
+    assert (out / "tiny.csv").read_text().splitlines()[-1].startswith("2,")
+    failed = subprocess.run(["bash", str(kit / "run.sh"), str(out), "bad", "--config", str(tmp_path / "missing.yaml")],
+                            cwd=REPO, env={**os.environ, "PYTHON": sys.executable}, capture_output=True, text=True)  # fmt: skip
+    assert failed.returncode != 0 and not list(out.glob("bad.part*"))
