@@ -43,6 +43,8 @@ def _replay(args: argparse.Namespace) -> int:
         params["tracking"] = args.tracking == "on"
     if args.redetect_period is not None:
         params["redetect_period"] = args.redetect_period
+    if args.measure_every is not None:
+        params["measure_every"] = args.measure_every
     options = ReplayOptions(
         rate=None if args.as_fast_as_possible else args.rate, params=params, image_topic=args.image_topic,
         info_topic=args.camera_info_topic, storage=args.format, overlays=args.overlays, use_rois=not args.ignore_rois,
@@ -140,6 +142,7 @@ def _add_ros_commands(add_parser: AddParser) -> None:
     )
     rp.add_argument("--tracking", choices=["on", "off"], default=None, help="tracking parameter of the node (default: its own)")
     rp.add_argument("--redetect-period", type=int, default=None, help="redetect_period parameter of the node (with tracking)")
+    rp.add_argument("--measure-every", type=int, default=None, help="measure_every parameter of the node (with tracking)")
     rp.add_argument("--threads", type=int, default=2)
     rp.set_defaults(func=_replay)
 

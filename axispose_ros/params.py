@@ -77,6 +77,8 @@ SPECS = (
     Spec("tracking", False, "follow objects across frames: crops from predicted poses, the localiser every "
          "redetect_period frames, each pose filtered (constant velocity, gated)"),
     Spec("redetect_period", 5, "with tracking, run the localiser on every n-th frame (and when a track is lost)", ints=(1, 1000)),
+    Spec("measure_every", 1, "with tracking, pose each track on every n-th frame, the tracks taking turns (all of them when "
+         "the localiser runs); in between a track publishes its filter's prediction", ints=(1, 1000)),
     Spec("warm_strength", 0.0, "with tracking, a tracked object's samples start from its predicted axis image noised to "
          "this fraction of the schedule (0: from noise, with ddim_steps); faster, but a wrong prediction's rotation "
          "tends to stay", floats=(0.0, 1.0)),
@@ -109,6 +111,7 @@ class NodeSettings:
     marker_lifetime: float
     tracking: bool
     redetect_period: int
+    measure_every: int
     warm_strength: float
     warm_steps: int
     track_timeout: float

@@ -59,7 +59,9 @@ class FramePoser:
                 self.tracker.reset("disabled")
             found = dets()
             return _each([(d.obj_id, d.box) for d in found], [d.score for d in found], estimate)
-        self.tracker.config = TrackingConfig(redetect_period=s.redetect_period, track_timeout=s.track_timeout)
+        self.tracker.config = TrackingConfig(
+            redetect_period=s.redetect_period, measure_every=s.measure_every, track_timeout=s.track_timeout
+        )
         return self._tracked(stamp, K, dets, estimate, s.warm_strength > 0)
 
     def _tracked(self, stamp: float, K: np.ndarray, detect, estimate, warm: bool) -> Posed:

@@ -470,7 +470,8 @@ def _report(node: AxisPoseNode, truth: _Truth, poses: dict, latency: dict[int, f
     objects = [o for o in node.estimator.config.objects if o.name in node.published.values()]
     settings = node.settings()
     used = {"ddim_steps": settings.ddim_steps, "hypotheses": settings.hypotheses, "precision": node.precision,
-            "tracking": settings.tracking, "redetect_period": settings.redetect_period}  # fmt: skip
+            "tracking": settings.tracking, "redetect_period": settings.redetect_period,
+            "measure_every": settings.measure_every}  # fmt: skip
     report = summarize(records, objects, config | used)
     report["tracking"] = {"on": settings.tracking, **_jitter(records, objects, points)}
     lat = np.array(list(latency.values())) if latency else np.zeros(1)

@@ -196,6 +196,33 @@ def test_tracks_keep_their_ids_and_the_localiser_runs_every_period():
         assert abs(c.box[2] / w - 1) < 0.1
 
 
+def test_tracks_take_turns_between_localiser_runs_and_every_track_is_published_every_frame():
+    """measure_every 3: between localiser runs each frame poses about a third of the tracks, the others publish
+    their filters' predictions (flagged as such, with their latest measurement); every track stays on every frame."""
+    poses = {o: (np.eye(3), np.array([0.1 * (i - 3), 0.0, 1.0 + 0.05 * i])) for i, o in enumerate((1, 5, 6, 8, 9, 10))}
+    scene, tracker = Scene(poses), Tracker(TrackingConfig(redetect_period=6, measure_every=3))
+    frames = _run(tracker, scene, np.arange(12) / 15)
+    assert all(len(f) == 6 and len({p.track_id for p in f}) == 6 for f in frames)
+    assert [len(c) for c in scene.crops] == [6, 2, 2, 2, 2, 2, 6, 2, 2, 2, 2, 2]  # frames 0 and 6: the localiser's
+    for f, crops in zip(frames, scene.crops, strict=True):
+        posed = {c.track for c in crops}
+        assert sum(p.measured for p in f) == len(crops)
+        assert None in posed or all(p.measured == (p.track_id in posed) for p in f)  # None: frame 0's new tracks
+        for p in f:
+            if not p.measured:  # the prediction of a static object stays on it
+                assert p.measurement is not None and not p.accepted
+                R, t = scene.poses[p.obj_id]
+                assert np.linalg.norm(p.t - t) < 3 * SIGMA_T * np.sqrt(3) and _rot_deg(p.R, R) < np.rad2deg(3 * SIGMA_R * np.sqrt(3))
+    turns = [{c.track for c in crops} for crops in scene.crops[1:4]]
+    assert set().union(*turns) == {p.track_id for p in frames[0]}  # three frames: every track once
+    # a track the estimator refused is posed again on the next frame, whatever its turn
+    scene.refuse.add(1)
+    _run(tracker, scene, [12 / 15])
+    scene.refuse.clear()
+    _run(tracker, scene, [13 / 15])
+    assert 1 in {c.obj_id for c in scene.crops[-1]}
+
+
 def test_a_flip_is_gated_then_followed_if_it_persists():
     scene, tracker = _scene(), Tracker(TrackingConfig(reinit_after=3))
     _run(tracker, scene, np.arange(10) / 15)

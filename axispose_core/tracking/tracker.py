@@ -31,6 +31,10 @@ class TrackingConfig:
 
     redetect_period: int = 5
     """Run the localiser on every n-th frame (1: on every frame)."""
+    measure_every: int = 1
+    """Crop and pose each track on every n-th frame, the tracks taking turns (by id), and every track where the
+    localiser runs; in between a track's pose is its filter's prediction. Bounds the estimator's work per frame
+    when many objects are tracked (1: every track on every frame)."""
     track_timeout: float = 1.0
     """Seconds without an accepted measurement after which a track ends."""
     max_misses: int = 3
@@ -104,6 +108,8 @@ class Track:
     unseen: int = 0
     measured: bool = False
     """This frame gave a pose (accepted or refused at the gate)."""
+    last: Measurement | None = None
+    """The latest pose the estimator gave for it."""
 
 
 @dataclass(frozen=True)
@@ -118,9 +124,12 @@ class TrackedPose:
     score: float
     measurement: Measurement
     accepted: bool
-    """The measurement went into the filter (False: refused at the gate; the pose is the prediction)."""
+    """The measurement went into the filter (False: refused at the gate, or not measured; the pose is the
+    prediction)."""
     box: Box
     """The box the object was cropped from."""
+    measured: bool = True
+    """The track was posed on this frame (False: not its turn, `measure_every`; `measurement` is its latest)."""
 
 
 def _project(K: np.ndarray, t: np.ndarray) -> np.ndarray:
@@ -164,12 +173,15 @@ class Tracker:
     ) -> list[TrackedPose]:
         """One frame: resets and timeouts, prediction, the localiser where due, one estimator batch, the updates."""
         self._start_frame(stamp, K)
-        crops = self._track_crops(K)
-        if self._detection_due():
+        detecting = self._detection_due()
+        crops = self._track_crops(K, every=detecting)
+        if detecting:
             crops = self._with_detections(crops, detect())
             self._count("localiser_runs")
         measurements = estimate(crops) if crops else []
         out = [self._measure(crop, m, K, stamp) for crop, m in zip(crops, measurements, strict=True)]
+        cropped = {c.track for c in crops}
+        out += [self._predicted(tr, K) for tr in self.tracks if tr.id not in cropped and not tr.measured and tr.last is not None]
         self._end_tracks()
         self._frame += 1
         return [pose for pose in out if pose is not None]
@@ -193,8 +205,17 @@ class Tracker:
         w, h = tr.box[2] * scale, tr.box[3] * scale
         return (cx - w / 2, cy - h / 2, w, h)
 
-    def _track_crops(self, K: np.ndarray) -> list[Crop]:
-        return [Crop(tr.obj_id, self._predicted_box(tr, K), tr.score, tr.id, (tr.filter.R, tr.filter.t)) for tr in self.tracks]
+    def _track_crops(self, K: np.ndarray, every: bool) -> list[Crop]:
+        """The crops of the tracks whose turn it is (`measure_every`), or of `every` track."""
+        n = max(1, self.config.measure_every)
+        due = [tr for tr in self.tracks if every or n == 1 or (self._frame + tr.id) % n == 0 or tr.misses > 0]
+        return [Crop(tr.obj_id, self._predicted_box(tr, K), tr.score, tr.id, (tr.filter.R, tr.filter.t)) for tr in due]
+
+    def _predicted(self, tr: Track, K: np.ndarray) -> TrackedPose:
+        """A track not posed this frame: its filter's prediction, in the box it would be cropped from."""
+        f = tr.filter
+        return TrackedPose(tr.id, tr.obj_id, f.R.copy(), f.t.copy(), f.covariance, tr.score, tr.last, False,
+                           self._predicted_box(tr, K), measured=False)  # fmt: skip
 
     def _detection_due(self) -> bool:
         period = max(1, self.config.redetect_period)
@@ -245,7 +266,7 @@ class Tracker:
         if tr is None:
             tr = self._start_track(crop, m, cov, stamp)
             return self._output(tr, m, True, K, crop.box)
-        tr.misses, tr.measured, tr.score = 0, True, crop.score
+        tr.misses, tr.measured, tr.score, tr.last = 0, True, crop.score, m
         accepted, _ = tr.filter.update(m.R, m.t, cov)
         if accepted:
             tr.rejects, tr.updated = 0, stamp
@@ -265,7 +286,7 @@ class Tracker:
 
     def _start_track(self, crop: Crop, m: Measurement, cov: np.ndarray, stamp: float) -> Track:
         tr = Track(self._next_id, crop.obj_id, PoseFilter.start(self.config.filter, m.R, m.t, cov), crop.box,
-                   (np.zeros(2), 1.0), crop.score, stamp, stamp, measured=True)  # fmt: skip
+                   (np.zeros(2), 1.0), crop.score, stamp, stamp, measured=True, last=m)  # fmt: skip
         self._next_id += 1
         self.tracks.append(tr)
         self._count("tracks_started")
