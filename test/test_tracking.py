@@ -335,6 +335,26 @@ def test_a_track_the_localiser_stops_finding_ends():
     assert len(tracker.tracks) == 2 and tracker.counts["ended_unseen"] == 1
 
 
+def test_a_track_the_localiser_did_not_find_ends_without_another_localiser_run():
+    """Ending a track the localiser just failed to find does not run it again on the next frame (a track that
+    ended for a refused pose does): false detections starting and ending tracks would run it on every frame."""
+    scene, tracker = _scene(), Tracker(TrackingConfig(redetect_period=100, max_unseen=1))
+    _run(tracker, scene, [0.0])
+    scene.refuse = {1}
+    _run(tracker, scene, [0.1])  # object 1's pose refused: the localiser runs on the next frame...
+    scene.refuse, scene.hidden = set(), {5}
+    _run(tracker, scene, [0.2])  # ...and does not find object 5, whose track ends
+    assert scene.detect_calls == 2 and tracker.counts["ended_unseen"] == 1 and [tr.obj_id for tr in tracker.tracks] == [1]
+    _run(tracker, scene, [0.3, 0.4])
+    assert scene.detect_calls == 2
+    scene.refuse = {1}
+    _run(tracker, scene, [0.5, 0.6, 0.7])  # three refusals end object 1's track (max_misses): then it is looked for
+    assert tracker.counts["ended_misses"] == 1 and scene.detect_calls >= 4
+    scene.refuse = set()
+    _run(tracker, scene, [0.8])
+    assert [tr.obj_id for tr in tracker.tracks] == [1]
+
+
 def test_a_fast_object_keeps_its_track_when_its_box_moved_far():
     scene, tracker = _scene(), Tracker(TrackingConfig(redetect_period=1))
     _run(tracker, scene, [0.0, 0.1])

@@ -2,11 +2,13 @@
 
 A tracked object's crop comes from its predicted pose (the box it had, moved with the pose's projection and scaled
 with its depth), so the localiser runs only every `redetect_period` frames, while nothing is tracked, or after a
-track missed a frame or ended; its detections then refresh the tracks' boxes (matched by object and nearness) and
-start tracks for new objects. Every crop goes through the estimator in one batch, and each pose that comes back is
-a measurement for its track's `PoseFilter`. Tracks end after `track_timeout` seconds without a measurement,
-`max_misses` frames in a row without a pose, or `max_unseen` localiser runs in a row that do not find them; all
-end when the stamps go backwards (a looped bag) or the camera's intrinsics change.
+track missed a frame or ended (but not when the localiser itself stopped finding it); its detections then refresh
+the tracks' boxes (matched by object and nearness) and start tracks for new objects. Every crop goes through the
+estimator in one batch, and each pose that comes back is a measurement for its track's `PoseFilter`; with
+`measure_every` n the tracks take turns between localiser runs, the others publishing their filters' predictions.
+Tracks end after `track_timeout` seconds without a measurement, `max_misses` frames in a row without a pose, or
+`max_unseen` localiser runs in a row that do not find them; all end when the stamps go backwards (a looped bag) or
+the camera's intrinsics change.
 """
 
 from __future__ import annotations
@@ -301,13 +303,15 @@ class Tracker:
 
     def _end_tracks(self) -> None:
         self._end("misses", lambda tr: tr.misses >= self.config.max_misses)
-        self._end("unseen", lambda tr: tr.unseen >= self.config.max_unseen)
+        self._end("unseen", lambda tr: tr.unseen >= self.config.max_unseen, look=False)
 
-    def _end(self, reason: str, ends: Callable[[Track], bool]) -> None:
-        """End the tracks for which `ends` holds (counted as `ended_<reason>`); look for their objects next frame."""
+    def _end(self, reason: str, ends: Callable[[Track], bool], look: bool = True) -> None:
+        """End the tracks for which `ends` holds (counted as `ended_<reason>`); with `look`, run the localiser on the
+        next frame to find their objects again (not for tracks it has just not found: that would run it on every
+        frame while false detections start and end tracks)."""
         kept = [tr for tr in self.tracks if not ends(tr)]
         self._count(f"ended_{reason}", len(self.tracks) - len(kept))
-        self._lost |= len(kept) < len(self.tracks)
+        self._lost |= look and len(kept) < len(self.tracks)
         self.tracks = kept
 
     def _count(self, key: str, n: int = 1) -> None:
