@@ -3,42 +3,96 @@
 The twins (`axispose_core/data/twins.py`) keep the real background, clutter, camera, poses and framing, and swap
 the annotated objects' look for the project's renders. What a checkpoint gains on the twins over the frames is
 what the objects' real appearance costs it; what it still misses on the twins comes from the scene (background,
-clutter, occlusion, framing). Both passes run `axispose validate`'s settings (GT crops and the localiser).
+clutter, occlusion, framing). A third pass, "matched", keeps the real objects but gives each instance's pixels its
+render's colour statistics (per channel mean and standard deviation over the pixels the render shows of it): what
+that recovers of the twins' gain is first- and second-order colour (exposure, white balance, contrast), what it
+does not is the objects' finer look (texture, shading, highlights). Every pass runs `axispose validate`'s settings
+(GT crops and the localiser). Per object, the real pixels' luma, saturation and luma contrast over the render's.
 
     python bench/real_twins.py [--checkpoint CKPT] [--data ../shared/data/lmo_real_val/test] [--out out/twins]
 
-Writes OUT/twins/ (the twin split, reused on later calls), OUT/real.json, OUT/twins.json and OUT/table.txt.
+Writes OUT/twins/ and OUT/matched/ (the splits, reused on later calls), OUT/{real,twins,matched}.json, OUT/look.json
+and OUT/table.txt.
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import shutil
 from pathlib import Path
 
+import cv2
+import numpy as np
 import torch
 
-from axispose_core.data.twins import write_twins
+from axispose_core.data.bop import BopScene, read_bgr, scene_dirs
+from axispose_core.data.meshes import load_render_mesh
+from axispose_core.data.synth.raster import render
+from axispose_core.data.twins import TWIN_LIGHT, write_twins
 from axispose_core.estimator import SHIPPED_ESTIMATOR
 from axispose_core.lmo import REAL_SLICE, SHARED_LMO
 from axispose_core.validation import COLUMNS, ValidationSettings, format_cell, report_value, validate
 
+PASSES = ("real", "twins", "matched")
 
-def table(real: dict, twins: dict) -> str:
-    """`axispose validate`'s columns, means real | twins, then per object the GT crops' Reproj@15px and rotation
-    median, and the localiser's recall."""
-    lines = [f"{'':<12} {'real':>8} {'twins':>8}"]
+
+def table(reports: dict[str, dict], look: dict[str, dict]) -> str:
+    """`axispose validate`'s columns, means per pass, then per object the GT crops' Reproj@15px and rotation median
+    and the localiser's recall per pass, and the real pixels' look over the render's."""
+    lines = [f"{'':<12}" + "".join(f"{p:>9}" for p in PASSES)]
     for name, crops, key, fmt in COLUMNS:
-        cells = [format_cell(report_value(report, crops, key), fmt) for report in (real, twins)]
-        lines.append(f"{name:<12} {cells[0]:>8} {cells[1]:>8}")
+        lines.append(f"{name:<12}" + "".join(f"{format_cell(report_value(reports[p], crops, key), fmt):>9}" for p in PASSES))
     lines.append("")
-    lines.append(f"{'object':<12} {'Rp15 real':>9} {'twins':>6} {'rot real':>9} {'twins':>6} {'det R real':>10} {'twins':>6}")
-    for obj, entry in real["gt"]["objects"].items():
-        cells = []
-        for crops, key, fmt in (("gt", "reproj_15px", ".3f"), ("gt", "rot_err_median_deg", ".1f"), ("detect", "det_recall", ".2f")):
-            cells += [format_cell(report_value(real, crops, key, obj), fmt), format_cell(report_value(twins, crops, key, obj), fmt)]
-        lines.append(f"{entry['name']:<12} {cells[0]:>9} {cells[1]:>6} {cells[2]:>9} {cells[3]:>6} {cells[4]:>10} {cells[5]:>6}")
+    head = "".join(f"{what + ' ' + p[:4]:>12}" for what in ("Rp15", "rot", "det R") for p in PASSES)
+    lines.append(f"{'object':<12}{head} {'luma':>6} {'sat':>6} {'contr':>6}")
+    for obj, entry in reports["real"]["gt"]["objects"].items():
+        cells = [format_cell(report_value(reports[p], crops, key, obj), fmt)
+                 for crops, key, fmt in (("gt", "reproj_15px", ".3f"), ("gt", "rot_err_median_deg", ".1f"), ("detect", "det_recall", ".2f"))
+                 for p in PASSES]  # fmt: skip
+        ratios = look.get(obj, {})
+        lines.append(f"{entry['name']:<12}" + "".join(f"{c:>12}" for c in cells)
+                     + "".join(f" {ratios.get(k, float('nan')):>6.2f}" for k in ("luma", "saturation", "contrast")))  # fmt: skip
     return "\n".join(lines)
+
+
+def _stats(pixels: np.ndarray) -> tuple[float, float, float]:
+    """Luma mean, saturation mean and luma standard deviation of (N,3) RGB in [0,1]."""
+    luma = pixels @ np.array([0.299, 0.587, 0.114])
+    sat = (pixels.max(axis=1) - pixels.min(axis=1)) / np.maximum(pixels.max(axis=1), 1e-6)
+    return float(luma.mean()), float(sat.mean()), float(luma.std())
+
+
+def write_matched(data: str | Path, models: str | Path, out: Path) -> dict[str, dict]:
+    """The split `data` with each annotated instance's visible pixels given its render's per-channel mean and
+    standard deviation (under the twins' light), written under `out`; returns per object id the medians over
+    instances of the real pixels' luma, saturation and contrast over the render's."""
+    meshes, ratios = {}, {}
+    for scene_dir in scene_dirs(data):
+        scene, target = BopScene(scene_dir), out / scene_dir.name
+        (target / "rgb").mkdir(parents=True, exist_ok=True)
+        for im_id in scene.image_ids:
+            gts = scene.gt[im_id]
+            for g in gts:
+                meshes.setdefault(g.obj_id, load_render_mesh(models, g.obj_id))
+            rgb = read_bgr(scene.rgb_path(im_id))[..., ::-1].astype(np.float64) / 255.0
+            res = render([(meshes[g.obj_id], g.R, g.t) for g in gts], scene.cameras[im_id], rgb.shape[1], rgb.shape[0], TWIN_LIGHT)
+            matched = rgb.copy()
+            for k, g in enumerate(gts):
+                mask = res.instance == k
+                if mask.sum() < 20:
+                    continue
+                real, rendered = rgb[mask], np.asarray(res.rgb, np.float64)[mask]
+                (lr, sr, cr), (lt, st, ct) = _stats(real), _stats(rendered)
+                ratios.setdefault(g.obj_id, []).append((lr / max(lt, 1e-6), sr / max(st, 1e-6), cr / max(ct, 1e-6)))
+                z = (real - real.mean(axis=0)) / np.maximum(real.std(axis=0), 1e-3)
+                matched[mask] = np.clip(z * rendered.std(axis=0) + rendered.mean(axis=0), 0.0, 1.0)
+            cv2.imwrite(str(target / "rgb" / f"{im_id:06d}.png"), np.round(matched[..., ::-1] * 255.0).astype(np.uint8))
+        for name in ("scene_camera.json", "scene_gt_info.json", "scene_gt.json"):
+            if (scene_dir / name).exists():
+                shutil.copy2(scene_dir / name, target / name)
+    names = ("luma", "saturation", "contrast")
+    return {str(o): dict(zip(names, np.median(np.array(r), axis=0).tolist(), strict=True)) for o, r in ratios.items()}
 
 
 def main() -> None:
@@ -52,13 +106,18 @@ def main() -> None:
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
     out = Path(args.out)
-    twins_split = write_twins(args.data, args.models, out / "twins")
+    splits = {"real": Path(args.data), "twins": write_twins(args.data, args.models, out / "twins")}
+    if not (out / "look.json").exists():
+        shutil.rmtree(out / "matched", ignore_errors=True)
+        (out / "look.json").write_text(json.dumps(write_matched(args.data, args.models, out / "matched"), indent=1))
+    splits["matched"] = out / "matched"
+    look = json.loads((out / "look.json").read_text())
     settings = ValidationSettings()
     reports = {}
-    for name, data in (("real", args.data), ("twins", twins_split)):
+    for name, data in splits.items():
         reports[name] = validate(args.checkpoint, data, args.eval_models, settings)
         (out / f"{name}.json").write_text(json.dumps(reports[name], indent=1))
-    text = table(reports["real"], reports["twins"])
+    text = table(reports, look)
     (out / "table.txt").write_text(text + "\n")
     print(text)
 
