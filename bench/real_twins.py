@@ -8,8 +8,12 @@ render's colour statistics (per channel mean and standard deviation over the pix
 that recovers of the twins' gain is first- and second-order colour (exposure, white balance, contrast), what it
 does not is the objects' finer look (texture, shading, highlights). Every pass runs `axispose validate`'s settings
 (GT crops and the localiser). Per object, the real pixels' luma, saturation and luma contrast over the render's.
+The twins can be drawn otherwise, to ask what a checkpoint reads from renders: under another light (`--light`,
+e.g. strong highlights), in each object's mean colour (`--flat`: shape and shading alone), or through a worse
+camera (`--sensor`: Gaussian blur, noise, JPEG); give such a run its own --out.
 
     python bench/real_twins.py [--checkpoint CKPT] [--data ../shared/data/lmo_real_val/test] [--out out/twins]
+        [--light AMBIENT,SPECULAR,SHININESS] [--flat] [--sensor SIGMA,NOISE,JPEG_QUALITY]
 
 Writes OUT/twins/ and OUT/matched/ (the splits, reused on later calls), OUT/{real,twins,matched}.json, OUT/look.json
 and OUT/table.txt.
@@ -28,7 +32,7 @@ import torch
 
 from axispose_core.data.bop import BopScene, read_bgr, scene_dirs
 from axispose_core.data.meshes import load_render_mesh
-from axispose_core.data.synth.raster import render
+from axispose_core.data.synth.raster import Light, render
 from axispose_core.data.twins import TWIN_LIGHT, write_twins
 from axispose_core.estimator import SHIPPED_ESTIMATOR
 from axispose_core.lmo import REAL_SLICE, SHARED_LMO
@@ -95,6 +99,21 @@ def write_matched(data: str | Path, models: str | Path, out: Path) -> dict[str, 
     return {str(o): dict(zip(names, np.median(np.array(r), axis=0).tolist(), strict=True)) for o, r in ratios.items()}
 
 
+def degrade(split: Path, sigma: float, noise: float, quality: int) -> None:
+    """Every frame of `split` blurred (Gaussian, `sigma` px), noised (`noise`, of the range) and JPEG-compressed,
+    in place, once (`sensor.json` records it)."""
+    if (split / "sensor.json").exists():
+        return
+    rng = np.random.default_rng(0)
+    for png in sorted(split.glob("*/rgb/*.png")):
+        img = cv2.imread(str(png)).astype(np.float32) / 255.0
+        img = cv2.GaussianBlur(img, (0, 0), sigma) if sigma > 0 else img
+        img = np.clip(img + rng.normal(0.0, noise, img.shape), 0.0, 1.0)
+        _, jpeg = cv2.imencode(".jpg", np.round(img * 255.0).astype(np.uint8), [cv2.IMWRITE_JPEG_QUALITY, quality])
+        cv2.imwrite(str(png), cv2.imdecode(jpeg, cv2.IMREAD_COLOR))
+    (split / "sensor.json").write_text(json.dumps({"sigma": sigma, "noise": noise, "jpeg_quality": quality}))
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--checkpoint", default=str(SHIPPED_ESTIMATOR))
@@ -103,10 +122,20 @@ def main() -> None:
     ap.add_argument("--eval-models", default=str(SHARED_LMO / "models_eval"), help="models the metrics and visibility use")
     ap.add_argument("--out", default="out/twins")
     ap.add_argument("--threads", type=int, default=2)
+    ap.add_argument("--light", help="the twins' light: AMBIENT,SPECULAR,SHININESS (default: the twin light's)")
+    ap.add_argument("--flat", action="store_true", help="twins in each object's mean colour")
+    ap.add_argument("--sensor", help="twins through a worse camera: BLUR_SIGMA,NOISE,JPEG_QUALITY")
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
     out = Path(args.out)
-    splits = {"real": Path(args.data), "twins": write_twins(args.data, args.models, out / "twins")}
+    light = TWIN_LIGHT
+    if args.light:
+        ambient, specular, shininess = (float(v) for v in args.light.split(","))
+        light = Light(TWIN_LIGHT.direction, TWIN_LIGHT.color, ambient, specular, shininess)
+    splits = {"real": Path(args.data), "twins": write_twins(args.data, args.models, out / "twins", light, args.flat)}
+    if args.sensor:
+        sigma, noise, quality = args.sensor.split(",")
+        degrade(splits["twins"], float(sigma), float(noise), int(quality))
     if not (out / "look.json").exists():
         shutil.rmtree(out / "matched", ignore_errors=True)
         (out / "look.json").write_text(json.dumps(write_matched(args.data, args.models, out / "matched"), indent=1))

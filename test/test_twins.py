@@ -11,6 +11,7 @@ from PIL import Image
 
 from axispose_core.data.bop import BopScene, bbox_from_model
 from axispose_core.data.meshes import load_render_mesh
+from axispose_core.data.synth.raster import Light, render
 from axispose_core.data.twins import write_twins
 from axispose_core.lmo import REAL_SLICE, SHARED_LMO
 
@@ -60,3 +61,23 @@ def test_a_written_scene_is_kept(one_frame, tmp_path):
     stamp = png.stat().st_mtime_ns
     write_twins(split, MODELS, tmp_path / "twins")
     assert png.stat().st_mtime_ns == stamp
+
+
+def test_flat_twins_draw_each_object_in_one_colour(one_frame, tmp_path):
+    """`flat`: under a white matte light every pixel of an object has the same chromaticity (its mean colour,
+    shaded); the textured twins' objects do not."""
+    split, im_id = one_frame
+    matte = Light(np.array([0.0, 0.0, 1.0]), np.ones(3), ambient=0.5, specular=0.0)
+    chroma_spread = {}
+    for flat in (False, True):
+        out = write_twins(split, SHARED_LMO / "models", tmp_path / f"twins_{flat}", light=matte, flat=flat)  # vertex-coloured
+        pasted = np.asarray(Image.open(out / "000002" / "rgb" / f"{im_id:06d}.png").convert("RGB")).astype(float)
+        real = BopScene(split / "000002")
+        gts = real.gt[im_id]
+        h, w = pasted.shape[:2]
+        res = render([(load_render_mesh(MODELS, g.obj_id), g.R, g.t) for g in gts], real.cameras[im_id], w, h, matte)
+        largest = np.bincount(res.instance[res.instance >= 0]).argmax()  # the object most seen
+        px = pasted[(res.instance == largest) & (pasted.sum(-1) > 60)]
+        assert len(px) > 200
+        chroma_spread[flat] = (px / px.sum(-1, keepdims=True)).std(axis=0).max()
+    assert chroma_spread[True] < 0.02 < chroma_spread[False]

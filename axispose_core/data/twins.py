@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import json
 import shutil
+from dataclasses import replace
 from pathlib import Path
 
 import cv2
@@ -39,9 +40,10 @@ def twin_frame(rgb: np.ndarray, K: np.ndarray, gts: list[GTInstance], meshes: li
     return twin
 
 
-def write_twins(data: str | Path, models: str | Path, out: str | Path, light: Light = TWIN_LIGHT) -> Path:
+def write_twins(data: str | Path, models: str | Path, out: str | Path, light: Light = TWIN_LIGHT, flat: bool = False) -> Path:
     """The twins of every scene of the BOP split `data` as a BOP split under `out` (same scene names, same
-    annotations, PNG frames); a scene already written is kept. Returns `out`."""
+    annotations, PNG frames); a scene already written is kept. `flat`: each object in its mean colour, its
+    texture gone (what shape and shading alone tell). Returns `out`."""
     out = Path(out)
     meshes: dict[int, RenderMesh] = {}
     for scene_dir in scene_dirs(data):
@@ -54,14 +56,16 @@ def write_twins(data: str | Path, models: str | Path, out: str | Path, light: Li
             gts = scene.gt[im_id]
             for g in gts:
                 if g.obj_id not in meshes:
-                    meshes[g.obj_id] = load_render_mesh(models, g.obj_id)
+                    mesh = load_render_mesh(models, g.obj_id)
+                    meshes[g.obj_id] = replace(mesh, colors=np.broadcast_to(mesh.colors.mean(axis=0), mesh.colors.shape)) if flat else mesh
             rgb = read_bgr(scene.rgb_path(im_id))[..., ::-1]
             twin = twin_frame(rgb, scene.cameras[im_id], gts, [meshes[g.obj_id] for g in gts], light)
             cv2.imwrite(str(target / "rgb" / f"{im_id:06d}.png"), twin[..., ::-1])
         for name in _COPIED:
             if (scene_dir / name).exists():
                 shutil.copy2(scene_dir / name, target / name)
-        (target / "twins.json").write_text(json.dumps({"source": str(scene_dir.resolve()), "light": _light_record(light)}, indent=1))
+        record = {"source": str(scene_dir.resolve()), "light": _light_record(light), "flat": flat}
+        (target / "twins.json").write_text(json.dumps(record, indent=1))
     return out
 
 
