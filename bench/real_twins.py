@@ -9,11 +9,11 @@ that recovers of the twins' gain is first- and second-order colour (exposure, wh
 does not is the objects' finer look (texture, shading, highlights). Every pass runs `axispose validate`'s settings
 (GT crops and the localiser). Per object, the real pixels' luma, saturation and luma contrast over the render's.
 The twins can be drawn otherwise, to ask what a checkpoint reads from renders: under another light (`--light`,
-e.g. strong highlights), in each object's mean colour (`--flat`: shape and shading alone), or through a worse
-camera (`--sensor`: Gaussian blur, noise, JPEG); give such a run its own --out.
+e.g. strong highlights), in each object's mean colour (`--colours mean`: shape and shading alone) or in a wrong
+surface (`--colours wrong`), or through a worse camera (`--sensor`: blur, noise, JPEG); give such a run its own --out.
 
     python bench/real_twins.py [--checkpoint CKPT] [--data ../shared/data/lmo_real_val/test] [--out out/twins]
-        [--light AMBIENT,SPECULAR,SHININESS] [--flat] [--sensor SIGMA,NOISE,JPEG_QUALITY]
+        [--light AMBIENT,SPECULAR,SHININESS] [--colours scan|mean|wrong] [--sensor SIGMA,NOISE,JPEG_QUALITY]
 
 Writes OUT/twins/ and OUT/matched/ (the splits, reused on later calls), OUT/{real,twins,matched}.json, OUT/look.json
 and OUT/table.txt.
@@ -123,7 +123,7 @@ def main() -> None:
     ap.add_argument("--out", default="out/twins")
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--light", help="the twins' light: AMBIENT,SPECULAR,SHININESS (default: the twin light's)")
-    ap.add_argument("--flat", action="store_true", help="twins in each object's mean colour")
+    ap.add_argument("--colours", choices=["scan", "mean", "wrong"], default="scan", help="the twins' surfaces (twins.write_twins)")
     ap.add_argument("--sensor", help="twins through a worse camera: BLUR_SIGMA,NOISE,JPEG_QUALITY")
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
@@ -132,7 +132,7 @@ def main() -> None:
     if args.light:
         ambient, specular, shininess = (float(v) for v in args.light.split(","))
         light = Light(TWIN_LIGHT.direction, TWIN_LIGHT.color, ambient, specular, shininess)
-    splits = {"real": Path(args.data), "twins": write_twins(args.data, args.models, out / "twins", light, args.flat)}
+    splits = {"real": Path(args.data), "twins": write_twins(args.data, args.models, out / "twins", light, args.colours)}
     if args.sensor:
         sigma, noise, quality = args.sensor.split(",")
         degrade(splits["twins"], float(sigma), float(noise), int(quality))

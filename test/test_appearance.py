@@ -7,6 +7,7 @@ import pytest
 
 from axispose_core.data.synth.appearance import _enhance, demosaic, photometric, surface
 from axispose_core.data.synth.config import STREAM_RANDOMIZATION, PhotometricConfig, StreamConfig, SurfaceConfig
+from axispose_core.data.synth.randomize import wrong_texture
 from axispose_core.data.synth.stream import CropStream
 
 STRONG = PhotometricConfig(prob=1.0, demosaic=0.5, sharpen=(0.5, 0.3, 1.5))
@@ -91,3 +92,30 @@ def test_lengths_are_in_frame_pixels(scale):
                                "multiply", "noise", "linear_contrast")}, grayscale=0.0, blur=(1.0, 2.0, 2.0))  # fmt: skip
     out, _ = photometric(np.random.default_rng(0), cfg, _image(shape=(64, 64, 3)), scale=scale)
     assert out.std() < _image(shape=(64, 64, 3)).std() * (1.2 / (1 + scale))
+
+
+def test_wrong_textures_are_not_the_scan_and_stay_in_range():
+    """Each of the three kinds (shuffled palette, colour bands, one flat colour) appears, in [0, 1], the scan's
+    per-vertex colours replaced."""
+    rng = np.random.default_rng(0)
+    vertices, colors = rng.normal(0, 0.05, (500, 3)), rng.uniform(0.2, 0.8, (500, 3))
+    kinds = set()
+    for k in range(30):
+        out = wrong_texture(np.random.default_rng([7, k]), colors, vertices)
+        assert out.shape == colors.shape and 0 <= out.min() and out.max() <= 1 and not np.array_equal(out, colors)
+        flat = np.allclose(out, out[0])
+        shuffled = np.allclose(np.sort(out, axis=0), np.sort(colors, axis=0))
+        kinds.add("flat" if flat else "shuffled" if shuffled else "bands")
+    assert kinds == {"flat", "shuffled", "bands"}
+
+
+def test_crop_stream_draws_wrong_textures_when_asked(lmo_dir):
+    """texture_prob 1 changes the object's look, seeded, with its targets kept."""
+    plain = StreamConfig(objects=(1, 5), seed=4)
+    light = dataclasses.replace(plain.randomization.light, texture_prob=1.0)
+    wrong = dataclasses.replace(plain, randomization=dataclasses.replace(plain.randomization, light=light))
+    a, b, c = (CropStream(cfg, lmo_dir / "models") for cfg in (wrong, wrong, plain))
+    for i in range(3):
+        np.testing.assert_array_equal(a[i].crop, b[i].crop)
+        np.testing.assert_array_equal(a[i].keypoints, c[i].keypoints)  # the pose and framing draw before the looks
+    assert not np.array_equal(a[0].crop[a[0].mask_visib], c[0].crop[c[0].mask_visib])

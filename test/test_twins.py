@@ -70,7 +70,7 @@ def test_flat_twins_draw_each_object_in_one_colour(one_frame, tmp_path):
     matte = Light(np.array([0.0, 0.0, 1.0]), np.ones(3), ambient=0.5, specular=0.0)
     chroma_spread = {}
     for flat in (False, True):
-        out = write_twins(split, SHARED_LMO / "models", tmp_path / f"twins_{flat}", light=matte, flat=flat)  # vertex-coloured
+        out = write_twins(split, SHARED_LMO / "models", tmp_path / f"twins_{flat}", matte, "mean" if flat else "scan")  # vertex-coloured
         pasted = np.asarray(Image.open(out / "000002" / "rgb" / f"{im_id:06d}.png").convert("RGB")).astype(float)
         real = BopScene(split / "000002")
         gts = real.gt[im_id]

@@ -20,6 +20,7 @@ import numpy as np
 
 from axispose_core.data.bop import BopScene, GTInstance, read_bgr, scene_dirs
 from axispose_core.data.meshes import load_render_mesh
+from axispose_core.data.synth.randomize import wrong_texture
 from axispose_core.data.synth.raster import Light, RenderMesh, render
 
 TWIN_LIGHT = Light(np.array([0.0, 0.4, 1.0]) / np.hypot(0.4, 1.0), np.ones(3), ambient=0.45, specular=0.2, shininess=30.0)
@@ -40,10 +41,13 @@ def twin_frame(rgb: np.ndarray, K: np.ndarray, gts: list[GTInstance], meshes: li
     return twin
 
 
-def write_twins(data: str | Path, models: str | Path, out: str | Path, light: Light = TWIN_LIGHT, flat: bool = False) -> Path:
+def write_twins(data: str | Path, models: str | Path, out: str | Path, light: Light = TWIN_LIGHT, colours: str = "scan") -> Path:
     """The twins of every scene of the BOP split `data` as a BOP split under `out` (same scene names, same
-    annotations, PNG frames); a scene already written is kept. `flat`: each object in its mean colour, its
-    texture gone (what shape and shading alone tell). Returns `out`."""
+    annotations, PNG frames); a scene already written is kept. `colours`: the objects' scanned vertex colours
+    ("scan"), each object's mean colour ("mean": what shape and shading alone tell) or a wrong surface ("wrong":
+    `randomize.wrong_texture`, seeded by the object: what a network reads when the surface misleads). Returns `out`."""
+    if colours not in ("scan", "mean", "wrong"):
+        raise ValueError(f"colours must be 'scan', 'mean' or 'wrong', got {colours!r}")
     out = Path(out)
     meshes: dict[int, RenderMesh] = {}
     for scene_dir in scene_dirs(data):
@@ -56,17 +60,24 @@ def write_twins(data: str | Path, models: str | Path, out: str | Path, light: Li
             gts = scene.gt[im_id]
             for g in gts:
                 if g.obj_id not in meshes:
-                    mesh = load_render_mesh(models, g.obj_id)
-                    meshes[g.obj_id] = replace(mesh, colors=np.broadcast_to(mesh.colors.mean(axis=0), mesh.colors.shape)) if flat else mesh
+                    meshes[g.obj_id] = _coloured(load_render_mesh(models, g.obj_id), colours, g.obj_id)
             rgb = read_bgr(scene.rgb_path(im_id))[..., ::-1]
             twin = twin_frame(rgb, scene.cameras[im_id], gts, [meshes[g.obj_id] for g in gts], light)
             cv2.imwrite(str(target / "rgb" / f"{im_id:06d}.png"), twin[..., ::-1])
         for name in _COPIED:
             if (scene_dir / name).exists():
                 shutil.copy2(scene_dir / name, target / name)
-        record = {"source": str(scene_dir.resolve()), "light": _light_record(light), "flat": flat}
+        record = {"source": str(scene_dir.resolve()), "light": _light_record(light), "colours": colours}
         (target / "twins.json").write_text(json.dumps(record, indent=1))
     return out
+
+
+def _coloured(mesh: RenderMesh, colours: str, obj_id: int) -> RenderMesh:
+    if colours == "mean":
+        return replace(mesh, colors=np.broadcast_to(mesh.colors.mean(axis=0), mesh.colors.shape).copy())
+    if colours == "wrong":
+        return replace(mesh, colors=wrong_texture(np.random.default_rng(obj_id), mesh.colors, mesh.vertices))
+    return mesh
 
 
 def _light_record(light: Light) -> dict:

@@ -97,6 +97,10 @@ class LightConfig:
     shininess: tuple[float, float] = (5.0, 60.0)
     object_brightness: tuple[float, float] = (0.75, 1.25)
     object_color_jitter: float = 0.08
+    texture_prob: float = 0.0
+    """Share of objects drawn in a wrong surface (`randomize.wrong_texture`: their own colours shuffled over the
+    vertices, smooth colour bands, or one flat colour) instead of their scanned one: a real surface never looks
+    quite like its scan, and a network that reads the shape stays right when the surface misleads."""
     shadows: float = 0.0
     """Share of frames whose light casts shadows, on the objects and the table (`raster.ShadowMap`)."""
 

@@ -160,6 +160,19 @@ def light(rng: np.random.Generator, cfg: LightConfig) -> Light:
     return Light(d / np.linalg.norm(d), color, ambient, float(rng.uniform(*cfg.specular)), float(rng.uniform(*cfg.shininess)))
 
 
+def wrong_texture(rng: np.random.Generator, colors: np.ndarray, vertices: np.ndarray) -> np.ndarray:
+    """Per-vertex colours (N,3) that are not the object's: its own shuffled over the vertices (speckle of its
+    palette), bands of colour along a random direction (1-5 cm period, on the model's metres), or one flat colour."""
+    kind = int(rng.integers(3))
+    if kind == 0:
+        return colors[rng.permutation(len(colors))]
+    if kind == 1:
+        d = rng.normal(size=3)
+        along = vertices @ (d / np.linalg.norm(d)) * (2 * np.pi / rng.uniform(0.01, 0.05))
+        return 0.5 + rng.uniform(0.15, 0.45) * np.sin(along[:, None] + rng.uniform(0, 2 * np.pi, 3))
+    return np.broadcast_to(rng.uniform(0.05, 0.95, 3), colors.shape).copy()
+
+
 def object_tint(rng: np.random.Generator, cfg: LightConfig) -> np.ndarray:
     """Per-object RGB gain: brightness times a small colour jitter."""
     return rng.uniform(*cfg.object_brightness) * np.clip(1 + rng.normal(0, cfg.object_color_jitter, 3), 0.7, 1.3)

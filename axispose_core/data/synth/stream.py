@@ -41,7 +41,7 @@ from axispose_core.data.meshes import load_render_mesh, ply_vertex_properties
 from axispose_core.data.synth.appearance import photometric, surface
 from axispose_core.data.synth.clutter import distractor_mesh
 from axispose_core.data.synth.config import StreamConfig
-from axispose_core.data.synth.randomize import background, camera_effects, jpeg, light, object_tint
+from axispose_core.data.synth.randomize import background, camera_effects, jpeg, light, object_tint, wrong_texture
 from axispose_core.data.synth.raster import Light, RenderMesh, decimate, render
 from axispose_core.data.synth.scene import primitive, upright_rotation
 from axispose_core.objects import ObjectSpec, objects_from_models
@@ -174,8 +174,9 @@ class CropStream:
     def _tinted(self, rng: np.random.Generator, obj_id: int, apparent: float) -> RenderMesh:
         """The object's mesh at the level of detail for `apparent` crop pixels across, re-tinted."""
         level = int(np.clip(np.floor(np.log2(self.cfg.size / self.cfg.framing.pad / max(apparent, 1e-6))), 0, LODS - 1))
-        m = self.models[obj_id].mesh(level)
-        return RenderMesh(m.vertices, m.faces, np.clip(m.colors * object_tint(rng, self.cfg.randomization.light), 0, 1), m.normals)
+        m, lcfg = self.models[obj_id].mesh(level), self.cfg.randomization.light
+        colors = wrong_texture(rng, m.colors, m.vertices) if lcfg.texture_prob > 0 and rng.uniform() < lcfg.texture_prob else m.colors
+        return RenderMesh(m.vertices, m.faces, np.clip(colors * object_tint(rng, lcfg), 0, 1), m.normals)
 
     def _primitive(self, rng: np.random.Generator, radius: float) -> RenderMesh:
         """A primitive of the pool scaled to `radius`, in a new colour (its own colour variation kept), or a
