@@ -32,8 +32,9 @@ import torch
 
 from axispose_core.data.bop import BopScene, read_bgr, scene_dirs
 from axispose_core.data.meshes import load_render_mesh
+from axispose_core.data.synth.randomize import jpeg
 from axispose_core.data.synth.raster import Light, render
-from axispose_core.data.twins import TWIN_LIGHT, write_twins
+from axispose_core.data.twins import TWIN_LIGHT, copy_annotations, write_twins
 from axispose_core.estimator import SHIPPED_ESTIMATOR
 from axispose_core.lmo import REAL_SLICE, SHARED_LMO
 from axispose_core.validation import COLUMNS, ValidationSettings, format_cell, report_value, validate
@@ -81,20 +82,18 @@ def write_matched(data: str | Path, models: str | Path, out: Path) -> dict[str, 
                 meshes.setdefault(g.obj_id, load_render_mesh(models, g.obj_id))
             rgb = read_bgr(scene.rgb_path(im_id))[..., ::-1].astype(np.float64) / 255.0
             res = render([(meshes[g.obj_id], g.R, g.t) for g in gts], scene.cameras[im_id], rgb.shape[1], rgb.shape[0], TWIN_LIGHT)
-            matched = rgb.copy()
+            matched, drawn = rgb.copy(), np.asarray(res.rgb, np.float64)
             for k, g in enumerate(gts):
                 mask = res.instance == k
                 if mask.sum() < 20:
                     continue
-                real, rendered = rgb[mask], np.asarray(res.rgb, np.float64)[mask]
+                real, rendered = rgb[mask], drawn[mask]
                 (lr, sr, cr), (lt, st, ct) = _stats(real), _stats(rendered)
                 ratios.setdefault(g.obj_id, []).append((lr / max(lt, 1e-6), sr / max(st, 1e-6), cr / max(ct, 1e-6)))
                 z = (real - real.mean(axis=0)) / np.maximum(real.std(axis=0), 1e-3)
                 matched[mask] = np.clip(z * rendered.std(axis=0) + rendered.mean(axis=0), 0.0, 1.0)
             cv2.imwrite(str(target / "rgb" / f"{im_id:06d}.png"), np.round(matched[..., ::-1] * 255.0).astype(np.uint8))
-        for name in ("scene_camera.json", "scene_gt_info.json", "scene_gt.json"):
-            if (scene_dir / name).exists():
-                shutil.copy2(scene_dir / name, target / name)
+        copy_annotations(scene_dir, target)
     names = ("luma", "saturation", "contrast")
     return {str(o): dict(zip(names, np.median(np.array(r), axis=0).tolist(), strict=True)) for o, r in ratios.items()}
 
@@ -106,11 +105,10 @@ def degrade(split: Path, sigma: float, noise: float, quality: int) -> None:
         return
     rng = np.random.default_rng(0)
     for png in sorted(split.glob("*/rgb/*.png")):
-        img = cv2.imread(str(png)).astype(np.float32) / 255.0
-        img = cv2.GaussianBlur(img, (0, 0), sigma) if sigma > 0 else img
-        img = np.clip(img + rng.normal(0.0, noise, img.shape), 0.0, 1.0)
-        _, jpeg = cv2.imencode(".jpg", np.round(img * 255.0).astype(np.uint8), [cv2.IMWRITE_JPEG_QUALITY, quality])
-        cv2.imwrite(str(png), cv2.imdecode(jpeg, cv2.IMREAD_COLOR))
+        bgr = cv2.imread(str(png)).astype(np.float32) / 255.0
+        bgr = cv2.GaussianBlur(bgr, (0, 0), sigma) if sigma > 0 else bgr
+        bgr = np.clip(bgr + rng.normal(0.0, noise, bgr.shape), 0.0, 1.0)
+        cv2.imwrite(str(png), np.round(jpeg(bgr[..., ::-1], quality)[..., ::-1] * 255.0).astype(np.uint8))
     (split / "sensor.json").write_text(json.dumps({"sigma": sigma, "noise": noise, "jpeg_quality": quality}))
 
 

@@ -64,12 +64,17 @@ def write_twins(data: str | Path, models: str | Path, out: str | Path, light: Li
             rgb = read_bgr(scene.rgb_path(im_id))[..., ::-1]
             twin = twin_frame(rgb, scene.cameras[im_id], gts, [meshes[g.obj_id] for g in gts], light)
             cv2.imwrite(str(target / "rgb" / f"{im_id:06d}.png"), twin[..., ::-1])
-        for name in _COPIED:
-            if (scene_dir / name).exists():
-                shutil.copy2(scene_dir / name, target / name)
+        copy_annotations(scene_dir, target)
         record = {"source": str(scene_dir.resolve()), "light": _light_record(light), "colours": colours}
         (target / "twins.json").write_text(json.dumps(record, indent=1))
     return out
+
+
+def copy_annotations(scene_dir: Path, target: Path) -> None:
+    """The BOP scene's camera and annotation files into `target`, scene_gt.json last."""
+    for name in _COPIED:
+        if (scene_dir / name).exists():
+            shutil.copy2(scene_dir / name, target / name)
 
 
 def _coloured(mesh: RenderMesh, colours: str, obj_id: int) -> RenderMesh:

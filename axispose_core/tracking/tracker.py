@@ -210,7 +210,7 @@ class Tracker:
     def _track_crops(self, K: np.ndarray, every: bool) -> list[Crop]:
         """The crops of the tracks whose turn it is (`measure_every`), or of `every` track."""
         n = max(1, self.config.measure_every)
-        due = [tr for tr in self.tracks if every or n == 1 or (self._frame + tr.id) % n == 0 or tr.misses > 0]
+        due = [tr for tr in self.tracks if every or (self._frame + tr.id) % n == 0]  # a refused crop sets `every`
         return [Crop(tr.obj_id, self._predicted_box(tr, K), tr.score, tr.id, (tr.filter.R, tr.filter.t)) for tr in due]
 
     def _predicted(self, tr: Track, K: np.ndarray) -> TrackedPose:
