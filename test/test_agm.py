@@ -25,7 +25,7 @@ from axispose_core.lmo import LMO_K
 from axispose_core.objects import lmo_objects
 from axispose_core.pose_sampling import sample_patch
 from axispose_core.tbm.reader import SHIPPED_READER, load_reader
-from axispose_core.train.losses import AGMObjective, agm_losses, imitation_loss, log_depth_target
+from axispose_core.train.losses import AGMObjective, log_depth_target
 from axispose_core.trunks import EfficientNetLiteConfig
 
 TINY = TINY_AGM.denoiser
@@ -402,46 +402,6 @@ def test_a_transplant_keeps_the_new_trunk_and_takes_the_rest_that_fits():
     # only the trunk may differ: another denoiser width is refused
     with pytest.raises(ValueError, match="only the encoder's trunk may differ"):
         transplant(AxisGenerator(AGMConfig(denoiser=replace(lite, channels=2 * lite.channels))), trained)
-
-
-def test_imitation_is_nought_for_the_teacher_itself_and_falls_as_another_encoder_learns_it():
-    """The imitation loss compares what the denoiser reads (its injected maps, the context): zero for the teacher
-    against itself, and it falls as another encoder (a Lite0 trunk under the teacher's denoiser) learns from it;
-    the teacher stays out of the objective's parameters and state and keeps its weights."""
-    torch.manual_seed(0)
-    teacher = AxisGenerator(AGMConfig(denoiser=TINY))
-    for p in teacher.parameters():
-        p.data.normal_(0, 0.1)
-    crops = torch.randint(0, 256, (6, 3, 64, 64), dtype=torch.uint8)
-    objects = torch.tensor([0, 1, 0, 1, 0, 1])
-    batch = {"crop": crops, "object": objects}
-    with torch.no_grad():
-        assert imitation_loss(teacher, teacher.encode(crops, objects), teacher, batch).item() == 0.0
-    lite = replace(TINY, encoder=replace(TINY.encoder, trunk=EfficientNetLiteConfig(stages=4, weights="none")))
-    student = AxisGenerator(AGMConfig(denoiser=lite))
-    transplant(student, teacher)
-    before = {k: v.clone() for k, v in teacher.state_dict().items()}
-    objective = AGMObjective(student, teacher, imitation_weight=2.0)
-    assert set(objective.state_dict()) == {f"agm.{k}" for k in student.state_dict()}
-    assert {id(p) for p in objective.parameters()} == {id(p) for p in student.parameters()}
-
-    def imitation() -> float:
-        with torch.no_grad():
-            return imitation_loss(student, student.encode(crops, objects), teacher, batch).item()
-
-    start = imitation()
-    opt = torch.optim.Adam(student.parameters(), lr=3e-3)
-    for _ in range(30):
-        opt.zero_grad()
-        imitation_loss(student, student.encode(crops, objects), teacher, batch).backward()
-        opt.step()
-    assert imitation() < 0.5 * start
-    assert all(torch.equal(v, before[k]) for k, v in teacher.state_dict().items())
-    # in the total, weighted, beside the diffusion loss
-    full = batch | {"axes": torch.rand(6, 3, 64, 64) * 2 - 1}
-    parts = agm_losses(student, full, torch.Generator().manual_seed(0), teacher, imitation_weight=2.0)
-    plain = agm_losses(student, full, torch.Generator().manual_seed(0))
-    torch.testing.assert_close(parts["total"], plain["total"] + 2.0 * parts["imitation"])
 
 
 def test_max_boxes_poses_a_frame_in_batches_of_that_many(monkeypatch):

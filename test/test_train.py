@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 import torch
 import yaml
-from conftest import REPO, TINY_AGM_YAML, save_tiny_estimator
+from conftest import REPO, TINY_AGM_YAML
 
 from axispose_core.cli import main
 from axispose_core.data.synth.config import SynthConfig
@@ -114,27 +114,6 @@ def test_init_starts_from_a_checkpoints_weights(data, tmp_path):
     with pytest.raises(ValueError, match="blocks per stage and the objects may grow"):
         main(["train", "--data", str(data), "--out", str(tmp_path / "w.safetensors"), "--config", _config(tmp_path, agm=wider),
               "--init", str(first)])  # fmt: skip
-
-
-def test_a_teacher_must_know_the_same_objects_and_shapes_and_takes_part_in_the_loss(data, tmp_path):
-    """A run with a teacher (TeacherConfig) adds the imitation of its encoding to the loss; a teacher of other
-    objects or of other denoiser shapes is refused with both named."""
-    first = tmp_path / "teacher.safetensors"
-    assert main(["train", "--data", str(data), "--out", str(first), "--config", _config(tmp_path, steps=1), "--threads", "1"]) == 0
-    taught, plain = tmp_path / "taught.safetensors", tmp_path / "plain.safetensors"
-    for out, teacher in ((taught, {"checkpoint": str(first), "weight": 5.0}), (plain, {})):
-        cfg = _config(tmp_path, steps=10, seed=1, teacher=teacher)  # another seed: weights unlike the teacher's
-        assert main(["train", "--data", str(data), "--out", str(out), "--config", cfg, "--threads", "1"]) == 0
-    loss = {out: float((tmp_path / f"{out.stem}.csv").read_text().splitlines()[1].split(",")[2]) for out in (taught, plain)}
-    assert loss[taught] != loss[plain]  # the same start, batches and noise: the imitation term is what differs
-    wider = {**TINY["agm"], "denoiser": {**TINY["agm"]["denoiser"], "channels": 16}}
-    with pytest.raises(ValueError, match="reads other shapes"):
-        main(["train", "--data", str(data), "--out", str(tmp_path / "w.safetensors"),
-              "--config", _config(tmp_path, agm=wider, teacher={"checkpoint": str(first)})])  # fmt: skip
-    two = save_tiny_estimator(tmp_path / "two.safetensors")  # ape and can; the data has three objects
-    with pytest.raises(ValueError, match=r"knows objects \[1, 5\], the run trains \[1, 5, 6\]"):
-        main(["train", "--data", str(data), "--out", str(tmp_path / "o.safetensors"),
-              "--config", _config(tmp_path, teacher={"checkpoint": str(two)})])  # fmt: skip
 
 
 @pytest.mark.slow

@@ -72,18 +72,6 @@ class CurriculumStage:
 
 
 @dataclass(frozen=True)
-class TeacherConfig:
-    """A trained AGM whose encoding the trained one's encoder imitates on the same crops, beside its own losses
-    (`train/losses.py`'s `imitation_loss`): how a new encoder, e.g. on a pretrained trunk under the shipped
-    denoiser, learns what the denoiser reads from every feature rather than from the diffusion loss alone."""
-
-    checkpoint: str = ""
-    """The teacher's estimator checkpoint ("": no teacher)."""
-    weight: float = 1.0
-    """Weight of the imitation loss in the total."""
-
-
-@dataclass(frozen=True)
 class TrainConfig:
     """The defaults train the shipped AGM's first stage (config/train_agm.yaml; config/recipes/axispose_lmo.yaml)."""
 
@@ -106,7 +94,6 @@ class TrainConfig:
     """Easier streams first, in order of `until`; `stream` from the last stage's `until` on, and for validation.
     Measured: unoccluded crops teach the encoder pose about twice as fast per step, also on occluded ones. A
     resumed run may change its stream from its current step on (`--resume` with a stage appended that ends there)."""
-    teacher: TeacherConfig = field(default_factory=TeacherConfig)
 
 
 def stream_at(cfg: dict, step: int) -> dict:
@@ -220,20 +207,6 @@ def start_from(model: AxisGenerator, start: AxisGenerator, name: str | Path) -> 
     print(f"started from {name} on a new trunk: {len(fresh)} tensors outside the trunk start fresh ({', '.join(fresh)})")
 
 
-def load_teacher(path: str | Path, objects: list, agm: AGMConfig) -> AxisGenerator:
-    """The AGM of the estimator checkpoint `path`: it must know `objects` in the same order (its object
-    embedding's rows are theirs) and give the denoiser of `agm` inputs of its shapes (its trunk may differ)."""
-    teacher = Estimator.load(path)
-    if [o.obj_id for o in teacher.config.objects] != [o.obj_id for o in objects]:
-        raise ValueError(f"the teacher {path} knows objects {[o.obj_id for o in teacher.config.objects]}, "
-                         f"the run trains {[o.obj_id for o in objects]}: they must be the same, in the same order")  # fmt: skip
-    t, s = teacher.config.agm.denoiser, agm.denoiser
-    if (t.size, t.channels, t.multipliers, t.encoder.context) != (s.size, s.channels, s.multipliers, s.encoder.context):
-        raise ValueError(f"the teacher {path}'s denoiser reads other shapes than the run's: size, channels, multipliers "
-                         f"and context must agree ({t} against {s})")  # fmt: skip
-    return teacher.agm
-
-
 def train_agm(
     cfg: TrainConfig,
     sources: CropSources,
@@ -306,14 +279,9 @@ def train_agm(
         est_cfg = EstimatorConfig(agm=cfg.agm, reader=reader.config, objects=tuple(objects), training=record)
         Estimator(est_cfg, ema, reader, "cpu" if dev.type == "cpu" else str(dev)).save(out)
 
-    teacher = load_teacher(cfg.teacher.checkpoint, objects, cfg.agm).to(dev) if cfg.teacher.checkpoint else None
-
-    def objective(agm: AxisGenerator) -> AGMObjective:
-        return AGMObjective(agm, teacher, cfg.teacher.weight)
-
     job = TrainJob(
         cfg, model, batches, loss, out, save, validation=Validation(VAL_COLUMNS, validate_ema), device=dev, desc="train agm",
         init=str(init) if init else None, data_fields=("stream", "curriculum"),
-        same_data=lambda saved, at: same_stream_before(saved, cfg, at), objective=objective,
+        same_data=lambda saved, at: same_stream_before(saved, cfg, at), objective=AGMObjective,
     )  # fmt: skip
     return fit(job, run)

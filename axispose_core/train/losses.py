@@ -51,35 +51,10 @@ def encoder_losses(enc: Encoding, batch: Batch) -> dict[str, torch.Tensor]:
     return parts
 
 
-def denoiser_inputs(agm: AxisGenerator, enc: Encoding) -> list[torch.Tensor]:
-    """What the denoiser reads of an encoding, step after step: each level's injected map and the context vector."""
-    inject = agm.denoiser.inject
-    return [layer(m) for layer, m in zip(inject, enc.maps[: len(inject)], strict=True)] + [enc.context]
-
-
-def imitation_loss(agm: AxisGenerator, enc: Encoding, teacher: AxisGenerator, batch: Batch) -> torch.Tensor:
-    """How far `agm`'s encoding of the batch's crops is from a trained `teacher`'s, as each denoiser reads it
-    (`denoiser_inputs`): the mean squared difference per input over the teacher's variance of it, averaged. A
-    new encoder (e.g. another trunk under a trained denoiser) learns from every feature the teacher computes
-    rather than from the diffusion loss's one image per crop."""
-    with torch.no_grad():
-        targets = denoiser_inputs(teacher, teacher.encode(batch["crop"], batch["object"]))
-    outs = denoiser_inputs(agm, enc)
-    terms = [((o.float() - t.float()) ** 2).mean() / t.float().var().clamp(min=1e-6) for o, t in zip(outs, targets, strict=True)]
-    return torch.stack(terms).mean()
-
-
-def agm_losses(
-    agm: AxisGenerator,
-    batch: Batch,
-    generator: torch.Generator | None = None,
-    teacher: AxisGenerator | None = None,
-    imitation_weight: float = 1.0,
-) -> dict[str, torch.Tensor]:
+def agm_losses(agm: AxisGenerator, batch: Batch, generator: torch.Generator | None = None) -> dict[str, torch.Tensor]:
     """The AGM's training losses on a batch (crop, object, axes; points + mask_visib and log_depth where known):
     "diffusion" at random timesteps (with train_guidance, the guided estimate ε' is what it sees), the encoder's
-    "points", "mask" and "depth", with a `teacher` its "imitation" (`imitation_loss`, weighted by
-    `imitation_weight`), and their weighted "total"."""
+    "points", "mask" and "depth", and their weighted "total"."""
     crops, x0 = batch["crop"], batch["axes"]
     cfg, sched = agm.config, agm.scheduler
     b = x0.shape[0]
@@ -98,9 +73,6 @@ def agm_losses(
     weight = 1 + cfg.line_weight * (x0 > -1).any(dim=1, keepdim=True).to(x0.dtype)
     parts = {"diffusion": (weight * (out.float() - sched.target(x0, noise, t)) ** 2).mean(), **encoder_losses(enc, batch)}
     parts["total"] = cfg.encoder_loss.total(parts, "diffusion")
-    if teacher is not None:
-        parts["imitation"] = imitation_loss(agm, enc, teacher, batch)
-        parts["total"] = parts["total"] + imitation_weight * parts["imitation"]
     return parts
 
 
@@ -116,18 +88,14 @@ def direct_losses(model: DirectRegressor, batch: Batch) -> dict[str, torch.Tenso
 
 
 class AGMObjective(nn.Module):
-    """`forward(batch, generator)`: the AGM's total training loss; with a `teacher` (frozen, in eval mode, kept
-    out of the AGM's state and its optimiser), the imitation of its encoder included."""
+    """`forward(batch, generator)`: the AGM's total training loss."""
 
-    def __init__(self, agm: AxisGenerator, teacher: AxisGenerator | None = None, imitation_weight: float = 1.0) -> None:
+    def __init__(self, agm: AxisGenerator) -> None:
         super().__init__()
         self.agm = agm
-        self.teacher = [teacher.eval().requires_grad_(False)] if teacher is not None else []  # a list: not a submodule
-        self.imitation_weight = imitation_weight
 
     def forward(self, batch: Batch, generator: torch.Generator | None = None) -> torch.Tensor:
-        teacher = self.teacher[0] if self.teacher else None
-        return agm_losses(self.agm, batch, generator, teacher, self.imitation_weight)["total"]
+        return agm_losses(self.agm, batch, generator)["total"]
 
 
 class DirectObjective(nn.Module):
