@@ -25,9 +25,10 @@ def reset_trunk(est: Estimator) -> list[str]:
     """Set `est`'s trunk and the layers that read it to a new network's initial weights (torch's random state);
     returns their names."""
     agm = est.config.agm
-    lite = dataclasses.replace(agm.denoiser.encoder, trunk=EfficientNetLiteConfig(weights="none"))
-    reading = {name.rsplit(".", 1)[0] for name in transplant(AxisGenerator(dataclasses.replace(agm, denoiser=dataclasses.replace(
-        agm.denoiser, encoder=lite))), est.agm)}  # fmt: skip
+    # The layers that read the trunk are those a transplant onto another trunk leaves fresh: asked, not listed here.
+    encoder = dataclasses.replace(agm.denoiser.encoder, trunk=EfficientNetLiteConfig(weights="none"))
+    other = AxisGenerator(dataclasses.replace(agm, denoiser=dataclasses.replace(agm.denoiser, encoder=encoder)))
+    reading = {name.rsplit(".", 1)[0] for name in transplant(other, est.agm)}
     initial, state = AxisGenerator(agm).state_dict(), est.agm.state_dict()
     reset = [k for k in state if k.startswith(TRUNK) or k.rsplit(".", 1)[0] in reading]
     est.agm.load_state_dict(state | {k: initial[k] for k in reset})

@@ -20,7 +20,7 @@ from pathlib import Path
 
 import torch
 
-from axispose_core.data.bop import BopScene, scene_dirs
+from axispose_core.data.bop import bop_frames
 from axispose_core.data.visibility import gt_info_from_models
 from axispose_core.estimator import SHIPPED_ESTIMATOR, Estimator, crop_batch
 from axispose_core.lmo import REAL_SLICE, SHARED_LMO
@@ -29,17 +29,13 @@ from axispose_core.lmo import REAL_SLICE, SHARED_LMO
 def gt_crops(est: Estimator, data: str | Path, models: str | Path, visib: tuple[float, float]) -> tuple[torch.Tensor, torch.Tensor]:
     """The estimator's crops (B,3,S,S) of every annotated instance in `data` within the visibility band, and the
     rows of their objects, frame by frame in file order (a split and its twins give the same instances)."""
-    rows = {o.obj_id: i for i, o in enumerate(est.config.objects)}
-    size, pad = est.config.agm.denoiser.size, est.config.crop_pad
     crops, objects = [], []
-    for scene_dir in scene_dirs(data):
-        scene = BopScene(scene_dir, estimate_info=gt_info_from_models(models))
-        for im_id in scene.image_ids:
-            boxes = [(g.obj_id, info.bbox_obj) for g, info in scene.instances(im_id)
-                     if g.obj_id in rows and visib[0] <= info.visib_fract <= visib[1]]  # fmt: skip
-            if boxes:
-                crops.append(crop_batch(scene.rgb(im_id), scene.cameras[im_id], boxes, est.objects, size, pad)[1])
-                objects += [rows[o] for o, _ in boxes]
+    for scene, im_id in bop_frames([data], gt_info_from_models(models)):
+        boxes = [(g.obj_id, info.bbox_obj) for g, info in scene.instances(im_id)
+                 if g.obj_id in est.index and visib[0] <= info.visib_fract <= visib[1]]  # fmt: skip
+        if boxes:
+            crops.append(crop_batch(scene.rgb(im_id), scene.cameras[im_id], boxes, est.objects, est.size, est.config.crop_pad)[1])
+            objects += [est.index[o] for o, _ in boxes]
     return torch.cat(crops), torch.tensor(objects)
 
 
