@@ -2,8 +2,9 @@
 
 Protocol (BOP19 / LM-O): instances with visib_fract < 0.1 are skipped (visibility from scene_gt_info.json, or
 estimated from the models where a scene has none: `BopScene`);
-ADD-S replaces ADD for symmetric objects under the same keys; a pose the estimator cannot give counts as wrong
-at every threshold. With `--crops gt` the crop is the square around the GT box (the paper's protocol).
+ADD-S replaces ADD for symmetric objects under the same keys, and their rotation and reprojection errors are
+taken against the symmetric GT pose nearest the estimate (`metrics.pose_scores`); a pose the estimator cannot
+give counts as wrong at every threshold. With `--crops gt` the crop is the square around the GT box (the paper's protocol).
 
 Stress: `visib` narrows the instances to a visibility band (heavy occlusion: 0.1-0.5) and `perturb` degrades
 each frame before detection and estimation (low light, motion blur; see stress.py), seeded per frame.
@@ -14,7 +15,7 @@ from __future__ import annotations
 import json
 import time
 import zlib
-from collections.abc import Callable
+from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -31,7 +32,7 @@ from axispose_core.data.meshes import load_ply
 from axispose_core.data.visibility import gt_info_from_models
 from axispose_core.localiser.decode import Detection, match
 from axispose_core.localiser.scoring import false_alarms
-from axispose_core.metrics import ADD_THRESHOLDS, REPROJ_THRESHOLDS, mahalanobis_sq, pose_scores
+from axispose_core.metrics import ADD_THRESHOLDS, REPROJ_THRESHOLDS, Symmetry, half_turn_symmetries, mahalanobis_sq, pose_scores
 from axispose_core.objects import ObjectSpec
 
 MIN_VISIB = 0.1
@@ -81,12 +82,24 @@ class Record:
 
 
 def instance_scores(
-    spec: ObjectSpec, points: np.ndarray, K: np.ndarray, R_gt: np.ndarray, t_gt: np.ndarray, pose: tuple[np.ndarray, np.ndarray] | None
+    spec: ObjectSpec,
+    points: np.ndarray,
+    K: np.ndarray,
+    R_gt: np.ndarray,
+    t_gt: np.ndarray,
+    pose: tuple[np.ndarray, np.ndarray] | None,
+    syms: Sequence[Symmetry] = (),
 ) -> dict[str, float]:
-    """One GT instance's scores in every report: `pose_scores` of its estimate (R, t), or a failure's without one."""
+    """One GT instance's scores in every report: `pose_scores` of its estimate (R, t), or a failure's without one;
+    `syms`, a symmetric object's equivalent poses (`object_symmetries`)."""
     if pose is None:
         return {k: 0.0 for k in SUMMARY_KEYS} | {"rot_err_deg": 180.0, "trans_err_mm": float("inf")}
-    return pose_scores(*pose, R_gt, t_gt, K, points, spec.diameter, spec.symmetric)
+    return pose_scores(*pose, R_gt, t_gt, K, points, spec.diameter, syms if spec.symmetric else None)
+
+
+def object_symmetries(objects: Iterable[ObjectSpec], points: Mapping[int, np.ndarray]) -> dict[int, list[Symmetry]]:
+    """Each symmetric object's equivalent poses (`metrics.half_turn_symmetries` of its points), by object id."""
+    return {o.obj_id: half_turn_symmetries(points[o.obj_id], o.diameter) for o in objects if o.symmetric and o.obj_id in points}
 
 
 Detector = Callable[[np.ndarray], list[Detection]]
@@ -160,6 +173,7 @@ class _Evaluator:
             self.points = {i: o.points for i, o in self.bop_objects.items()}
         else:
             self.points = {i: load_ply(model_path(models_dir, i)).vertices for i in self.specs}
+        self.syms = object_symmetries(objects, self.points)
         self.records: list[Record] = []
         self.counts: dict[int, dict[str, int]] | None = {} if options.detector is not None else None
         self.bop: list[ImageErrors] | None = [] if options.bop else None
@@ -219,7 +233,8 @@ class _Evaluator:
     def _score(self, frame: _Frame, K: np.ndarray, preds: list[Prediction], seconds: float) -> None:
         """A Record per instance that counts, with its prediction and its share of the frame's time."""
         for (g, info), p in zip(frame.insts, preds, strict=True):
-            scores = instance_scores(self.specs[g.obj_id], self.points[g.obj_id], K, g.R, g.t, (p.R, p.t) if p.ok else None)
+            pose = (p.R, p.t) if p.ok else None
+            scores = instance_scores(self.specs[g.obj_id], self.points[g.obj_id], K, g.R, g.t, pose, self.syms.get(g.obj_id, ()))
             self.records.append(
                 Record(g.obj_id, frame.scene.root.name, frame.im_id, scores, seconds, g.R, g.t, p.R, p.t, p.ok, K,
                        frame.scene.rgb_path(frame.im_id), info.bbox_obj, p.spread_deg, info.visib_fract, p.covariance)

@@ -59,6 +59,37 @@ def mahalanobis_sq(R_est: np.ndarray, t_est: np.ndarray, R_gt: np.ndarray, t_gt:
     return float(e_t @ np.linalg.solve(C[:3, :3], e_t)), float(e_r @ np.linalg.solve(C[3:, 3:], e_r))
 
 
+Symmetry = tuple[np.ndarray, np.ndarray]
+"""(R, t): a model-frame transformation (t in metres) under which the object looks the same."""
+
+FLIP_TOLERANCE = 0.02
+"""A half turn about a model axis is a symmetry where it moves the model's points onto its surface within this
+fraction of the diameter (mean nearest-point distance): LM-O's eggbox and glue about z 0.014 / 0.011, every other
+half turn of its objects 0.025 or more."""
+
+
+def half_turn_symmetries(points: np.ndarray, diameter: float, tolerance: float = FLIP_TOLERANCE) -> list[Symmetry]:
+    """The identity and the half turns about the model's x, y and z axes that map its `points` (N,3, m) onto
+    themselves: a symmetric object's discrete symmetries from its points alone (a bag carries no models_info),
+    so that eval, replay and the jitter share one definition. Continuous symmetries are not found."""
+    tree = cKDTree(points)
+    out: list[Symmetry] = [(np.eye(3), np.zeros(3))]
+    for axis in "xyz":
+        R = Rotation.from_euler(axis, 180, degrees=True).as_matrix()
+        if tree.query(points @ R.T)[0].mean() < tolerance * diameter:
+            out.append((R, np.zeros(3)))
+    return out
+
+
+def nearest_truth(R_pred: np.ndarray, R_gt: np.ndarray, t_gt: np.ndarray, syms: Sequence[Symmetry]) -> tuple[np.ndarray, np.ndarray]:
+    """The GT pose among the object's symmetric equivalents (R_gt S, t_gt + R_gt s) nearest the predicted
+    rotation; the GT pose itself without symmetries."""
+    if len(syms) <= 1:
+        return R_gt, t_gt
+    options = [(R_gt @ S, t_gt + R_gt @ s) for S, s in syms]
+    return min(options, key=lambda o: re(R_pred, o[0]))
+
+
 ADD_THRESHOLDS = (0.1, 0.2)
 """Fractions of the object diameter at which ADD(-S) counts a pose as correct."""
 REPROJ_THRESHOLDS = (5.0, 15.0)
@@ -73,25 +104,27 @@ def pose_scores(
     K: np.ndarray,
     pts: np.ndarray,
     diameter: float,
-    symmetric: bool,
+    symmetries: Sequence[Symmetry] | None = None,
 ) -> dict[str, float]:
-    """Every error and thresholded success used in reports, keyed as in the eval JSON (add_0.1d, reproj_5px, ...)."""
-    add_err = add_or_adi(R_est, t_est, R_gt, t_gt, pts, symmetric)
-    proj_err = proj(R_est, t_est, R_gt, t_gt, K, pts)
+    """Every error and thresholded success used in reports, keyed as in the eval JSON (add_0.1d, reproj_5px, ...).
+
+    `symmetries` None: an object without symmetry (ADD). Otherwise a symmetric object's equivalent poses (ADD-S;
+    the rotation, reprojection and translation errors each minimised over them, as MSSD and MSPD are; the identity
+    alone where the sequence is empty): choosing another of its indistinguishable poses is not an error."""
+    add_err = add_or_adi(R_est, t_est, R_gt, t_gt, pts, symmetries is not None)
+    truths = [(R_gt @ S, t_gt + R_gt @ s) for S, s in symmetries] if symmetries else [(R_gt, t_gt)]
+    proj_err = min(proj(R_est, t_est, R, t, K, pts) for R, t in truths)
     scores: dict[str, float] = {"add_err_m": add_err, "reproj_err_px": proj_err}
     for frac in ADD_THRESHOLDS:
         scores[f"add_{frac:g}d"] = float(add_err < frac * diameter)
     for px in REPROJ_THRESHOLDS:
         scores[f"reproj_{px:g}px"] = float(proj_err < px)
-    scores["rot_err_deg"] = re(R_est, R_gt)
-    scores["trans_err_mm"] = 1000.0 * te(t_est, t_gt)
+    scores["rot_err_deg"] = min(re(R_est, R) for R, _ in truths)
+    scores["trans_err_mm"] = 1000.0 * min(te(t_est, t) for _, t in truths)
     return scores
 
 
 # ------------------------------------------------------------------------------------------ BOP19 errors
-
-Symmetry = tuple[np.ndarray, np.ndarray]
-"""(R, t): a model-frame transformation (t in metres) under which the object looks the same."""
 
 
 def symmetry_transformations(

@@ -38,8 +38,9 @@ from tqdm import tqdm
 from visualization_msgs.msg import MarkerArray
 
 import axispose_msgs
-from axispose_core.evaluate import Record, instance_scores, summarize
-from axispose_core.tracking.jitter import PosePair, half_turn_symmetries, jitter
+from axispose_core.evaluate import Record, instance_scores, object_symmetries, summarize
+from axispose_core.metrics import Symmetry
+from axispose_core.tracking.jitter import PosePair, jitter
 from axispose_msgs.msg import DetectionArray
 from axispose_ros.bag import (
     FORMATS,
@@ -423,12 +424,10 @@ def _await_frame(exe, node: AxisPoseNode, n: int, timeout: float, settle: float 
     raise TimeoutError(f"the node did not finish frame {n} within {timeout} s")
 
 
-def _jitter(records: list[Record], objects: list, points: dict[str, np.ndarray]) -> dict:
-    """Frame-to-frame jitter of the posed instances (`tracking/jitter.py`); a symmetric object's equivalent poses
-    from its points' half-turn symmetries."""
-    pairs = [PosePair(r.im_id, r.obj_id, r.R, r.t, r.R_gt, r.t_gt) for r in records if r.ok]
-    syms = {o.obj_id: half_turn_symmetries(points[o.name], o.diameter) for o in objects if o.symmetric and o.name in points}
-    return jitter(pairs, syms)
+def _jitter(records: list[Record], syms: dict[int, list[Symmetry]]) -> dict:
+    """Frame-to-frame jitter of the posed instances (`tracking/jitter.py`), a symmetric object's equivalent poses
+    counting as one."""
+    return jitter([PosePair(r.im_id, r.obj_id, r.R, r.t, r.R_gt, r.t_gt) for r in records if r.ok], syms)
 
 
 def _report(node: AxisPoseNode, truth: _Truth, poses: dict, latency: dict[int, float], counts: dict[str, int], config: dict) -> dict:
@@ -436,6 +435,7 @@ def _report(node: AxisPoseNode, truth: _Truth, poses: dict, latency: dict[int, f
     the same frame (one-to-one); a frame the node dropped or an instance without estimate counts as wrong."""
     by_name = {o.name: o for o in node.estimator.config.objects}
     gt, points = truth.gt, truth.points
+    syms = object_symmetries(by_name.values(), {by_name[n].obj_id: p for n, p in points.items() if n in by_name})
     records: list[Record] = []
     for k, stamp in enumerate(sorted(gt)):
         n_inst = max(1, sum(len(v) for v in gt[stamp].values()))
@@ -449,7 +449,8 @@ def _report(node: AxisPoseNode, truth: _Truth, poses: dict, latency: dict[int, f
             for R_gt, t_gt in instances:
                 best = min(range(len(ests)), key=lambda i: np.linalg.norm(ests[i][1] - t_gt)) if ests else None
                 R, t = ests.pop(best) if best is not None else (np.eye(3), np.zeros(3))
-                scores = instance_scores(spec, points[name], K, R_gt, t_gt, (R, t) if best is not None else None)
+                pose = (R, t) if best is not None else None
+                scores = instance_scores(spec, points[name], K, R_gt, t_gt, pose, syms.get(spec.obj_id, ()))
                 records.append(
                     Record(
                         spec.obj_id,
@@ -473,7 +474,7 @@ def _report(node: AxisPoseNode, truth: _Truth, poses: dict, latency: dict[int, f
             "tracking": settings.tracking, "redetect_period": settings.redetect_period,
             "measure_every": settings.measure_every}  # fmt: skip
     report = summarize(records, objects, config | used)
-    report["tracking"] = {"on": settings.tracking, **_jitter(records, objects, points)}
+    report["tracking"] = {"on": settings.tracking, **_jitter(records, syms)}
     lat = np.array(list(latency.values())) if latency else np.zeros(1)
     report["frame_latency_ms"] = {"median": float(np.median(lat)), "p90": float(np.percentile(lat, 90))}
     report["counts"] = counts

@@ -24,9 +24,9 @@ import torch
 from axispose_core.data.bop import BopScene, model_path
 from axispose_core.data.meshes import load_ply
 from axispose_core.estimator import SHIPPED_ESTIMATOR, EstimateOptions, Estimator
-from axispose_core.evaluate import instance_scores
+from axispose_core.evaluate import instance_scores, object_symmetries
 from axispose_core.tracking.filter import FilterConfig
-from axispose_core.tracking.jitter import PosePair, half_turn_symmetries, jitter
+from axispose_core.tracking.jitter import PosePair, jitter
 from axispose_core.tracking.tracker import Tracker, TrackingConfig
 
 Pose = tuple[int, np.ndarray, np.ndarray]
@@ -37,7 +37,7 @@ class Bench:
         self.est = Estimator.load(checkpoint)
         self.specs = {o.obj_id: o for o in self.est.config.objects}
         self.points = {i: load_ply(model_path(models, i)).vertices for i in self.specs}
-        self.syms = {i: half_turn_symmetries(self.points[i], s.diameter) for i, s in self.specs.items() if s.symmetric}
+        self.syms = object_symmetries(self.specs.values(), self.points)
         self.threshold, self.options, self.fps = threshold, options, fps
 
     def scene(self, setting: dict, scene: BopScene) -> dict:
@@ -53,7 +53,7 @@ class Bench:
                 if g.obj_id not in self.specs:
                     continue
                 pose = _nearest(poses, g.obj_id, g.t)
-                s = instance_scores(self.specs[g.obj_id], self.points[g.obj_id], K, g.R, g.t, pose)
+                s = instance_scores(self.specs[g.obj_id], self.points[g.obj_id], K, g.R, g.t, pose, self.syms.get(g.obj_id, ()))
                 add.append(s["add_0.1d"])
                 rp.append(s["reproj_15px"])
                 if pose is not None:

@@ -103,6 +103,21 @@ def test_evaluation_of_a_scene_as_real_data_comes(scenes, lmo_dir, tmp_path, off
     assert len(records) >= len(evaluate(_gt_predictor(scenes / "000000"), scenes, lmo_dir / "models_eval", objects, QUIET).records)
 
 
+def test_a_symmetric_objects_equivalent_pose_is_no_error(scenes, lmo_dir):
+    """Every pose turned half about its model's z axis: the eggbox looks the same so (as ADD-S) its rotation and
+    reprojection errors vanish; the ape and the can are 180 degrees off."""
+    objects = objects_from_models(scenes)
+    gt, half_turn = _gt_predictor(scenes / "000000"), np.diag([-1.0, -1.0, 1.0])
+
+    def turned(image, K, boxes):
+        return [dataclasses.replace(p, R=p.R @ half_turn) for p in gt(image, K, boxes)]
+
+    report = summarize(evaluate(turned, scenes, lmo_dir / "models_eval", objects, QUIET).records, objects, {})
+    eggbox, others = report["objects"]["10"], [report["objects"][k] for k in ("1", "5")]  # by obj_id
+    assert eggbox["reproj_5px"] == eggbox["add_0.1d"] == 1.0 and eggbox["rot_err_median_deg"] == pytest.approx(0.0, abs=1e-6)
+    assert all(e["reproj_15px"] == 0.0 and e["rot_err_median_deg"] == pytest.approx(180.0) for e in others)
+
+
 def test_failed_poses_count_as_wrong(scenes, lmo_dir):
     objects = objects_from_models(scenes)
     records = evaluate(_gt_predictor(scenes / "000000", scramble=True), scenes, lmo_dir / "models_eval", objects, QUIET).records

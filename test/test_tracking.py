@@ -310,7 +310,7 @@ def test_jitter_of_a_symmetric_object_ignores_a_flip_between_equivalent_poses():
 def test_half_turn_symmetries_of_the_lmo_models():
     from axispose_core.data.meshes import load_ply
     from axispose_core.lmo import LMO_DIAMETERS, SHARED_LMO
-    from axispose_core.tracking.jitter import half_turn_symmetries
+    from axispose_core.metrics import half_turn_symmetries
 
     models = SHARED_LMO / "models_eval"
     if not models.is_dir():

@@ -13,15 +13,8 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.spatial import cKDTree
-from scipy.spatial.transform import Rotation
 
-from axispose_core.metrics import Symmetry
-
-FLIP_TOLERANCE = 0.02
-"""A half turn about a model axis is a symmetry where it moves the model's points onto its surface within this
-fraction of the diameter (mean nearest-point distance): LM-O's eggbox and glue about z 0.014 / 0.011, every other
-half turn of its objects 0.025 or more."""
+from axispose_core.metrics import Symmetry, nearest_truth
 
 
 @dataclass(frozen=True)
@@ -38,27 +31,6 @@ class PosePair:
 
 def _angle_deg(R: np.ndarray) -> float:
     return float(np.degrees(np.arccos(np.clip((np.trace(R) - 1.0) / 2.0, -1.0, 1.0))))
-
-
-def nearest_truth(R_pred: np.ndarray, R_gt: np.ndarray, t_gt: np.ndarray, syms: Sequence[Symmetry]) -> tuple[np.ndarray, np.ndarray]:
-    """The GT pose among the object's symmetric equivalents (R_gt S, t_gt + R_gt s) nearest the predicted
-    rotation."""
-    if len(syms) <= 1:
-        return R_gt, t_gt
-    options = [(R_gt @ S, t_gt + R_gt @ s) for S, s in syms]
-    return min(options, key=lambda o: _angle_deg(R_pred @ o[0].T))
-
-
-def half_turn_symmetries(points: np.ndarray, diameter: float, tolerance: float = FLIP_TOLERANCE) -> list[Symmetry]:
-    """The identity and the half turns about the model's x, y and z axes that map its `points` (N,3, m) onto
-    themselves: the discrete symmetries of a symmetric object when only its points are at hand (a bag's)."""
-    tree = cKDTree(points)
-    out: list[Symmetry] = [(np.eye(3), np.zeros(3))]
-    for axis in "xyz":
-        R = Rotation.from_euler(axis, 180, degrees=True).as_matrix()
-        if tree.query(points @ R.T)[0].mean() < tolerance * diameter:
-            out.append((R, np.zeros(3)))
-    return out
 
 
 def jitter(pairs: Sequence[PosePair], syms: dict[int, Sequence[Symmetry]] | None = None) -> dict[str, float | int]:
