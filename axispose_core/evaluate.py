@@ -3,8 +3,8 @@
 Protocol (BOP19 / LM-O): instances with visib_fract < 0.1 are skipped (visibility from scene_gt_info.json, or
 estimated from the models where a scene has none: `BopScene`);
 ADD-S replaces ADD for symmetric objects under the same keys, and their rotation and reprojection errors are
-taken against the symmetric GT pose nearest the estimate (`metrics.pose_scores`); a pose the estimator cannot
-give counts as wrong at every threshold. With `--crops gt` the crop is the square around the GT box (the paper's protocol).
+minimised over their symmetric poses (`metrics.pose_scores`); a pose the estimator cannot give counts as wrong
+at every threshold. With `--crops gt` the crop is the square around the GT box (the paper's protocol).
 
 Stress: `visib` narrows the instances to a visibility band (heavy occlusion: 0.1-0.5) and `perturb` degrades
 each frame before detection and estimation (low light, motion blur; see stress.py), seeded per frame.
