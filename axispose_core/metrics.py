@@ -81,13 +81,14 @@ def half_turn_symmetries(points: np.ndarray, diameter: float, tolerance: float =
     return out
 
 
+def equivalent_poses(R_gt: np.ndarray, t_gt: np.ndarray, syms: Sequence[Symmetry]) -> list[tuple[np.ndarray, np.ndarray]]:
+    """The GT pose's symmetric equivalents (R_gt S, t_gt + R_gt s); the GT pose itself without symmetries."""
+    return [(R_gt @ S, t_gt + R_gt @ s) for S, s in syms] or [(R_gt, t_gt)]
+
+
 def nearest_truth(R_pred: np.ndarray, R_gt: np.ndarray, t_gt: np.ndarray, syms: Sequence[Symmetry]) -> tuple[np.ndarray, np.ndarray]:
-    """The GT pose among the object's symmetric equivalents (R_gt S, t_gt + R_gt s) nearest the predicted
-    rotation; the GT pose itself without symmetries."""
-    if len(syms) <= 1:
-        return R_gt, t_gt
-    options = [(R_gt @ S, t_gt + R_gt @ s) for S, s in syms]
-    return min(options, key=lambda o: re(R_pred, o[0]))
+    """The GT pose among the object's symmetric equivalents nearest the predicted rotation."""
+    return min(equivalent_poses(R_gt, t_gt, syms), key=lambda o: re(R_pred, o[0]))
 
 
 ADD_THRESHOLDS = (0.1, 0.2)
@@ -112,7 +113,7 @@ def pose_scores(
     the rotation, reprojection and translation errors each minimised over them, as MSSD and MSPD are; the identity
     alone where the sequence is empty): choosing another of its indistinguishable poses is not an error."""
     add_err = add_or_adi(R_est, t_est, R_gt, t_gt, pts, symmetries is not None)
-    truths = [(R_gt @ S, t_gt + R_gt @ s) for S, s in symmetries] if symmetries else [(R_gt, t_gt)]
+    truths = equivalent_poses(R_gt, t_gt, symmetries or ())
     proj_err = min(proj(R_est, t_est, R, t, K, pts) for R, t in truths)
     scores: dict[str, float] = {"add_err_m": add_err, "reproj_err_px": proj_err}
     for frac in ADD_THRESHOLDS:
