@@ -276,3 +276,36 @@ def test_a_training_kit_trains_from_its_own_folder_and_returns_the_checkpoint_in
     failed = subprocess.run(["bash", str(kit / "run.sh"), str(out), "bad", "--config", str(tmp_path / "missing.yaml")],
                             cwd=REPO, env={**os.environ, "PYTHON": sys.executable}, capture_output=True, text=True)  # fmt: skip
     assert failed.returncode != 0 and not list(out.glob("bad.part*"))
+
+
+def test_held_out_rotation_errors_are_taken_up_to_symmetry(lmo_dir, monkeypatch):
+    """The trainer's validation takes an eggbox read as its half turn about z as no error (eval's definition); an ape
+    read so stays 180° off, and without the symmetries the eggbox does too."""
+    from conftest import TINY_AGM
+
+    from axispose_core.agm.model import AxisGenerator
+    from axispose_core.data.synth.config import StreamConfig
+    from axispose_core.tbm.backproject import Backprojection
+    from axispose_core.tbm.reader import SHIPPED_READER, load_reader
+    from axispose_core.train import agm as trainer
+    from axispose_core.train.dataset import AxisCropDataset
+    from axispose_core.train.sources import CropSources
+
+    sources = CropSources(models=lmo_dir / "models")
+    stream = StreamConfig(objects=(1, 10), seed=4)
+    objects, _, _ = sources.training(AxisCropDataset, stream, 64, 0.1, 0)
+    symmetries = sources.symmetries(objects)
+    assert set(symmetries) == {10} and len(symmetries[10]) == 2  # the eggbox: identity and a half turn about z
+    items = sources.held_out(AxisCropDataset, objects, stream, 7, 64, 8, 0)
+    scales = torch.tensor([o.scale for o in objects], dtype=torch.float64)
+    batch = trainer.with_depth_target(trainer._batch_of(items), scales, 64)
+    ids = [objects[int(it["object"])].obj_id for it in items]
+    assert 0 < ids.count(10) < len(ids)
+    half_turn = np.diag([-1.0, -1.0, 1.0])
+    turned = [Backprojection(R @ half_turn, t, True) for R, t in zip(batch["R"].numpy(), batch["t"].numpy(), strict=True)]
+    monkeypatch.setattr(trainer, "backproject_readings", lambda *_: turned)
+    agm, reader = AxisGenerator(TINY_AGM), load_reader(SHIPPED_READER)
+    lengths = np.stack([o.axes.lengths for o in (objects[int(it["object"])] for it in items)])
+    syms = [symmetries.get(i, []) for i in ids]
+    assert trainer.validate(agm, reader, batch, lengths, 1, syms)["val_rot_within_15deg"] == ids.count(10) / len(ids)
+    assert trainer.validate(agm, reader, batch, lengths, 1)["val_rot_within_15deg"] == 0.0

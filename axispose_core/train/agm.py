@@ -18,7 +18,7 @@ from __future__ import annotations
 
 import dataclasses
 import os
-from collections.abc import Iterator
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -33,7 +33,7 @@ from axispose_core.axis_image import axis_keypoints
 from axispose_core.data.synth.config import StreamConfig
 from axispose_core.data.synth.stream import CropStream, stream_loader
 from axispose_core.estimator import Estimator, EstimatorConfig
-from axispose_core.metrics import re
+from axispose_core.metrics import Symmetry, nearest_truth, re
 from axispose_core.tbm.backproject import backproject_readings
 from axispose_core.tbm.dense import translation_from_points
 from axispose_core.tbm.reader import SHIPPED_READER, KeypointReader, load_reader
@@ -113,14 +113,20 @@ def same_stream_before(saved: dict, now: TrainConfig, step: int) -> bool:
 
 
 def validate(
-    agm: AxisGenerator, reader: KeypointReader, batch: dict[str, torch.Tensor], lengths: np.ndarray, steps: int
+    agm: AxisGenerator,
+    reader: KeypointReader,
+    batch: dict[str, torch.Tensor],
+    lengths: np.ndarray,
+    steps: int,
+    syms: Sequence[Sequence[Symmetry]] = (),
 ) -> dict[str, float]:
     """On a fixed batch of held-out crops: the diffusion loss at fixed timesteps and noise (four draws); median
     rotation error and the share within 15° of the sample started from the prior's mode (the estimator's first
-    hypothesis); the reader's median keypoint error (px, mean over origin and
-    endpoints) on the generated axis images; the median relative depth error of the TBM (from the drawn axis
-    lengths) and of the encoder's depth head; the encoder's median surface-point error (object radii), and the
-    median relative depth error of t solved from its points with the true rotation (what its points know of depth)."""
+    hypothesis), a symmetric object's taken up to its symmetries `syms` (per crop; as eval takes it); the
+    reader's median keypoint error (px, mean over origin and endpoints) on the generated axis images; the median
+    relative depth error of the TBM (from the drawn axis lengths) and of the encoder's depth head; the encoder's
+    median surface-point error (object radii), and the median relative depth error of t solved from its points
+    with the true rotation (what its points know of depth)."""
     with torch.no_grad():
         loss = float(np.mean([agm_losses(agm, batch, torch.Generator().manual_seed(k))["diffusion"].item() for k in range(4)]))
         enc = agm.encode(batch["crop"], batch["object"])
@@ -135,9 +141,11 @@ def validate(
         z = depth_from_log(float(enc.log_depth[i]), K, float(lengths[i][0]), size)
         head_depth.append(abs(z / t[2] - 1))
         res = solved[i]
-        errs.append(re(res.R, R) if res is not None and res.ok else 180.0)
         if res is not None and res.ok:
+            errs.append(re(res.R, nearest_truth(res.R, R, t, syms[i] if syms else ())[0]))
             tbm_depth.append(abs(res.t[2] / t[2] - 1))
+        else:
+            errs.append(180.0)
         if kp.ok:
             kp_errs.append(float(np.linalg.norm(kp.array - axis_keypoints(K, R, t, lengths[i]), axis=1).mean()))
     point_err, points_depth = float("nan"), []
@@ -266,10 +274,12 @@ def train_agm(
     if items:
         val_batch = {k: v.to(dev) for k, v in with_depth_target(_batch_of(items), scales, crop).items()}
         val_lengths = np.stack([objects[int(it["object"])].axes.lengths for it in items])
+        symmetries = sources.symmetries(objects)
+        val_syms = [symmetries.get(objects[int(it["object"])].obj_id, []) for it in items]
 
         def validate_ema(ema: torch.nn.Module) -> dict[str, float]:
             with torch.autocast(dev.type, dtype=torch.bfloat16, enabled=optim.bf16):
-                return validate(ema, reader, val_batch, val_lengths, cfg.val_steps)
+                return validate(ema, reader, val_batch, val_lengths, cfg.val_steps, val_syms)
 
     def loss(net: torch.nn.Module, batch: dict[str, torch.Tensor], gen: torch.Generator) -> torch.Tensor:
         return net(with_depth_target(batch, scales.to(batch["t"].device), crop), gen)

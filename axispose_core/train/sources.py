@@ -10,8 +10,12 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from axispose_core.data.bop import model_path
+from axispose_core.data.meshes import load_ply
 from axispose_core.data.synth.config import StreamConfig
 from axispose_core.data.synth.stream import CropStream, CropStreamDataset
+from axispose_core.evaluate import object_symmetries
+from axispose_core.metrics import Symmetry
 from axispose_core.objects import ObjectSpec, dataset_objects
 from axispose_core.train.dataset import AxisCropDataset
 
@@ -63,3 +67,11 @@ class CropSources:
             return []
         crops = CropStreamDataset(CropStream(dataclasses.replace(stream, seed=val_seed), self.models))
         return [crops[i] for i in range(n)]
+
+    def symmetries(self, objects: list[ObjectSpec]) -> dict[int, list[Symmetry]]:
+        """Each symmetric object's equivalent poses (by object id) from the models folder's points, so that the
+        held-out rotation errors are taken up to symmetry as eval takes them; none without a models folder."""
+        if self.models is None:
+            return {}
+        points = {o.obj_id: load_ply(model_path(self.models, o.obj_id)).vertices for o in objects if o.symmetric}
+        return object_symmetries(objects, points)
