@@ -10,29 +10,11 @@ shipped denoiser, against `axispose train --init SHIPPED` onto a pretrained trun
 from __future__ import annotations
 
 import argparse
-import dataclasses
 
 import torch
 
-from axispose_core.agm.model import AxisGenerator, transplant
+from axispose_core.agm.model import TRUNK, fresh_trunk
 from axispose_core.estimator import SHIPPED_ESTIMATOR, Estimator
-from axispose_core.trunks import EfficientNetLiteConfig
-
-TRUNK = "denoiser.encoder.trunk."
-
-
-def reset_trunk(est: Estimator) -> list[str]:
-    """Set `est`'s trunk and the layers that read it to a new network's initial weights (torch's random state);
-    returns their names."""
-    agm = est.config.agm
-    # The layers that read the trunk are those a transplant onto another trunk leaves fresh: asked, not listed here.
-    encoder = dataclasses.replace(agm.denoiser.encoder, trunk=EfficientNetLiteConfig(weights="none"))
-    other = AxisGenerator(dataclasses.replace(agm, denoiser=dataclasses.replace(agm.denoiser, encoder=encoder)))
-    reading = {name.rsplit(".", 1)[0] for name in transplant(other, est.agm)}
-    initial, state = AxisGenerator(agm).state_dict(), est.agm.state_dict()
-    reset = [k for k in state if k.startswith(TRUNK) or k.rsplit(".", 1)[0] in reading]
-    est.agm.load_state_dict(state | {k: initial[k] for k in reset})
-    return reset
 
 
 def main() -> None:
@@ -41,9 +23,9 @@ def main() -> None:
     ap.add_argument("--out", required=True)
     ap.add_argument("--seed", type=int, default=0)
     args = ap.parse_args()
-    torch.manual_seed(args.seed)
+    torch.manual_seed(args.seed)  # before the load, which draws too: as a recipe's `fresh_trunk` stage starts
     est = Estimator.load(args.checkpoint)
-    reset = reset_trunk(est)
+    reset = fresh_trunk(est.agm)
     est.save(args.out)
     outside = sum(not k.startswith(TRUNK) for k in reset)
     print(f"wrote {args.out}: {len(reset)} tensors at their initial weights, {outside} outside the trunk")

@@ -14,7 +14,7 @@ from safetensors import safe_open
 from safetensors.torch import load_file, save_file
 
 from axispose_core.agm.guidance import AxisGeometry, axis_geometry, geo_loss, guided_eps, inject
-from axispose_core.agm.model import AGMConfig, AxisGenerator, EncoderLossConfig, depth_from_log, grow_into, transplant
+from axispose_core.agm.model import AGMConfig, AxisGenerator, EncoderLossConfig, depth_from_log, fresh_trunk, grow_into, transplant
 from axispose_core.agm.sampler import Start, sample
 from axispose_core.agm.scheduler import DDIMScheduler, SchedulerConfig
 from axispose_core.axis_image import axis_keypoints, render_axis_keypoints
@@ -402,6 +402,29 @@ def test_a_transplant_keeps_the_new_trunk_and_takes_the_rest_that_fits():
     # only the trunk may differ: another denoiser width is refused
     with pytest.raises(ValueError, match="only the encoder's trunk may differ"):
         transplant(AxisGenerator(AGMConfig(denoiser=replace(lite, channels=2 * lite.channels))), trained)
+
+
+def test_a_fresh_trunk_is_a_new_networks_under_the_trained_denoiser():
+    """The trunk and the layers that read its widths go back to a new network's initial weights, drawn from torch's
+    state (the same seed, the same weights); every other tensor keeps its trained value."""
+    torch.manual_seed(0)
+    trained = AxisGenerator(AGMConfig(denoiser=TINY))
+    for p in trained.parameters():
+        p.data.normal_(0, 0.05)
+    old = {k: v.clone() for k, v in trained.state_dict().items()}
+    torch.manual_seed(3)
+    reset = fresh_trunk(trained)
+    new = trained.state_dict()
+    assert {k for k in new if k.startswith("denoiser.encoder.trunk.")} <= set(reset)
+    assert any(k.startswith("denoiser.encoder.film.") for k in reset) and "denoiser.encoder.context.1.weight" in reset
+    assert all(not torch.equal(new[k], old[k]) for k in reset if k.endswith(".weight"))
+    assert all(torch.equal(new[k], old[k]) for k in new if k not in reset)
+    assert "denoiser.out.2.weight" not in reset and "denoiser.encoder.depth.1.weight" not in reset
+    again = AxisGenerator(AGMConfig(denoiser=TINY))
+    again.load_state_dict(old)
+    torch.manual_seed(3)
+    fresh_trunk(again)
+    assert all(torch.equal(v, new[k]) for k, v in again.state_dict().items())
 
 
 def test_max_boxes_poses_a_frame_in_batches_of_that_many(monkeypatch):

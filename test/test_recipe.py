@@ -5,8 +5,9 @@ import json
 from pathlib import Path
 
 import pytest
+import torch
 import yaml
-from conftest import TINY_AGM_YAML
+from conftest import TINY_AGM_YAML, save_tiny_estimator
 
 from axispose_core.cli import main
 from axispose_core.estimator import Estimator
@@ -115,6 +116,33 @@ def test_a_recipe_with_a_mistake_is_refused_before_training(lmo_dir, tmp_path, c
         load_recipe(path)
     assert main(["train", "--recipe", str(path), "--out", str(tmp_path / "run")]) == 2  # one line, exit 2
     assert message.split("'")[0] in capsys.readouterr().err and not (tmp_path / "run").exists()
+
+
+def test_a_fresh_trunk_stage_starts_from_its_inits_denoiser_with_a_new_trunk(tmp_path):
+    """`fresh_trunk: SEED` starts an AGM stage from its init's weights with the trunk anew: the start is written
+    beside the stage, the same seed gives the same file, and the key is refused where it cannot apply."""
+    recipe = _recipe(tmp_path)
+    recipe["stages"].append({"name": "anew", "trainer": "agm", "init": "agm", "fresh_trunk": 4})
+    loaded = load_recipe(_write(tmp_path, recipe))
+    assert loaded.stage("anew").fresh_trunk == 4
+    assert "fresh_trunk" not in loaded.as_dict()["stages"][1]  # the records of stages without it stay as they were
+    out = tmp_path / "run"
+    out.mkdir()
+    save_tiny_estimator(out / "agm.safetensors")
+    runner = RecipeRunner(loaded, out, RunOptions(progress=False))
+    start = runner._init(loaded.stage("anew"))
+    assert start == out / "anew.init.safetensors" and runner._init(loaded.stage("agm_more")) == out / "agm.safetensors"
+    trained, first = Estimator.load(out / "agm.safetensors").agm.state_dict(), Estimator.load(start).agm.state_dict()
+    trunk = [k for k in first if k.startswith("denoiser.encoder.trunk.") and first[k].ndim > 1]  # not the norms' ones
+    assert trunk and all(not torch.equal(first[k], trained[k]) for k in trunk)
+    assert torch.equal(first["denoiser.out.2.weight"], trained["denoiser.out.2.weight"])
+    again = Estimator.load(runner._init(loaded.stage("anew"))).agm.state_dict()
+    assert all(torch.equal(v, first[k]) for k, v in again.items())
+    for stage in ({"name": "x", "trainer": "agm", "fresh_trunk": 4}, {"name": "x", "trainer": "agm", "init": "agm", "fresh_trunk": "yes"}):
+        bad = _recipe(tmp_path)
+        bad["stages"].append(stage)
+        with pytest.raises(RecipeError, match="fresh_trunk"):
+            load_recipe(_write(tmp_path, bad, "bad.yaml"))
 
 
 def test_the_shipped_recipe_resolves_and_is_the_shipped_models():

@@ -12,11 +12,14 @@ from torch import nn
 
 from axispose_core.agm.denoiser import Denoiser, DenoiserConfig, Encoding
 from axispose_core.agm.scheduler import DDIMScheduler, SchedulerConfig
-from axispose_core.trunks import ResidualGNConfig, TrunkConfig
+from axispose_core.trunks import EfficientNetLiteConfig, ResidualGNConfig, TrunkConfig
 
 VERSION = 2
 """The AGM's network generation: 2 is the object-conditioned encoder with dense and depth heads; checkpoints
 without it were made by an earlier AxisPose, whose networks this one cannot run."""
+
+TRUNK = "denoiser.encoder.trunk."
+"""The prefix of the encoder's trunk's tensors in an AGM's state."""
 
 
 def depth_from_log(log_depth: float, K: np.ndarray, scale: float, size: int) -> float:
@@ -130,8 +133,22 @@ def transplant(model: AxisGenerator, start: AxisGenerator) -> list[str]:
     old, new = start.config.denoiser, model.config.denoiser
     if replace(new, encoder=replace(new.encoder, trunk=old.encoder.trunk)) != old:
         raise ValueError(f"cannot transplant an AGM {old} into {new}: only the encoder's trunk may differ")
-    trunk = "denoiser.encoder.trunk."
     own = model.state_dict()
-    taken = {k: v for k, v in start.state_dict().items() if not k.startswith(trunk) and k in own and own[k].shape == v.shape}
+    taken = {k: v for k, v in start.state_dict().items() if not k.startswith(TRUNK) and k in own and own[k].shape == v.shape}
     model.load_state_dict(taken, strict=False)
-    return sorted(k for k in own if not k.startswith(trunk) and k not in taken)
+    return sorted(k for k in own if not k.startswith(TRUNK) and k not in taken)
+
+
+def fresh_trunk(model: AxisGenerator) -> list[str]:
+    """Set `model`'s trunk, and the layers that read its widths, to a new network's initial weights drawn from
+    torch's random state, the rest (the denoiser, the heads) kept: a trunk trained anew under a trained denoiser.
+    The layers that read the trunk are those a transplant onto another trunk leaves fresh (asked, not listed
+    here). Returns the names of the tensors set."""
+    agm = model.config
+    encoder = replace(agm.denoiser.encoder, trunk=EfficientNetLiteConfig(weights="none"))
+    other = AxisGenerator(replace(agm, denoiser=replace(agm.denoiser, encoder=encoder)))
+    reading = {name.rsplit(".", 1)[0] for name in transplant(other, model)}
+    initial, state = AxisGenerator(agm).state_dict(), model.state_dict()
+    reset = [k for k in state if k.startswith(TRUNK) or k.rsplit(".", 1)[0] in reading]
+    model.load_state_dict(state | {k: initial[k] for k in reset})
+    return reset

@@ -7,8 +7,9 @@ A recipe (YAML; the shipped model's: config/recipes/axispose_lmo.yaml) holds
   needs them;
 - `stages`: each a trainer (reader, agm, localiser); its config, a YAML file or a mapping, or without one the
   config of the same trainer's stage before, with `changes` merged into it; the stage whose weights it starts
-  from (`init`); the data a localiser stage trains and validates on; and its `schedule` where the cosine's length
-  changes part-way (segments of `steps`, each but the last stopping at `until`);
+  from (`init`; an AGM stage's with its trunk anew, drawn with the seed `fresh_trunk`); the data a localiser
+  stage trains and validates on; and its `schedule` where the cosine's length changes part-way (segments of
+  `steps`, each but the last stopping at `until`);
 - `estimator`: the stages that make the checkpoint and the estimator settings it ships with.
 
 The runner builds, in the recipe's order, the stages the checkpoint needs. A stage with OUT/NAME.done.json is done
@@ -33,6 +34,7 @@ from typing import Any
 import torch
 import yaml
 
+from axispose_core.agm.model import fresh_trunk
 from axispose_core.checkpoint import ESTIMATOR, read_metadata
 from axispose_core.config import ConfigError, config_from_dict
 from axispose_core.data.synth.config import SynthConfig
@@ -53,7 +55,7 @@ CONFIGS: dict[str, type] = {"reader": ReaderTrainConfig, "agm": TrainConfig, "lo
 """Each trainer's config class, by the name a stage gives as its `trainer`."""
 
 SYNTH_KEYS = {"scenes", "images_per_scene", "seed", "recipe", "depth", "objects"}
-STAGE_KEYS = {"name", "trainer", "config", "changes", "init", "data", "val", "schedule"}
+STAGE_KEYS = {"name", "trainer", "config", "changes", "init", "fresh_trunk", "data", "val", "schedule"}
 ESTIMATOR_KEYS = {"agm", "reader", "localiser", "config", "half"}
 ESTIMATOR_SETTINGS = {f.name for f in dataclasses.fields(EstimatorConfig)} - {"agm", "reader", "objects", "training", "localiser"}
 
@@ -84,6 +86,9 @@ class Stage:
     data: tuple[str, ...] = ()
     val: tuple[str, ...] = ()
     schedule: tuple[Segment, ...] = ()
+    fresh_trunk: int | None = None
+    """An AGM stage's seed for a new trunk under its init's denoiser (`agm/model.py: fresh_trunk`); None: init's
+    weights as they are."""
 
     def segment_config(self, segment: Segment) -> Any:
         """The trainer's config dataclass as this segment runs it."""
@@ -134,6 +139,8 @@ class Recipe:
 
 def _stage_dict(stage: Stage) -> dict[str, Any]:
     d = dataclasses.asdict(stage)
+    if stage.fresh_trunk is None:  # the records of recipes from before the key stay as they were
+        del d["fresh_trunk"]
     d["schedule"] = [{k: v for k, v in dataclasses.asdict(s).items() if k != "data" or v} for s in stage.schedule]
     return d
 
@@ -228,12 +235,15 @@ def load_recipe(path: str | Path) -> Recipe:
         init = s.get("init")
         if init is not None and not any(st.name == init and st.trainer == trainer for st in stages):
             raise RecipeError(f"stage {name}: init {init!r} is not an earlier {trainer} stage")
+        fresh = s.get("fresh_trunk")
+        if fresh is not None and (trainer != "agm" or init is None or not isinstance(fresh, int)):
+            raise RecipeError(f"stage {name}: fresh_trunk (a seed) is for an agm stage with an init")
         refs = (tuple(s.get("data") or ()), tuple(s.get("val") or ()))
         if trainer == "localiser" and not refs[0]:
             raise RecipeError(f"stage {name}: a localiser stage needs data")
         if missing := [d for d in (*refs[0], *refs[1], *(d for seg in schedule for d in seg.data)) if d not in data]:
             raise RecipeError(f"stage {name}: data {', '.join(missing)} not in the recipe's data")
-        stages.append(Stage(name, trainer, config, init, *refs, schedule))
+        stages.append(Stage(name, trainer, config, init, *refs, schedule, fresh))
     est = dict(raw.get("estimator") or {})
     _unknown("estimator", set(est), ESTIMATOR_KEYS)
     for part in ("agm", "reader", "localiser"):
@@ -337,12 +347,25 @@ class RecipeRunner:
                 return False
             print(f"stage {stage.name}: {stage.trainer} from step {step} to {end} (schedule {segment.steps} steps)")
             run = dataclasses.replace(self.run, resume=state if state.is_file() else None, stop_at=segment.until, max_minutes=left)
-            init = self.checkpoint(stage.init) if stage.init and not state.is_file() else None
+            init = self._init(stage) if stage.init and not state.is_file() else None
             if self._train(stage, segment, run, init) < end:
                 print(f"stage {stage.name}: stopped at the time cap; the same command goes on from {state}")
                 return False
         self._finish(stage, {})
         return True
+
+    def _init(self, stage: Stage) -> Path:
+        """The checkpoint `stage` starts from: its init stage's, or with `fresh_trunk` that AGM with its trunk anew
+        (OUT/NAME.init.safetensors; seeded before the load, which draws too, so the same file gives the same start)."""
+        if stage.fresh_trunk is None:
+            return self.checkpoint(stage.init)
+        torch.manual_seed(stage.fresh_trunk)
+        est = Estimator.load(self.checkpoint(stage.init))
+        reset = fresh_trunk(est.agm)
+        path = self.out / f"{stage.name}.init.safetensors"
+        est.save(path)
+        print(f"stage {stage.name}: {stage.init}'s AGM with a new trunk (seed {stage.fresh_trunk}; {len(reset)} tensors anew)")
+        return path
 
     def _finish(self, stage: Stage, extra: dict[str, Any]) -> None:
         """Mark the stage done with its record: the trainer's (steps, time, hardware), or under "training" what an
