@@ -18,7 +18,7 @@ from __future__ import annotations
 
 import dataclasses
 import os
-from collections.abc import Iterator, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -34,6 +34,7 @@ from axispose_core.data.synth.config import StreamConfig
 from axispose_core.data.synth.stream import CropStream, stream_loader
 from axispose_core.estimator import Estimator, EstimatorConfig
 from axispose_core.metrics import Symmetry, nearest_truth, re
+from axispose_core.objects import ObjectSpec
 from axispose_core.tbm.backproject import backproject_readings
 from axispose_core.tbm.dense import translation_from_points
 from axispose_core.tbm.reader import SHIPPED_READER, KeypointReader, load_reader
@@ -215,6 +216,28 @@ def start_from(model: AxisGenerator, start: AxisGenerator, name: str | Path) -> 
     print(f"started from {name} on a new trunk: {len(fresh)} tensors outside the trunk start fresh ({', '.join(fresh)})")
 
 
+def held_out_validation(
+    cfg: TrainConfig, sources: CropSources, objects: list[ObjectSpec], reader: KeypointReader, dev: torch.device
+) -> Callable[[torch.nn.Module], dict[str, float]] | None:
+    """What the trainer validates its EMA weights with: a full sampling and back-projection of the held-out crops
+    (`validate`), symmetric objects' rotations taken up to symmetry; None when there are none."""
+    crop = cfg.agm.denoiser.size
+    items = sources.held_out(AxisCropDataset, objects, cfg.stream, cfg.val_seed, crop, cfg.val_samples, cfg.optim.seed)
+    if not items:
+        return None
+    scales = torch.tensor([o.scale for o in objects], dtype=torch.float64)
+    batch = {k: v.to(dev) for k, v in with_depth_target(_batch_of(items), scales, crop).items()}
+    held = [objects[int(it["object"])] for it in items]
+    symmetries = sources.symmetries(objects)
+    lengths, syms = np.stack([o.axes.lengths for o in held]), [symmetries.get(o.obj_id, []) for o in held]
+
+    def validate_ema(ema: torch.nn.Module) -> dict[str, float]:
+        with torch.autocast(dev.type, dtype=torch.bfloat16, enabled=cfg.optim.bf16):
+            return validate(ema, reader, batch, lengths, cfg.val_steps, syms)
+
+    return validate_ema
+
+
 def train_agm(
     cfg: TrainConfig,
     sources: CropSources,
@@ -269,17 +292,7 @@ def train_agm(
     if init and not run.resume:
         start_from(model, Estimator.load(init).agm, init)
     scales = torch.tensor([o.scale for o in objects], dtype=torch.float64)
-    validate_ema = None
-    items = sources.held_out(AxisCropDataset, objects, cfg.stream, cfg.val_seed, crop, cfg.val_samples, optim.seed) if rank == 0 else []
-    if items:
-        val_batch = {k: v.to(dev) for k, v in with_depth_target(_batch_of(items), scales, crop).items()}
-        val_lengths = np.stack([objects[int(it["object"])].axes.lengths for it in items])
-        symmetries = sources.symmetries(objects)
-        val_syms = [symmetries.get(objects[int(it["object"])].obj_id, []) for it in items]
-
-        def validate_ema(ema: torch.nn.Module) -> dict[str, float]:
-            with torch.autocast(dev.type, dtype=torch.bfloat16, enabled=optim.bf16):
-                return validate(ema, reader, val_batch, val_lengths, cfg.val_steps, val_syms)
+    validate_ema = held_out_validation(cfg, sources, objects, reader, dev) if rank == 0 else None
 
     def loss(net: torch.nn.Module, batch: dict[str, torch.Tensor], gen: torch.Generator) -> torch.Tensor:
         return net(with_depth_target(batch, scales.to(batch["t"].device), crop), gen)
