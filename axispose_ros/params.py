@@ -69,19 +69,39 @@ SPECS = (
         ints=(0, 64),
         at_start=True,
     ),
-    Spec("batch_boxes", 8, "most boxes posed in one AGM batch; a frame with more runs several, so memory stays bounded "
-         "and the warm-up covers every batch shape", ints=(1, 64), at_start=True),
+    Spec(
+        "batch_boxes",
+        8,
+        "most boxes posed in one AGM batch; a frame with more runs several, so memory stays bounded "
+        "and the warm-up covers every batch shape",
+        ints=(1, 64),
+        at_start=True,
+    ),
     Spec("roi_timeout", 1.0, "age in s after which an ROI is ignored", floats=(0.0, 3600.0)),
     Spec("score_threshold", 0.3, "least localiser score of an instance", floats=(0.0, 1.0)),
     Spec("marker_lifetime", 1.0, "lifetime of ~/markers in s (0: until replaced)", floats=(0.0, 3600.0)),
-    Spec("tracking", False, "follow objects across frames: crops from predicted poses, the localiser every "
-         "redetect_period frames, each pose filtered (constant velocity, gated)"),
+    Spec(
+        "tracking",
+        False,
+        "follow objects across frames: crops from predicted poses, the localiser every "
+        "redetect_period frames, each pose filtered (constant velocity, gated)",
+    ),
     Spec("redetect_period", 5, "with tracking, run the localiser on every n-th frame (and when a track is lost)", ints=(1, 1000)),
-    Spec("measure_every", 1, "with tracking, pose each track on every n-th frame, the tracks taking turns (all of them when "
-         "the localiser runs); in between a track publishes its filter's prediction", ints=(1, 1000)),
-    Spec("warm_strength", 0.0, "with tracking, a tracked object's samples start from its predicted axis image noised to "
-         "this fraction of the schedule (0: from noise, with ddim_steps); faster, but a wrong prediction's rotation "
-         "tends to stay", floats=(0.0, 1.0)),
+    Spec(
+        "measure_every",
+        1,
+        "with tracking, pose each track on every n-th frame, the tracks taking turns (all of them when "
+        "the localiser runs); in between a track publishes its filter's prediction",
+        ints=(1, 1000),
+    ),
+    Spec(
+        "warm_strength",
+        0.0,
+        "with tracking, a tracked object's samples start from its predicted axis image noised to "
+        "this fraction of the schedule (0: from noise, with ddim_steps); faster, but a wrong prediction's rotation "
+        "tends to stay",
+        floats=(0.0, 1.0),
+    ),
     Spec("warm_steps", 1, "with tracking, DDIM steps of a warm-started sample", ints=(1, 1000)),
     Spec("track_timeout", 1.0, "with tracking, seconds without an accepted pose after which a track ends", floats=(0.0, 3600.0)),
     Spec("latency_budget", 2.0, "median latency (s) over which /diagnostics warns; at start", floats=(0.01, 60.0), at_start=True),

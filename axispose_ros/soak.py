@@ -245,7 +245,7 @@ def _stream(node: subprocess.Popen, camera: _Camera, log: _Log, exe, opts: SoakO
 
 def _report(node: subprocess.Popen, camera: _Camera, log: _Log, events: list[dict], opts: SoakOptions, work: Path) -> dict:
     c = log.counters
-    dropped = {k[len("dropped_"):]: v for k, v in c.items() if k.startswith("dropped_")}
+    dropped = {k[len("dropped_") :]: v for k, v in c.items() if k.startswith("dropped_")}
     faults = []
     for e in events:
         moved = {k: e["after"].get(k, 0) - e["before"].get(k, 0) for k in FAULTS[e["fault"]]}
@@ -261,7 +261,7 @@ def _report(node: subprocess.Popen, camera: _Camera, log: _Log, events: list[dic
         "frames_processed": c.get("frames_processed", 0),
         "answered": log.answered,
         "dropped": dropped,
-        "tracking": {k[len("tracking_"):]: v for k, v in c.items() if k.startswith("tracking_")},
+        "tracking": {k[len("tracking_") :]: v for k, v in c.items() if k.startswith("tracking_")},
         "stamps": {k: v for k, v in c.items() if k.startswith("stamps_")},
         "faults": faults,
         "diagnostics_levels": log.levels,

@@ -163,7 +163,12 @@ def train_localiser(
     out.parent.mkdir(parents=True, exist_ok=True)
     torch.manual_seed(cfg.optim.seed)
     train_set = LocaliserDataset(
-        data, cfg.localiser, cfg.min_visib, seed=cfg.optim.seed, occluded_weight=cfg.occluded_weight, photometric=cfg.photometric,
+        data,
+        cfg.localiser,
+        cfg.min_visib,
+        seed=cfg.optim.seed,
+        occluded_weight=cfg.occluded_weight,
+        photometric=cfg.photometric,
         surface=cfg.surface,
     )
     if not len(train_set):
