@@ -138,7 +138,7 @@ def test_a_fresh_trunk_stage_starts_from_its_inits_denoiser_with_a_new_trunk(tmp
     assert torch.equal(first["denoiser.out.2.weight"], trained["denoiser.out.2.weight"])
     again = Estimator.load(runner._init(loaded.stage("anew"))).agm.state_dict()
     assert all(torch.equal(v, first[k]) for k, v in again.items())
-    for stage in ({"name": "x", "trainer": "agm", "fresh_trunk": 4}, {"name": "x", "trainer": "agm", "init": "agm", "fresh_trunk": "yes"}):
+    for stage in ({"name": "x", "trainer": "agm", "fresh_trunk": 4}, {"name": "x", "trainer": "agm", "init": "agm", "fresh_trunk": True}):
         bad = _recipe(tmp_path)
         bad["stages"].append(stage)
         with pytest.raises(RecipeError, match="fresh_trunk"):

@@ -236,7 +236,7 @@ def load_recipe(path: str | Path) -> Recipe:
         if init is not None and not any(st.name == init and st.trainer == trainer for st in stages):
             raise RecipeError(f"stage {name}: init {init!r} is not an earlier {trainer} stage")
         fresh = s.get("fresh_trunk")
-        if fresh is not None and (trainer != "agm" or init is None or not isinstance(fresh, int)):
+        if fresh is not None and (trainer != "agm" or init is None or type(fresh) is not int):
             raise RecipeError(f"stage {name}: fresh_trunk (a seed) is for an agm stage with an init")
         refs = (tuple(s.get("data") or ()), tuple(s.get("val") or ()))
         if trainer == "localiser" and not refs[0]:
