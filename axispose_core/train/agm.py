@@ -217,15 +217,15 @@ def start_from(model: AxisGenerator, start: AxisGenerator, name: str | Path) -> 
 
 
 def held_out_validation(
-    cfg: TrainConfig, sources: CropSources, objects: list[ObjectSpec], reader: KeypointReader, dev: torch.device
+    cfg: TrainConfig, sources: CropSources, objects: list[ObjectSpec], scales: torch.Tensor, reader: KeypointReader, dev: torch.device
 ) -> Callable[[torch.nn.Module], dict[str, float]] | None:
     """What the trainer validates its EMA weights with: a full sampling and back-projection of the held-out crops
-    (`validate`), symmetric objects' rotations taken up to symmetry; None when there are none."""
+    (`validate`), symmetric objects' rotations taken up to symmetry; None when there are none. `scales`: the
+    objects' λ_O, as the training loss takes them."""
     crop = cfg.agm.denoiser.size
     items = sources.held_out(AxisCropDataset, objects, cfg.stream, cfg.val_seed, crop, cfg.val_samples, cfg.optim.seed)
     if not items:
         return None
-    scales = torch.tensor([o.scale for o in objects], dtype=torch.float64)
     batch = {k: v.to(dev) for k, v in with_depth_target(_batch_of(items), scales, crop).items()}
     held = [objects[int(it["object"])] for it in items]
     symmetries = sources.symmetries(objects)
@@ -292,7 +292,7 @@ def train_agm(
     if init and not run.resume:
         start_from(model, Estimator.load(init).agm, init)
     scales = torch.tensor([o.scale for o in objects], dtype=torch.float64)
-    validate_ema = held_out_validation(cfg, sources, objects, reader, dev) if rank == 0 else None
+    validate_ema = held_out_validation(cfg, sources, objects, scales, reader, dev) if rank == 0 else None
 
     def loss(net: torch.nn.Module, batch: dict[str, torch.Tensor], gen: torch.Generator) -> torch.Tensor:
         return net(with_depth_target(batch, scales.to(batch["t"].device), crop), gen)
