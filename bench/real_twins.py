@@ -10,10 +10,13 @@ does not is the objects' finer look (texture, shading, highlights). Every pass r
 (GT crops and the localiser). Per object, the real pixels' luma, saturation and luma contrast over the render's.
 The twins can be drawn otherwise, to ask what a checkpoint reads from renders: under another light (`--light`,
 e.g. strong highlights), in each object's mean colour (`--colours mean`: shape and shading alone) or in a wrong
-surface (`--colours wrong`), or through a worse camera (`--sensor`: blur, noise, JPEG); give such a run its own --out.
+surface (`--colours wrong`), or through a worse camera (`--sensor`: blur, noise, JPEG); or take only part of the
+objects' look from the render (`--part`: the inside of the silhouettes or the band along them, the coarse look or
+the fine detail; `twins.TwinPart`), to tell where on the object the real look costs; give such a run its own --out.
 
     python bench/real_twins.py [--checkpoint CKPT] [--data ../shared/data/lmo_real_val/test] [--out out/twins]
         [--light AMBIENT,SPECULAR,SHININESS] [--colours scan|mean|wrong] [--sensor SIGMA,NOISE,JPEG_QUALITY]
+        [--part inside|edge|coarse|fine,PX]
 
 Writes OUT/twins/ and OUT/matched/ (the splits, reused on later calls), OUT/{real,twins,matched}.json, OUT/look.json
 and OUT/table.txt.
@@ -34,7 +37,7 @@ from axispose_core.data.bop import BopScene, read_bgr, scene_dirs
 from axispose_core.data.meshes import load_render_mesh
 from axispose_core.data.synth.randomize import jpeg
 from axispose_core.data.synth.raster import Light, render
-from axispose_core.data.twins import TWIN_LIGHT, copy_annotations, write_twins
+from axispose_core.data.twins import PARTS, TWIN_LIGHT, TwinPart, copy_annotations, write_twins
 from axispose_core.estimator import SHIPPED_ESTIMATOR
 from axispose_core.lmo import REAL_SLICE, SHARED_LMO
 from axispose_core.validation import COLUMNS, ValidationSettings, format_cell, report_value, validate
@@ -123,6 +126,7 @@ def main() -> None:
     ap.add_argument("--light", help="the twins' light: AMBIENT,SPECULAR,SHININESS (default: the twin light's)")
     ap.add_argument("--colours", choices=["scan", "mean", "wrong"], default="scan", help="the twins' surfaces (twins.write_twins)")
     ap.add_argument("--sensor", help="twins through a worse camera: BLUR_SIGMA,NOISE,JPEG_QUALITY")
+    ap.add_argument("--part", help=f"the twins take only this of the objects from the render: PART,PX, PART one of {', '.join(PARTS[1:])}")
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
     out = Path(args.out)
@@ -130,7 +134,11 @@ def main() -> None:
     if args.light:
         ambient, specular, shininess = (float(v) for v in args.light.split(","))
         light = Light(TWIN_LIGHT.direction, TWIN_LIGHT.color, ambient, specular, shininess)
-    splits = {"real": Path(args.data), "twins": write_twins(args.data, args.models, out / "twins", light, args.colours)}
+    part = TwinPart()
+    if args.part:
+        name, px = args.part.split(",")
+        part = TwinPart(name, float(px))
+    splits = {"real": Path(args.data), "twins": write_twins(args.data, args.models, out / "twins", light, args.colours, part)}
     if args.sensor:
         sigma, noise, quality = args.sensor.split(",")
         degrade(splits["twins"], float(sigma), float(noise), int(quality))

@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import shutil
 
+import cv2
 import numpy as np
 import pytest
 from PIL import Image
@@ -12,7 +13,7 @@ from PIL import Image
 from axispose_core.data.bop import BopScene, bbox_from_model
 from axispose_core.data.meshes import load_render_mesh
 from axispose_core.data.synth.raster import Light, render
-from axispose_core.data.twins import write_twins
+from axispose_core.data.twins import TwinPart, twin_frame, write_twins
 from axispose_core.lmo import REAL_SLICE, SHARED_LMO
 
 MODELS = SHARED_LMO / "models_eval"
@@ -81,3 +82,42 @@ def test_flat_twins_draw_each_object_in_one_colour(one_frame, tmp_path):
         assert len(px) > 200
         chroma_spread[flat] = (px / px.sum(-1, keepdims=True)).std(axis=0).max()
     assert chroma_spread[True] < 0.02 < chroma_spread[False]
+
+
+def test_a_part_of_the_look_comes_from_the_render_and_the_rest_from_the_frame(one_frame):
+    """`inside` and `edge` split each silhouette between the render and the frame, one the other's complement;
+    `coarse` and `fine` split the look by frequency, so together they add up to frame plus render; outside the
+    objects nothing changes."""
+    split, im_id = one_frame
+    scene = BopScene(split / "000002")
+    gts = scene.gt[im_id]
+    rgb = np.asarray(Image.open(scene.rgb_path(im_id)).convert("RGB"))
+    meshes = [load_render_mesh(MODELS, g.obj_id) for g in gts]
+    frames = {
+        part: twin_frame(rgb, scene.cameras[im_id], gts, meshes, part=TwinPart(part, 3.0))
+        for part in ("all", "inside", "edge", "coarse", "fine")
+    }
+    full = frames["all"]
+    drawn = (full != rgb).any(-1)
+    for part, frame in frames.items():
+        assert np.array_equal(frame[~drawn], rgb[~drawn]), part
+
+    rendered_inside = (frames["inside"] == full).all(-1) & drawn
+    rendered_edge = (frames["edge"] == full).all(-1) & drawn
+    assert not (rendered_inside & rendered_edge).any()
+    assert np.array_equal(rendered_inside | rendered_edge, drawn)
+    assert (frames["inside"][rendered_edge] == rgb[rendered_edge]).all()
+    deep = cv2.distanceTransform(drawn.astype(np.uint8), cv2.DIST_L2, 5) > 5  # far from every silhouette's edge
+    assert rendered_inside[deep].mean() > 0.9 and rendered_edge[deep].mean() < 0.05  # bands: where two objects meet
+    assert 0.2 < rendered_edge.sum() / drawn.sum() < 0.8  # a 3 px band of objects some 40-150 px across
+
+    total = frames["coarse"].astype(int) + frames["fine"].astype(int) - rgb.astype(int) - full.astype(int)
+    assert np.mean(np.abs(total[drawn]) <= 2) > 0.97
+    assert (frames["coarse"][drawn] != frames["fine"][drawn]).any(-1).mean() > 0.5
+
+
+def test_an_unknown_part_is_refused():
+    with pytest.raises(ValueError, match="part must be one of"):
+        TwinPart("middle")
+    with pytest.raises(ValueError, match="px must be"):
+        TwinPart("edge", 0.0)
