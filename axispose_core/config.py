@@ -48,12 +48,25 @@ def nest_moved_keys(cls: type, data: dict[str, Any]) -> dict[str, Any]:
     return {k: nest_moved_keys(sections[k], v) if k in sections and isinstance(v, dict) else v for k, v in out.items()}
 
 
-def config_from_dict(cls: type[C], data: dict[str, Any], source: str = "config") -> C:
-    """Build a (possibly nested) config dataclass from a dict, naming any missing or unknown key. Where a field
-    may hold one of several config classes (a union), their `kind` fields tell them apart. Keys a class lists in
-    its `RETIRED` (fields earlier versions wrote that no longer configure anything) are ignored, keys that have
-    moved into a nested section are read from where they were (`nest_moved_keys`), and a class with an
-    `upgrade_config(data) -> data` rewrites what an earlier version wrote first."""
+PRESET = {"preset": True}
+"""Field metadata of a nested config whose default is a preset rather than its class's defaults (the crop stream's
+appearance): a partial section in a config file changes only what it names and keeps the preset's other values."""
+
+
+def _preset(f: dataclasses.Field) -> Any:
+    """A `PRESET` field's default value, None for any other field."""
+    if not f.metadata.get("preset"):
+        return None
+    return f.default if f.default is not dataclasses.MISSING else f.default_factory()  # type: ignore[misc]
+
+
+def config_from_dict(cls: type[C], data: dict[str, Any], source: str = "config", base: Any = None) -> C:
+    """Build a (possibly nested) config dataclass from a dict, naming any missing or unknown key. A key the dict
+    leaves out takes `base`'s value where there is one (inside a `PRESET` field's section: the preset's), else the
+    field's default. Where a field may hold one of several config classes (a union), their `kind` fields tell them
+    apart. Keys a class lists in its `RETIRED` (fields earlier versions wrote that no longer configure anything) are
+    ignored, keys that have moved into a nested section are read from where they were (`nest_moved_keys`), and a
+    class with an `upgrade_config(data) -> data` rewrites what an earlier version wrote first."""
     if not isinstance(data, dict):
         raise ConfigError(f"{source}: expected a mapping for {cls.__name__}")
     if callable(upgrade := getattr(cls, "upgrade_config", None)):
@@ -67,7 +80,9 @@ def config_from_dict(cls: type[C], data: dict[str, Any], source: str = "config")
     kwargs = {}
     for name, f in fields.items():
         if name not in data:
-            if f.default is dataclasses.MISSING and f.default_factory is dataclasses.MISSING:
+            if base is not None:
+                kwargs[name] = getattr(base, name)
+            elif f.default is dataclasses.MISSING and f.default_factory is dataclasses.MISSING:
                 raise ConfigError(f"{source}: missing key '{name}' for {cls.__name__}")
             continue
         value = data[name]
@@ -75,11 +90,13 @@ def config_from_dict(cls: type[C], data: dict[str, Any], source: str = "config")
         item = get_args(ftype)[0] if get_origin(ftype) is tuple and get_args(ftype) else None
         union = get_args(ftype) if get_origin(ftype) in (Union, UnionType) else ()
         options = [a for a in union if isinstance(a, type) and dataclasses.is_dataclass(a)]
+        within = getattr(base, name) if base is not None else _preset(f)
         if isinstance(ftype, type) and dataclasses.is_dataclass(ftype):
-            value = config_from_dict(_pick_kind([ftype], value, f"{source}.{name}") if isinstance(value, dict) else ftype, value,
-                                     f"{source}.{name}")  # fmt: skip
+            kind = _pick_kind([ftype], value, f"{source}.{name}") if isinstance(value, dict) else ftype
+            value = config_from_dict(kind, value, f"{source}.{name}", within if type(within) is kind else None)
         elif options and isinstance(value, dict):  # `AConfig | BConfig | None` holding one of them
-            value = config_from_dict(_pick_kind(options, value, f"{source}.{name}"), value, f"{source}.{name}")
+            kind = _pick_kind(options, value, f"{source}.{name}")
+            value = config_from_dict(kind, value, f"{source}.{name}", within if type(within) is kind else None)
         elif isinstance(item, type) and dataclasses.is_dataclass(item) and isinstance(value, list):
             value = tuple(config_from_dict(item, v, f"{source}.{name}[{k}]") for k, v in enumerate(value))
         elif isinstance(value, list):

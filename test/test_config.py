@@ -5,7 +5,7 @@ from dataclasses import dataclass, field
 
 import pytest
 
-from axispose_core.config import ConfigError, config_from_dict, nest_moved_keys
+from axispose_core.config import PRESET, ConfigError, config_from_dict, nest_moved_keys
 
 
 @dataclass(frozen=True)
@@ -77,3 +77,38 @@ def test_config_errors_name_the_key():
         config_from_dict(Outer, {"name": "x", "colour": 1})
     with pytest.raises(ConfigError, match=r"inner.*unknown key"):
         config_from_dict(Outer, {"name": "x", "inner": {"size": 3, "depth": 2}})
+
+
+@dataclass(frozen=True)
+class Look:
+    light: Inner = field(default_factory=Inner)
+    ambient: float = 0.5
+    gamma: float = 1.0
+
+
+@dataclass(frozen=True)
+class Stream:
+    """Two sections with the same non-default default: one marked a preset, one not."""
+
+    look: Look = field(default_factory=lambda: Look(Inner(32), 0.3, 2.0), metadata=PRESET)
+    plain: Look = field(default_factory=lambda: Look(Inner(32), 0.3, 2.0))
+
+
+def test_a_partial_preset_section_changes_only_what_it_names():
+    """A preset's section given in part keeps the preset's other values, nested ones too; an unmarked section given
+    in part starts from its class's defaults, as the recipes that predate presets were resolved."""
+    cfg = config_from_dict(Stream, {"look": {"ambient": 1.0}, "plain": {"ambient": 1.0}})
+    assert cfg.look == Look(Inner(32), 1.0, 2.0)
+    assert cfg.plain == Look(Inner(64), 1.0, 1.0)
+    assert config_from_dict(Stream, {"look": {"light": {}}}).look == Look(Inner(32), 0.3, 2.0)
+    assert config_from_dict(Stream, {}).look == Look(Inner(32), 0.3, 2.0)
+    with pytest.raises(ConfigError, match="unknown key"):
+        config_from_dict(Stream, {"look": {"ambiant": 1.0}})
+
+
+def test_the_crop_streams_appearance_keeps_its_preset_when_a_recipe_changes_one_light_setting():
+    from axispose_core.data.synth.config import STREAM_RANDOMIZATION, StreamConfig
+
+    cfg = config_from_dict(StreamConfig, {"randomization": {"light": {"ambient": [0.15, 1.0]}}})
+    light = dataclasses.replace(STREAM_RANDOMIZATION.light, ambient=(0.15, 1.0))
+    assert cfg.randomization == dataclasses.replace(STREAM_RANDOMIZATION, light=light)

@@ -7,7 +7,7 @@ import json
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from axispose_core.config import config_from_dict
+from axispose_core.config import PRESET, config_from_dict
 from axispose_core.lmo import LMO_K
 
 PHOTOS = (
@@ -190,7 +190,7 @@ class RandomizationConfig:
     """Domain randomisation of appearance, by what it varies."""
 
     background: BackgroundConfig = field(default_factory=BackgroundConfig)
-    table_top: BackgroundConfig = field(default_factory=lambda: TABLE_TOP)
+    table_top: BackgroundConfig = field(default_factory=lambda: TABLE_TOP, metadata=PRESET)
     """The texture of a table top (`SceneConfig.table_prob`)."""
     light: LightConfig = field(default_factory=LightConfig)
     sensor: SensorConfig = field(default_factory=SensorConfig)
@@ -342,7 +342,7 @@ class StreamConfig:
     """Meshes are decimated to about this many crop pixels per cell at each object's apparent size (three levels
     of detail, `stream.LODS`; 0: full meshes)."""
     framing: Framing = field(default_factory=Framing)
-    randomization: RandomizationConfig = field(default_factory=lambda: STREAM_RANDOMIZATION)
+    randomization: RandomizationConfig = field(default_factory=lambda: STREAM_RANDOMIZATION, metadata=PRESET)
 
     def __post_init__(self) -> None:
         if not (isinstance(self.size, int) and self.size % 16 == 0 and 32 <= self.size <= 512):
