@@ -36,15 +36,32 @@ def _train_reader(args: argparse.Namespace) -> int:
     return 0
 
 
+def _yaml_mapping(text: str) -> dict:
+    """A YAML mapping given inline or as the path of a file holding one."""
+    import yaml
+
+    path = Path(text)
+    try:
+        data = yaml.safe_load(path.read_text() if path.is_file() else text)
+    except yaml.YAMLError as err:
+        raise ValueError(f"not YAML: {err}".replace("\n", " ")) from err
+    if not isinstance(data, dict):
+        raise ValueError(f"expected a YAML mapping, got {text!r}")
+    return data
+
+
 def _synth(args: argparse.Namespace) -> int:
+    from axispose_core.config import ConfigError, config_from_dict
     from axispose_core.data.bop import BopFormatError, load_camera
-    from axispose_core.data.synth.config import CameraPathConfig, SynthConfig, recipe
+    from axispose_core.data.synth.config import CameraPathConfig, RandomizationConfig, SynthConfig, recipe
     from axispose_core.data.synth.generate import generate
 
     K = SynthConfig().K
     try:
         scene, randomization = recipe(args.recipe)
-    except ValueError as err:
+        if args.randomization:
+            randomization = config_from_dict(RandomizationConfig, _yaml_mapping(args.randomization), "--randomization", randomization)
+    except (ConfigError, TypeError, ValueError) as err:
         print(f"axispose synth: {err}", file=sys.stderr)
         return 2
     width, height = args.width, args.height
@@ -450,6 +467,8 @@ def build_parser(commands: Callable[[AddParser], None] | None = None) -> argpars
     sy.add_argument("--recipe", default="desk", help="scenes and looks: desk (default: on a table among everyday "
                     "meshes, shadows, a camera's lens and sensor), plain (objects in front of a photograph: the data of "
                     "earlier models), desk-held-out (the desk's held-out meshes and photographs: stress sets)")  # fmt: skip
+    sy.add_argument("--randomization", metavar="YAML", help="the recipe's look changed where this YAML mapping (or file of "
+                    "one) says, e.g. '{light: {ambient: [0.15, 1.0]}}': a partial RandomizationConfig (data/synth/config.py)")  # fmt: skip
     sy.add_argument("--objects", type=object_ids, default=[], help="comma-separated object ids (default: all in models_info.json)")
     sy.add_argument("--width", type=int, default=640)
     sy.add_argument("--height", type=int, default=480)

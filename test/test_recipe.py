@@ -1,6 +1,7 @@
 """`axispose train --recipe`: a short recipe of every trainer runs end to end, resumes where a call stopped, rebuilds
 nothing that is done, refuses a stage changed after it was built, and records the recipe in the checkpoint."""
 
+import dataclasses
 import json
 from pathlib import Path
 
@@ -106,6 +107,7 @@ def test_a_short_recipe_builds_resumes_and_records_itself(lmo_dir, tmp_path):
         (lambda r: r["stages"][1].update(schedule=[{"steps": 6}, {"steps": 3}]), "every segment but the last stops"),
         (lambda r: r["estimator"].update(localiser="agm"), "localiser must name a localiser stage"),
         (lambda r: r["estimator"]["config"].update(ddim_stpes=2), "ddim_stpes"),
+        (lambda r: r["data"]["frames"].update(randomization={"light": {"ambiant": [0.2, 1.0]}}), "ambiant"),
     ],
 )
 def test_a_recipe_with_a_mistake_is_refused_before_training(lmo_dir, tmp_path, capsys, edit, message):
@@ -189,3 +191,15 @@ def test_the_pretrained_variant_recipe_differs_from_the_shipped_one_in_its_trunk
     assert agm == agm0
     # head_offaxis is measured on a trained network's depth head (bench/head_offaxis.py), so it is the shipped one's alone.
     assert variant.estimator["config"] == {k: v for k, v in shipped.estimator["config"].items() if k != "head_offaxis"}
+
+
+def test_a_data_entry_changes_only_the_part_of_its_frame_recipes_look_it_names():
+    from axispose_core.data.synth.config import recipe as synth_recipe
+    from axispose_core.train.recipe import _synth_config
+
+    spec = {"scenes": 2, "seed": 5, "recipe": "desk", "randomization": {"light": {"ambient": [0.15, 1.0]}}}
+    cfg = _synth_config(spec, "desk_flat")
+    _, desk = synth_recipe("desk")
+    assert cfg.randomization.light.ambient == (0.15, 1.0)
+    assert cfg.randomization == dataclasses.replace(desk, light=dataclasses.replace(desk.light, ambient=(0.15, 1.0)))
+    assert _synth_config({"scenes": 2, "seed": 5, "recipe": "desk"}, "desk").randomization == desk

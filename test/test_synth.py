@@ -212,3 +212,22 @@ def test_a_camera_path_films_one_world(meshes):
         assert np.abs(a.rgb.astype(int) - b.rgb.astype(int)).mean() > 1.0
     # the same image again is the same bytes
     assert np.array_equal(render_image(cfg, meshes, diameters, 0, 2).rgb, frames[2].rgb)
+
+
+def test_the_cli_changes_the_recipes_look_where_told_and_refuses_a_bad_change(lmo_dir, tmp_path, capsys):
+    from axispose_core.cli import main
+    from axispose_core.data.synth.config import recipe
+
+    base = ["synth", "--models", str(lmo_dir / "models"), "--scenes", "1", "--images-per-scene", "1", "--objects", "1", "--recipe", "plain"]
+    out = tmp_path / "flat"
+    assert main([*base, "--out", str(out), "--randomization", "{light: {ambient: [0.15, 1.0]}}"]) == 0
+    _, plain = recipe("plain")
+    light = dataclasses.replace(plain.light, ambient=(0.15, 1.0))
+    assert SynthConfig.load(out / "synth_config.json").randomization == dataclasses.replace(plain, light=light)
+    capsys.readouterr()  # the render's progress
+
+    for bad, message in (("{light: {ambiant: 1}}", "ambiant"), ("[1, 2]", "expected a YAML mapping")):
+        assert main([*base, "--out", str(tmp_path / "bad"), "--randomization", bad]) == 2
+        err = capsys.readouterr().err
+        assert message in err and len(err.strip().splitlines()) == 1
+    assert not (tmp_path / "bad").exists()

@@ -37,7 +37,7 @@ import yaml
 from axispose_core.agm.model import fresh_trunk
 from axispose_core.checkpoint import ESTIMATOR, read_metadata
 from axispose_core.config import ConfigError, config_from_dict
-from axispose_core.data.synth.config import SynthConfig
+from axispose_core.data.synth.config import RandomizationConfig, SynthConfig
 from axispose_core.data.synth.config import recipe as synth_recipe
 from axispose_core.data.synth.generate import generate
 from axispose_core.estimator import Estimator, EstimatorConfig
@@ -54,7 +54,7 @@ from axispose_core.train.sources import CropSources
 CONFIGS: dict[str, type] = {"reader": ReaderTrainConfig, "agm": TrainConfig, "localiser": LocaliserTrainConfig}
 """Each trainer's config class, by the name a stage gives as its `trainer`."""
 
-SYNTH_KEYS = {"scenes", "images_per_scene", "seed", "recipe", "depth", "objects"}
+SYNTH_KEYS = {"scenes", "images_per_scene", "seed", "recipe", "depth", "objects", "randomization"}
 STAGE_KEYS = {"name", "trainer", "config", "changes", "init", "fresh_trunk", "data", "val", "schedule"}
 ESTIMATOR_KEYS = {"agm", "reader", "localiser", "config", "half"}
 ESTIMATOR_SETTINGS = {f.name for f in dataclasses.fields(EstimatorConfig)} - {"agm", "reader", "objects", "training", "localiser"}
@@ -212,6 +212,10 @@ def load_recipe(path: str | Path) -> Recipe:
         if "scenes" not in spec or "seed" not in spec:
             raise RecipeError(f"data {name}: needs scenes and seed")
         synth_recipe(spec.get("recipe", "plain"))  # a ValueError names the recipes there are
+        try:
+            _synth_config(spec, name)
+        except (ConfigError, TypeError, ValueError) as err:
+            raise RecipeError(str(err)) from err
     stages: list[Stage] = []
     last: dict[str, dict[str, Any]] = {}
     for i, s in enumerate(raw.get("stages") or []):
@@ -280,8 +284,12 @@ def _saved_step(state: Path) -> int:
     return int(torch.load(state, map_location="cpu", weights_only=False, mmap=True)["step"]) if state.is_file() else 0
 
 
-def _synth_config(spec: dict[str, Any]) -> SynthConfig:
+def _synth_config(spec: dict[str, Any], name: str) -> SynthConfig:
+    """A data entry's frames: its frame recipe's scenes and look, the look changed where `randomization` says (a
+    partial RandomizationConfig: what it leaves out stays the frame recipe's)."""
     scene, randomization = synth_recipe(spec.get("recipe", "plain"))
+    if "randomization" in spec:
+        randomization = config_from_dict(RandomizationConfig, spec["randomization"], f"data {name}: randomization", randomization)
     return SynthConfig(
         seed=int(spec["seed"]), scenes=int(spec["scenes"]), images_per_scene=int(spec.get("images_per_scene", 20)),
         objects=tuple(spec.get("objects", ())), scene=scene, randomization=randomization, depth=bool(spec.get("depth", False)),
@@ -385,7 +393,7 @@ class RecipeRunner:
         folders = []
         for name in names:
             folder = self.out / "data" / name
-            spec = _synth_config(self.recipe.data[name])
+            spec = _synth_config(self.recipe.data[name], name)
             generate(spec, self.recipe.models, folder, workers=self.render_workers, progress=self.run.progress)
             folders.append(folder)
         return folders
