@@ -198,8 +198,8 @@ def test_a_data_entry_changes_only_the_part_of_its_frame_recipes_look_it_names()
     from axispose_core.train.recipe import _synth_config
 
     spec = {"scenes": 2, "seed": 5, "recipe": "desk", "randomization": {"light": {"ambient": [0.15, 1.0]}}}
-    cfg = _synth_config(spec, "desk_flat")
+    cfg = _synth_config(spec)
     _, desk = synth_recipe("desk")
     assert cfg.randomization.light.ambient == (0.15, 1.0)
     assert cfg.randomization == dataclasses.replace(desk, light=dataclasses.replace(desk.light, ambient=(0.15, 1.0)))
-    assert _synth_config({"scenes": 2, "seed": 5, "recipe": "desk"}, "desk").randomization == desk
+    assert _synth_config({"scenes": 2, "seed": 5, "recipe": "desk"}).randomization == desk

@@ -72,11 +72,11 @@ def twin_frame(
         keep = ~inside if part.part == "inside" else inside  # the frame's pixels there
         return np.where((drawn & keep)[..., None], rgb, twin)
     real, rendered = rgb.astype(np.float32), twin.astype(np.float32)
-    coarse = {name: cv2.GaussianBlur(im, (0, 0), part.px) for name, im in (("real", real), ("rendered", rendered))}
+    real_coarse, rendered_coarse = (cv2.GaussianBlur(im, (0, 0), part.px) for im in (real, rendered))
     if part.part == "coarse":
-        mixed = coarse["rendered"] + (real - coarse["real"])
+        mixed = rendered_coarse + (real - real_coarse)
     else:
-        mixed = coarse["real"] + (rendered - coarse["rendered"])
+        mixed = real_coarse + (rendered - rendered_coarse)
     out = rgb.copy()
     out[drawn] = np.clip(np.round(mixed[drawn]), 0, 255).astype(np.uint8)
     return out

@@ -211,11 +211,10 @@ def load_recipe(path: str | Path) -> Recipe:
         _unknown(f"data {name}", set(spec), SYNTH_KEYS)
         if "scenes" not in spec or "seed" not in spec:
             raise RecipeError(f"data {name}: needs scenes and seed")
-        synth_recipe(spec.get("recipe", "plain"))  # a ValueError names the recipes there are
         try:
-            _synth_config(spec, name)
+            _synth_config(spec)  # an unknown frame recipe or a bad randomization key, named
         except (ConfigError, TypeError, ValueError) as err:
-            raise RecipeError(str(err)) from err
+            raise RecipeError(f"data {name}: {err}") from err
     stages: list[Stage] = []
     last: dict[str, dict[str, Any]] = {}
     for i, s in enumerate(raw.get("stages") or []):
@@ -284,12 +283,12 @@ def _saved_step(state: Path) -> int:
     return int(torch.load(state, map_location="cpu", weights_only=False, mmap=True)["step"]) if state.is_file() else 0
 
 
-def _synth_config(spec: dict[str, Any], name: str) -> SynthConfig:
+def _synth_config(spec: dict[str, Any]) -> SynthConfig:
     """A data entry's frames: its frame recipe's scenes and look, the look changed where `randomization` says (a
     partial RandomizationConfig: what it leaves out stays the frame recipe's)."""
     scene, randomization = synth_recipe(spec.get("recipe", "plain"))
     if "randomization" in spec:
-        randomization = config_from_dict(RandomizationConfig, spec["randomization"], f"data {name}: randomization", randomization)
+        randomization = config_from_dict(RandomizationConfig, spec["randomization"], "randomization", randomization)
     return SynthConfig(
         seed=int(spec["seed"]), scenes=int(spec["scenes"]), images_per_scene=int(spec.get("images_per_scene", 20)),
         objects=tuple(spec.get("objects", ())), scene=scene, randomization=randomization, depth=bool(spec.get("depth", False)),
@@ -393,7 +392,7 @@ class RecipeRunner:
         folders = []
         for name in names:
             folder = self.out / "data" / name
-            spec = _synth_config(self.recipe.data[name], name)
+            spec = _synth_config(self.recipe.data[name])
             generate(spec, self.recipe.models, folder, workers=self.render_workers, progress=self.run.progress)
             folders.append(folder)
         return folders
