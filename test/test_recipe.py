@@ -84,6 +84,14 @@ def test_a_short_recipe_builds_resumes_and_records_itself(lmo_dir, tmp_path):
     stages = Estimator.load(again).config.training["stages"]
     assert [s.get("adopted") for s in stages] == [adopted["reader"], adopted["agm_more"], adopted["localiser"]]
     assert not (tmp_path / "adopted" / "agm.safetensors").exists()
+    # What an adopted stage started from, adopted too, joins the record: how the adopted weights were trained.
+    chain = RecipeRunner(recipe, tmp_path / "chain", RunOptions(progress=False), {**adopted, "agm": str(out / "agm.safetensors")})
+    stages_chain = Estimator.load(chain.run_all()).config.training["stages"]
+    assert [(s["name"], s.get("adopted")) for s in stages_chain] == [
+        ("reader", adopted["reader"]), ("agm", str(out / "agm.safetensors")), ("agm_more", adopted["agm_more"]),
+        ("localiser", adopted["localiser"]),
+    ]  # fmt: skip
+    assert stages_chain[1]["training"]["steps"] == 3
     # Re-assembled from its own output, a stage keeps the record of the run that trained it: the record does not
     # nest itself once more with every re-assembly.
     records = [stages]

@@ -314,8 +314,15 @@ class RecipeRunner:
         return self.out / f"{stage}.done.json"
 
     def built(self, stage: str) -> bool:
-        """Done in OUT, or to be adopted: what it started from is not needed."""
-        return self.done_file(stage).is_file() or stage in self.adopt
+        """Done in OUT, or to be adopted: what it started from is not needed, unless that is adopted too."""
+        return (self.done_file(stage).is_file() or stage in self.adopt) and not self._init_adopted(stage)
+
+    def _init_adopted(self, stage: str) -> bool:
+        """`stage` starts from a stage adopted too (in this call, or into OUT by an earlier one): then the chain goes
+        on to it, so that the checkpoint records how the adopted weights were trained, stage by stage."""
+        init = self.recipe.stage(stage).init
+        done = self.done_file(init) if init else None
+        return bool(init) and (init in self.adopt or (done.is_file() and "adopted" in json.loads(done.read_text())))
 
     def run_all(self) -> Path | None:
         """Build what is missing and assemble; returns the checkpoint, or None when the time cap stopped a stage
@@ -417,7 +424,11 @@ class RecipeRunner:
         reader = load_reader(self.checkpoint(est["reader"]))
         localiser = load_localiser(self.checkpoint(est["localiser"]))
         done = {s.name: json.loads(self.done_file(s.name).read_text()) for s in self.recipe.stages if self.done_file(s.name).is_file()}
-        stages = [done[s.name] for s in self.recipe.needed(lambda name: "adopted" in done[name])]  # the whole chain
+
+        def chain_ends(name: str) -> bool:  # at an adopted stage, unless what it started from was adopted too
+            return "adopted" in done[name] and not self._init_adopted(name)
+
+        stages = [done[s.name] for s in self.recipe.needed(chain_ends)]  # the whole chain
         training = {"recipe": self.recipe.as_dict(), "recipe_sha256": self.recipe.sha256, "stages": stages}
         config = dataclasses.replace(agm.config, reader=reader.config, localiser=localiser.config, training=training, **est["config"])
         path = self.checkpoint(self.name)
