@@ -321,8 +321,10 @@ class RecipeRunner:
         """`stage` starts from a stage adopted too (in this call, or into OUT by an earlier one): then the chain goes
         on to it, so that the checkpoint records how the adopted weights were trained, stage by stage."""
         init = self.recipe.stage(stage).init
-        done = self.done_file(init) if init else None
-        return bool(init) and (init in self.adopt or (done.is_file() and "adopted" in json.loads(done.read_text())))
+        if not init:
+            return False
+        done = self.done_file(init)
+        return init in self.adopt or (done.is_file() and "adopted" in json.loads(done.read_text()))
 
     def run_all(self) -> Path | None:
         """Build what is missing and assemble; returns the checkpoint, or None when the time cap stopped a stage
