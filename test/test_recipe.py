@@ -103,6 +103,15 @@ def test_a_short_recipe_builds_resumes_and_records_itself(lmo_dir, tmp_path):
     assert [{k: v for k, v in s.items() if k not in provenance} for s in records[1]] == [
         {k: v for k, v in s.items() if k not in provenance} for s in records[2]
     ]
+    # An estimator that no recipe assembled records how its AGM was trained, not its localiser: a localiser adopted
+    # from it has no record.
+    plain = Estimator.load(again)
+    plain = Estimator(dataclasses.replace(plain.config, training=stages[1]["training"]), plain.agm, plain.reader, "cpu", plain.localiser)
+    plain.save(tmp_path / "plain.safetensors")
+    from_plain = {**adopted, "localiser": str(tmp_path / "plain.safetensors")}
+    assembled = RecipeRunner(recipe, tmp_path / "plain", RunOptions(progress=False), from_plain).run_all()
+    stages_plain = Estimator.load(assembled).config.training["stages"]
+    assert "training" not in stages_plain[2] and stages_plain[1]["training"] == stages[1]["training"]
 
 
 @pytest.mark.parametrize(

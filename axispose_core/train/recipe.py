@@ -266,16 +266,17 @@ def _training_record(path: Path) -> dict[str, Any]:
     return dict(json.loads(meta.get("extra", "{}")).get("training", {}))
 
 
-def _stage_record(record: dict[str, Any], name: str) -> dict[str, Any]:
+def _stage_record(record: dict[str, Any], name: str, own: bool) -> dict[str, Any]:
     """What an adopted file's `training` record says of how stage `name` was made: where a recipe assembled the
     file, the record of its stage of that name, followed through that stage's own adoptions to the run that trained
     it (a checkpoint re-assembled from itself would otherwise nest its whole record once more each time); otherwise
-    the whole record."""
+    the whole record where it is this stage's (`own`), else nothing: an estimator's record tells how its AGM was
+    trained, not its localiser or reader."""
     while "recipe" in record and (stage := next((s for s in record.get("stages", ()) if s.get("name") == name), None)):
         if "training" not in stage:
             return {k: v for k, v in stage.items() if k not in ("name", "config_sha256")}
-        record = stage["training"]
-    return record
+        record, own = stage["training"], True
+    return record if own else {}
 
 
 def _saved_step(state: Path) -> int:
@@ -388,7 +389,8 @@ class RecipeRunner:
         adopted file's record says of this stage (`_stage_record`)."""
         record = _training_record(self.checkpoint(stage.name))
         if "adopted" in extra:
-            record = {"training": _stage_record(record, stage.name)} if record else {}
+            own = stage.trainer == "agm" or read_metadata(self.checkpoint(stage.name), None).get("kind") != ESTIMATOR
+            record = {"training": found} if (found := _stage_record(record, stage.name, own)) else {}
         else:
             record.pop("data", None)
         record = {"name": stage.name, "config_sha256": stage.sha256, **record, **extra}
