@@ -1,0 +1,30 @@
+"""How far a scene's consecutive frames lie apart (`tracking/motion.py`): the camera's rotation between frames, how
+far the objects' centres move in the image, and how often an object moves against the rest (its centre more than
+`--tol` off the camera's motion: the object moved, or its annotation did).
+
+    python bench/sequence_motion.py ../shared/data/lmo_real_val/test/000002 [SCENE ...] [--tol 0.02]
+"""
+
+from __future__ import annotations
+
+import argparse
+
+from axispose_core.data.bop import BopScene
+from axispose_core.tracking.motion import scene_motion
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("scenes", nargs="+", help="BOP scene folders (scene_gt.json, scene_camera.json)")
+    ap.add_argument("--tol", type=float, default=0.02, help="an object off the camera's motion by more than this (m) moved")
+    args = ap.parse_args()
+    for root in args.scenes:
+        m = scene_motion(BopScene(root), args.tol)
+        print(f"{root}: {m['frames']} frames; between consecutive frames the camera turns {m['rotation_deg_median']:.1f}° "
+              f"(q75 {m['rotation_deg_q75']:.1f}°), objects move {m['image_motion_px_median']:.0f} px "
+              f"(q75 {m['image_motion_px_q75']:.0f} px) in the image; {m['objects_moved_share']:.1%} of object steps "
+              "move against the rest")  # fmt: skip
+
+
+if __name__ == "__main__":
+    main()
