@@ -19,7 +19,10 @@ def main() -> None:
     ap.add_argument("--tol", type=float, default=0.02, help="an object off the camera's motion by more than this (m) moved")
     args = ap.parse_args()
     for root in args.scenes:
-        m = scene_motion(BopScene(root), args.tol)
+        try:
+            m = scene_motion(BopScene(root), args.tol)
+        except (OSError, ValueError) as exc:
+            ap.exit(2, f"sequence_motion: {exc}\n")
         print(f"{root}: {m['frames']} frames; between consecutive frames the camera turns {m['rotation_deg_median']:.1f}° "
               f"(q75 {m['rotation_deg_q75']:.1f}°), objects move {m['image_motion_px_median']:.0f} px "
               f"(q75 {m['image_motion_px_q75']:.0f} px) in the image; {m['objects_moved_share']:.1%} of object steps "

@@ -44,7 +44,8 @@ def _angle_deg(R: np.ndarray) -> float:
 
 def scene_motion(scene: BopScene, tol: float) -> dict[str, float]:
     """Median and 75th percentile of the camera's rotation (deg) and of the objects' image motion (px) between
-    consecutive frames, and the share of object steps that move against the rest."""
+    consecutive frames, and the share of object steps that move against the rest; ValueError where no two consecutive
+    frames share an object."""
     ids = sorted(scene.gt)
     rotation, pixels, moved, steps = [], [], 0, 0
     for im_a, im_b in itertools.pairwise(ids):
@@ -60,6 +61,8 @@ def scene_motion(scene: BopScene, tol: float) -> dict[str, float]:
             if g.obj_id in after:
                 p, q = K @ g.t, K @ after[g.obj_id]
                 pixels.append(float(np.linalg.norm(p[:2] / p[2] - q[:2] / q[2])))
+    if not rotation:
+        raise ValueError(f"{scene.root}: no two consecutive frames share an annotated object")
     return {
         "frames": len(ids),
         "rotation_deg_median": float(np.median(rotation)),
