@@ -14,7 +14,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from axispose_core.metrics import Symmetry, nearest_truth
+from axispose_core.metrics import Symmetry, nearest_truth, re
 
 
 @dataclass(frozen=True)
@@ -27,10 +27,6 @@ class PosePair:
     t_pred: np.ndarray
     R_gt: np.ndarray
     t_gt: np.ndarray
-
-
-def _angle_deg(R: np.ndarray) -> float:
-    return float(np.degrees(np.arccos(np.clip((np.trace(R) - 1.0) / 2.0, -1.0, 1.0))))
 
 
 def jitter(pairs: Sequence[PosePair], syms: dict[int, Sequence[Symmetry]] | None = None) -> dict[str, float | int]:
@@ -50,6 +46,6 @@ def jitter(pairs: Sequence[PosePair], syms: dict[int, Sequence[Symmetry]] | None
             if frame - 1 in errors:
                 R_prev, t_prev = errors[frame - 1]
                 dt.append(1000.0 * float(np.linalg.norm(t_err - t_prev)))
-                dr.append(_angle_deg(R_err @ R_prev.T))
+                dr.append(re(R_err, R_prev))
     nan = float("nan")
     return {"jitter_mm": float(np.median(dt)) if dt else nan, "jitter_deg": float(np.median(dr)) if dr else nan, "n": len(dt)}

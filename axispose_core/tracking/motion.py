@@ -13,6 +13,7 @@ import itertools
 import numpy as np
 
 from axispose_core.data.bop import BopScene, GTInstance
+from axispose_core.metrics import re
 
 
 def _transform(R: np.ndarray, t: np.ndarray) -> np.ndarray:
@@ -29,17 +30,13 @@ def camera_motion(before: list[GTInstance], after: list[GTInstance], tol: float)
     common = sorted(set(a) & set(b))
     if not common:
         return None
-    best, best_off = None, None
+    best, best_off, best_on = None, None, -1
     for j in common:
         motion = b[j] @ np.linalg.inv(a[j])
         off = [float(np.linalg.norm((motion @ a[i])[:3, 3] - b[i][:3, 3])) for i in common]
-        if best_off is None or sum(o <= tol for o in off) > sum(o <= tol for o in best_off):
-            best, best_off = motion, off
+        if (on := sum(o <= tol for o in off)) > best_on:
+            best, best_off, best_on = motion, off, on
     return best, best_off
-
-
-def _angle_deg(R: np.ndarray) -> float:
-    return float(np.degrees(np.arccos(np.clip((np.trace(R) - 1.0) / 2.0, -1.0, 1.0))))
 
 
 def scene_motion(scene: BopScene, tol: float) -> dict[str, float]:
@@ -53,7 +50,7 @@ def scene_motion(scene: BopScene, tol: float) -> dict[str, float]:
         if found is None:
             continue
         motion, off = found
-        rotation.append(_angle_deg(motion[:3, :3]))
+        rotation.append(re(motion[:3, :3], np.eye(3)))
         moved, steps = moved + sum(o > tol for o in off), steps + len(off)
         K = scene.cameras[im_b]
         after = {g.obj_id: g.t for g in scene.gt[im_b]}

@@ -257,10 +257,9 @@ def load_recipe(path: str | Path) -> Recipe:
     return Recipe(str(raw.get("models", "")), data, tuple(stages), est)
 
 
-def _training_record(path: Path) -> dict[str, Any]:
-    """The `training` record a trainer wrote into its checkpoint (an estimator's config holds it, other kinds their
-    extra metadata)."""
-    meta = read_metadata(path, None)
+def _training_record(meta: dict[str, str]) -> dict[str, Any]:
+    """The `training` record a trainer wrote into its checkpoint, from the checkpoint's metadata (an estimator's config
+    holds it, other kinds their extra metadata)."""
     if meta.get("kind") == ESTIMATOR:
         return dict(json.loads(meta.get("config", "{}")).get("training", {}))
     return dict(json.loads(meta.get("extra", "{}")).get("training", {}))
@@ -387,9 +386,10 @@ class RecipeRunner:
     def _finish(self, stage: Stage, extra: dict[str, Any]) -> None:
         """Mark the stage done with its record: the trainer's (steps, time, hardware), or under "training" what an
         adopted file's record says of this stage (`_stage_record`)."""
-        record = _training_record(self.checkpoint(stage.name))
+        meta = read_metadata(self.checkpoint(stage.name), None)
+        record = _training_record(meta)
         if "adopted" in extra:
-            own = stage.trainer == "agm" or read_metadata(self.checkpoint(stage.name), None).get("kind") != ESTIMATOR
+            own = stage.trainer == "agm" or meta.get("kind") != ESTIMATOR
             record = {"training": found} if (found := _stage_record(record, stage.name, own)) else {}
         else:
             record.pop("data", None)
