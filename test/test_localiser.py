@@ -18,7 +18,7 @@ from axispose_core.data.bop import BopFormatError, BopScene
 from axispose_core.data.synth.config import SurfaceConfig
 from axispose_core.estimator import Estimator, EstimatorConfig
 from axispose_core.localiser.decode import Detection, decode, draw_targets, focal_loss, iou, match
-from axispose_core.localiser.model import STRIDE, Localiser, LocaliserConfig
+from axispose_core.localiser.model import STRIDE, Localiser, LocaliserConfig, build_localiser
 from axispose_core.localiser.scoring import detection_scores, frame_outcome
 from axispose_core.localiser.weights import KIND, load_localiser, warm_start
 from axispose_core.objects import objects_from_models
@@ -28,6 +28,7 @@ from axispose_core.train.localiser import LocaliserDataset, LocaliserTrainConfig
 from axispose_core.train.loop import OptimConfig, RunOptions
 from axispose_core.train.resume import state_path
 from axispose_core.trunks import ResidualBNConfig
+from axispose_core.trunks.efficientnet_lite import EfficientNetLiteConfig
 
 TINY = LocaliserConfig(obj_ids=(1, 5), input_size=(160, 128), trunk=ResidualBNConfig(widths=(8, 16, 24, 32)))
 
@@ -217,6 +218,27 @@ def test_the_fused_inference_copy_finds_what_the_trained_localiser_finds(frames,
     found, again = localiser.detect(rgb, threshold=0.05), fused.detect(rgb, threshold=0.05)
     assert found and [d.obj_id for d in found] == [d.obj_id for d in again]
     np.testing.assert_allclose([d.box for d in found], [d.box for d in again], atol=1e-2)
+
+
+def test_a_lite0_localiser_folds_its_batchnorm_too():
+    """The ImageNet trunk's layers (TensorFlow padding, depthwise convolutions) fold as the from-scratch trunk's do,
+    with BatchNorm statistics and affine parameters far from the identity."""
+    torch.manual_seed(0)
+    cfg = LocaliserConfig(obj_ids=(1, 5), input_size=(128, 96), trunk=EfficientNetLiteConfig(stages=5, weights="none"), neck=32)
+    net = build_localiser(cfg)
+    for m in net.modules():
+        if isinstance(m, torch.nn.BatchNorm2d):
+            m.running_mean.uniform_(-0.5, 0.5)
+            m.running_var.uniform_(0.5, 2.0)
+            m.weight.data.uniform_(0.5, 1.5)
+            m.bias.data.uniform_(-0.2, 0.2)
+    net.eval()
+    fused = net.fused()
+    assert not any(isinstance(m, torch.nn.BatchNorm2d) for m in fused.modules())
+    x = torch.randint(0, 256, (2, 3, 96, 128), dtype=torch.uint8)
+    with torch.inference_mode():
+        for a, b in zip(net(x), fused(x.contiguous(memory_format=torch.channels_last)), strict=True):
+            torch.testing.assert_close(a, b, atol=1e-4, rtol=1e-4)
 
 
 @pytest.fixture(scope="module")
