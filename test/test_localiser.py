@@ -14,6 +14,7 @@ from axispose_core.agm.model import AxisGenerator
 from axispose_core.camera import crop_transform, instance_crop, project
 from axispose_core.checkpoint import CheckpointError, read_checkpoint, stored_half
 from axispose_core.cli import _score_and_attach, main
+from axispose_core.config import config_from_dict
 from axispose_core.data.bop import BopFormatError, BopScene
 from axispose_core.data.synth.config import SurfaceConfig
 from axispose_core.estimator import Estimator, EstimatorConfig
@@ -29,6 +30,7 @@ from axispose_core.train.loop import OptimConfig, RunOptions
 from axispose_core.train.resume import state_path
 from axispose_core.trunks import ResidualBNConfig
 from axispose_core.trunks.efficientnet_lite import EfficientNetLiteConfig
+from axispose_core.trunks.style_mix import StyleMix
 
 TINY = LocaliserConfig(obj_ids=(1, 5), input_size=(160, 128), trunk=ResidualBNConfig(widths=(8, 16, 24, 32)))
 
@@ -252,6 +254,23 @@ def estimator_with_localiser(frames, trained, tmp_path_factory):
     return path
 
 
+def test_style_mixing_acts_while_the_localiser_trains_and_leaves_a_plain_localiser(frames, tmp_path, monkeypatch):
+    calls = []
+    forward = StyleMix.forward
+    monkeypatch.setattr(StyleMix, "forward", lambda self, x: calls.append(self.training) or forward(self, x))
+    cfg = config_from_dict(
+        LocaliserTrainConfig,
+        {"optim": {"steps": 2, "batch": 2, "warmup": 1, "workers": 0, "save_every": 1000}, "style_mix": {"prob": 1.0, "after": [1, 2]}},
+    )
+    cfg = replace(cfg, localiser=TINY)
+    assert cfg.style_mix.after == (1, 2)
+    train_localiser(cfg, [frames], tmp_path / "mixed.safetensors", run=RunOptions(progress=False))
+    assert calls.count(True) == 2 * 2  # after two stages, in each of two steps
+    trained = load_localiser(tmp_path / "mixed.safetensors")
+    assert trained.trunk.style_mix is None
+    assert trained.state_dict().keys() == Localiser(TINY).state_dict().keys()
+
+
 def test_estimator_checkpoint_carries_the_localiser(estimator_with_localiser, frames):
     est = Estimator.load(estimator_with_localiser)
     assert est.localiser is not None and est.config.localiser.obj_ids == (1, 5)
@@ -307,6 +326,15 @@ def test_a_fifth_width_adds_a_stride_32_context_stage():
     assert any(k.startswith("trunk.stages.4.") for k in deep.state_dict())
     with pytest.raises(ValueError, match="4 or 5 stages"):
         Localiser(LocaliserConfig(obj_ids=(1,), trunk=ResidualBNConfig(widths=(8, 16, 24))))
+
+
+def test_more_neck_blocks_add_residual_blocks_on_the_fused_map_and_keep_the_outputs_shape():
+    one, three = Localiser(TINY).eval(), Localiser(replace(TINY, neck_blocks=3)).eval()
+    assert len(three.fuse) == len(one.fuse) + 2
+    assert set(one.state_dict()) < set(three.state_dict())  # a one-block localiser's weights still load by name
+    frame = torch.zeros(1, 3, 128, 160, dtype=torch.uint8)
+    with torch.no_grad():
+        assert [t.shape for t in three(frame)] == [t.shape for t in one(frame)]
 
 
 def test_warm_start_copies_what_matches_and_leaves_the_rest_fresh(trained, estimator_with_localiser):

@@ -1,5 +1,6 @@
 """Trunks: the registry's stages and widths, the normalisation each owns, EfficientNet-Lite0's ImageNet weights
-(proved by classifying photographs), legacy weight names, and freezing and learning-rate groups in training."""
+(proved by classifying photographs), legacy weight names, freezing and learning-rate groups in training, and style
+mixing between stages."""
 
 from __future__ import annotations
 
@@ -23,6 +24,7 @@ from axispose_core.localiser.model import Localiser, LocaliserConfig
 from axispose_core.train.loop import OptimConfig, RunOptions, TrainJob, fit, param_groups, start_pretrained
 from axispose_core.trunks import TRUNKS, EfficientNetLiteConfig, ResidualBNConfig, ResidualGNConfig, build_trunk
 from axispose_core.trunks.efficientnet_lite import EfficientNetLiteClassifier, SamePad, imagenet_state, key_map, weights_file
+from axispose_core.trunks.style_mix import StyleMix, StyleMixConfig
 
 LITE = EfficientNetLiteConfig(weights="none")
 
@@ -166,3 +168,72 @@ def test_a_pretrained_trunk_starts_from_imagenet_with_its_first_stages_frozen_an
     assert not any(p.requires_grad for p in net.trunk.stages[:2].parameters())
     net.train()
     assert not net.trunk.stages[0].training and net.trunk.stages[2].training
+
+
+def test_style_mixing_keeps_each_samples_content_and_gives_it_a_mix_of_two_styles():
+    torch.manual_seed(0)
+    x = (torch.randn(6, 4, 5, 5) * (0.5 + 3 * torch.rand(6, 4, 1, 1)) + torch.randn(6, 4, 1, 1)).double()
+    mix = StyleMix(StyleMixConfig(prob=1.0, alpha=0.3))
+    assert torch.equal(mix.eval()(x), x)  # the identity outside training
+    y = mix.train()(x)
+
+    def stats(t: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        return t.mean((2, 3)), (t.var((2, 3)) + 1e-6).sqrt()
+
+    (mu, sigma), (mu_y, sigma_y) = stats(x), stats(y)
+    assert not torch.allclose(mu_y, mu, atol=1e-3)
+    standard = lambda t, m, s: (t - m[..., None, None]) / s[..., None, None]  # noqa: E731
+    torch.testing.assert_close(standard(y, mu_y, sigma_y), standard(x, mu, sigma), atol=1e-4, rtol=1e-4)
+    # each sample's new statistics lie between its own and one other sample's, with one weight for mean and spread
+    for i in range(6):
+        fits = []
+        for j in range(6):
+            w = ((mu_y[i] - mu[j]) / (mu[i] - mu[j])).median() if j != i else torch.tensor(1.0)
+            fits.append(torch.allclose(mu_y[i], w * mu[i] + (1 - w) * mu[j], atol=1e-4)
+                        and torch.allclose(sigma_y[i], w * sigma[i] + (1 - w) * sigma[j], atol=1e-4) and 0 <= w <= 1)  # fmt: skip
+        assert any(fits), i
+    assert torch.equal(StyleMix(StyleMixConfig(prob=0.0)).train()(x), x)
+
+
+def test_style_mixing_is_seeded_carries_no_weights_and_goes_only_between_stages():
+    trunk = build_trunk(LITE)
+    plain = {k: v.clone() for k, v in trunk.state_dict().items()}
+    trunk.mix_styles(StyleMixConfig(prob=1.0, after=(1, 2)))
+    assert trunk.state_dict().keys() == plain.keys()
+    images = trunk.normalise(_images(4, 64))
+    runs = []
+    for _ in range(2):
+        torch.manual_seed(3)
+        runs.append(trunk.train()(images))
+    assert all(torch.equal(a, b) for a, b in zip(runs[0], runs[1], strict=True))
+    with torch.no_grad():
+        mixed = trunk(images)
+        trunk.mix_styles(StyleMixConfig(prob=0.0))
+        unmixed = trunk(images)
+    assert torch.equal(mixed[0], unmixed[0]) and not torch.equal(mixed[1], unmixed[1])
+    with pytest.raises(ValueError, match="between stages"):
+        trunk.mix_styles(StyleMixConfig(prob=1.0, after=(3,)))
+    with pytest.raises(ValueError, match="probability"):
+        StyleMix(StyleMixConfig(prob=1.5))
+
+
+def test_a_trunk_may_keep_every_stages_batchnorm_statistics_while_its_later_stages_learn(tmp_path):
+    torch.manual_seed(0)
+    net = _Net()
+    cfg = _Config(OptimConfig(steps=3, batch=2, lr=1e-2, warmup=1, freeze_trunk=1, freeze_trunk_batchnorm=True))
+    start_pretrained(net)
+    images = _images(2, 32)
+
+    def batches(step: int):
+        while True:
+            yield {"image": images}
+
+    fit(TrainJob(cfg, net, batches, lambda model, batch, _: (model(batch["image"]) ** 2).mean(), tmp_path / "net.safetensors",
+                 lambda *a: None), RunOptions(progress=False))  # fmt: skip
+    state, after = imagenet_state(), net.trunk.state_dict()
+    statistics = [k for k in after if k.startswith(("stages.1.", "stages.2.")) and "running" in k]
+    weights = [k for k in after if k.startswith(("stages.1.", "stages.2.")) and "running" not in k and "num_batches" not in k]
+    assert statistics and all(torch.equal(after[k], state[k]) for k in statistics)
+    assert any(not torch.equal(after[k], state[k]) for k in weights)
+    net.train()
+    assert net.trunk.stages[2].training and not any(m.training for m in net.trunk.modules() if isinstance(m, nn.BatchNorm2d))

@@ -37,6 +37,8 @@ class LocaliserConfig:
     silhouette, which tell look-alike objects apart) is fused back into stride 16."""
     neck: int | None = None
     """Channels of the fused stride-8 map and the heads (None: the trunk's stride-8 width)."""
+    neck_blocks: int = 1
+    """Residual blocks on the fused stride-8 map before the heads: the layers that learn, where the trunk is frozen."""
     threshold: float = 0.3
     """Default score threshold of `detect`."""
     max_per_object: int = 3
@@ -68,7 +70,7 @@ class Localiser(nn.Module):
         neck = config.neck or c8
         if len(widths) == 5:
             self.fuse32 = conv_bn_act(c16 + widths[4], c16, 1)
-        self.fuse = nn.Sequential(conv_bn_act(c8 + c16, neck, 1), BNResidual(neck))
+        self.fuse = nn.Sequential(conv_bn_act(c8 + c16, neck, 1), *[BNResidual(neck) for _ in range(config.neck_blocks)])
         self.heat = nn.Sequential(conv_bn_act(neck, neck, 1), nn.Conv2d(neck, len(config.obj_ids), 1))
         self.size = nn.Sequential(conv_bn_act(neck, neck, 1), nn.Conv2d(neck, 2, 1))
         self.offset = nn.Sequential(conv_bn_act(neck, neck, 1), nn.Conv2d(neck, 2, 1))

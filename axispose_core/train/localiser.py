@@ -40,6 +40,7 @@ from axispose_core.train.loop import (
     training_device,
     training_record,
 )
+from axispose_core.trunks.style_mix import StyleMixConfig
 
 
 @dataclass(frozen=True)
@@ -58,6 +59,8 @@ class LocaliserTrainConfig:
     surface: SurfaceConfig = field(default_factory=SurfaceConfig)
     """Each object's own look (fine detail, colour response) varied on its visible pixels, one draw per instance, where
     the frames have BOP `mask_visib` files (off by default)."""
+    style_mix: StyleMixConfig = field(default_factory=StyleMixConfig)
+    """Feature statistics mixed between the frames of a batch after the trunk's middle stages (off by default)."""
 
 
 class LocaliserDataset(Dataset):
@@ -183,6 +186,7 @@ def train_localiser(
         return {"val_recall": scores["recall"], "val_precision": scores["precision"]}
 
     model = build_localiser(cfg.localiser)
+    model.trunk.mix_styles(cfg.style_mix)
     if not run.resume:
         start_pretrained(model)
     if init and not run.resume:

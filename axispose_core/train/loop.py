@@ -55,6 +55,8 @@ class OptimConfig:
     layers trained from scratch)."""
     freeze_trunk: int = 0
     """A pretrained trunk's first stages kept as loaded: no gradient, BatchNorm statistics fixed."""
+    freeze_trunk_batchnorm: bool = False
+    """A pretrained trunk's BatchNorm statistics fixed in every stage, the trainable ones included."""
 
 
 def warmup_cosine(step: int, warmup: int, total: int) -> float:
@@ -204,7 +206,7 @@ def _run_parts(job: TrainJob) -> RunParts:
     AdamW over `param_groups` and the warm-up-cosine schedule: what the resume state saves and restores."""
     optim: OptimConfig = job.cfg.optim
     for trunk in pretrained_trunks(job.model):
-        trunk.freeze(optim.freeze_trunk)
+        trunk.freeze(optim.freeze_trunk, optim.freeze_trunk_batchnorm)
     model = job.model.to(job.device)
     ema = copy.deepcopy(model).eval()
     opt = torch.optim.AdamW(param_groups(model, optim), lr=optim.lr, weight_decay=optim.weight_decay)

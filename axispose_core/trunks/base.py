@@ -1,10 +1,12 @@
 """What every trunk is: stages at strides 2, 4, 8, ..., their widths, its input normalisation, and what training may
-do to a pretrained one (freeze its first stages)."""
+do to it (freeze a pretrained one's first stages or its BatchNorm statistics, mix feature statistics between stages)."""
 
 from __future__ import annotations
 
 import torch
 from torch import nn
+
+from axispose_core.trunks.style_mix import StyleMix, StyleMixConfig
 
 MINUS_ONE_TO_ONE = ((0.5, 0.5, 0.5), (0.5, 0.5, 0.5))
 """(mean, std) of [0, 1] pixels that map them to [-1, 1]: what the from-scratch networks were trained on."""
@@ -22,6 +24,8 @@ class Trunk(nn.Module):
         super().__init__()
         self.stages = nn.ModuleList()
         self.frozen = 0
+        self.batchnorm_frozen = False
+        self.style_mix: StyleMix | None = None
 
     @property
     def pretrained(self) -> bool:
@@ -42,17 +46,20 @@ class Trunk(nn.Module):
     def forward(self, x: torch.Tensor) -> list[torch.Tensor]:
         """Every stage's output for a normalised input."""
         feats = []
-        for stage in self.stages:
+        for k, stage in enumerate(self.stages):
             x = stage(x)
+            if self.style_mix is not None and k in self.style_mix.config.after:
+                x = self.style_mix(x)
             feats.append(x)
         return feats
 
-    def freeze(self, stages: int) -> None:
+    def freeze(self, stages: int, batchnorm: bool = False) -> None:
         """Keep the first `stages` stages as they are: no gradients, BatchNorm statistics not updated (they stay in
-        eval mode whatever `train()` says)."""
+        eval mode whatever `train()` says). `batchnorm`: keep every stage's BatchNorm statistics as loaded, the
+        trainable stages' included, so that their features stay normalised as on the photographs they came from."""
         if not 0 <= stages <= len(self.stages):
             raise ValueError(f"cannot freeze {stages} of the trunk's {len(self.stages)} stages")
-        self.frozen = stages
+        self.frozen, self.batchnorm_frozen = stages, batchnorm
         for k, stage in enumerate(self.stages):
             stage.requires_grad_(k >= stages)
         self.train(self.training)
@@ -61,4 +68,15 @@ class Trunk(nn.Module):
         super().train(mode)
         for stage in list(self.stages)[: self.frozen]:
             stage.eval()
+        if self.batchnorm_frozen:
+            for norm in self.stages.modules():
+                if isinstance(norm, nn.modules.batchnorm._BatchNorm):
+                    norm.eval()
         return self
+
+    def mix_styles(self, config: StyleMixConfig) -> None:
+        """Mix feature statistics after the stages `config.after` names while training (`StyleMix`); no weights, so
+        checkpoints and inference are unchanged."""
+        if config.prob > 0 and any(not 0 <= k < len(self.stages) - 1 for k in config.after):
+            raise ValueError(f"style mixing goes between stages: after one of 0..{len(self.stages) - 2}, got {config.after}")
+        self.style_mix = StyleMix(config) if config.prob > 0 else None
