@@ -145,9 +145,8 @@ class _Config:
     optim: OptimConfig = field(default_factory=lambda: OptimConfig(steps=3, batch=2, lr=1e-2, warmup=1, trunk_lr=0.1, freeze_trunk=2))
 
 
-def test_a_pretrained_trunk_starts_from_imagenet_with_its_first_stages_frozen_and_the_rest_slowed(tmp_path):
-    torch.manual_seed(0)
-    net, cfg = _Net(), _Config()
+def _train_three_steps(net: _Net, cfg: _Config, tmp_path) -> None:
+    """`fit` on one batch of two images, from ImageNet weights, the squared output as the loss."""
     start_pretrained(net)
     images = _images(2, 32)
 
@@ -157,6 +156,12 @@ def test_a_pretrained_trunk_starts_from_imagenet_with_its_first_stages_frozen_an
 
     fit(TrainJob(cfg, net, batches, lambda model, batch, _: (model(batch["image"]) ** 2).mean(), tmp_path / "net.safetensors",
                  lambda *a: None), RunOptions(progress=False))  # fmt: skip
+
+
+def test_a_pretrained_trunk_starts_from_imagenet_with_its_first_stages_frozen_and_the_rest_slowed(tmp_path):
+    torch.manual_seed(0)
+    net, cfg = _Net(), _Config()
+    _train_three_steps(net, cfg, tmp_path)
     state = imagenet_state()
     after = net.trunk.state_dict()
     frozen = [k for k in after if k.startswith(("stages.0.", "stages.1."))]
@@ -221,15 +226,7 @@ def test_a_trunk_may_keep_every_stages_batchnorm_statistics_while_its_later_stag
     torch.manual_seed(0)
     net = _Net()
     cfg = _Config(OptimConfig(steps=3, batch=2, lr=1e-2, warmup=1, freeze_trunk=1, freeze_trunk_batchnorm=True))
-    start_pretrained(net)
-    images = _images(2, 32)
-
-    def batches(step: int):
-        while True:
-            yield {"image": images}
-
-    fit(TrainJob(cfg, net, batches, lambda model, batch, _: (model(batch["image"]) ** 2).mean(), tmp_path / "net.safetensors",
-                 lambda *a: None), RunOptions(progress=False))  # fmt: skip
+    _train_three_steps(net, cfg, tmp_path)
     state, after = imagenet_state(), net.trunk.state_dict()
     statistics = [k for k in after if k.startswith(("stages.1.", "stages.2.")) and "running" in k]
     weights = [k for k in after if k.startswith(("stages.1.", "stages.2.")) and "running" not in k and "num_batches" not in k]
