@@ -17,19 +17,16 @@ import torch
 from axispose_core.data.bop import bop_frames
 from axispose_core.data.visibility import gt_info_from_models
 from axispose_core.localiser.decode import Detection
-from axispose_core.localiser.scoring import frame_instances, frame_outcome
+from axispose_core.localiser.scoring import Instance, frame_instances, tally
 from axispose_core.localiser.weights import load_localiser
 
-Frames = list[tuple[list[Detection], list]]
+Frames = list[tuple[list[Detection], list[Instance]]]
 
 
-def score(frames: Frames, threshold: float, min_visib: float) -> tuple[float, float]:
-    """(recall, precision) of the detections at or above `threshold`."""
-    hits = alarms = instances = 0
-    for dets, insts in frames:
-        found, false = frame_outcome([d for d in dets if d.score >= threshold], insts, min_visib)
-        instances, hits, alarms = instances + len(found), hits + sum(found.values()), alarms + len(false)
-    return hits / max(instances, 1), hits / max(hits + alarms, 1)
+def score(frames: Frames, ids: tuple[int, ...], threshold: float, min_visib: float) -> tuple[float, float]:
+    """(recall, precision) over all instances of the detections at or above `threshold`."""
+    scores = tally([([d for d in dets if d.score >= threshold], insts) for dets, insts in frames], ids, min_visib)
+    return scores["recall"], scores["precision"]
 
 
 def main() -> None:
@@ -54,9 +51,9 @@ def main() -> None:
         localiser = load_localiser(path).fused()
         ids = localiser.config.obj_ids
         frames = {k: [(localiser.detect(rgb, threshold=0.05), frame_instances(s, i, ids)) for s, i, rgb in v] for k, v in images.items()}
-        threshold = next((float(t) for t in grid if score(frames["val"], t, args.min_visib)[1] >= args.target), float(grid[-1]))
-        at = {k: score(v, threshold, args.min_visib) for k, v in frames.items()}
-        default = {k: score(v, 0.3, args.min_visib) for k, v in frames.items()}
+        threshold = next((float(t) for t in grid if score(frames["val"], ids, t, args.min_visib)[1] >= args.target), float(grid[-1]))
+        at = {k: score(v, ids, threshold, args.min_visib) for k, v in frames.items()}
+        default = {k: score(v, ids, 0.3, args.min_visib) for k, v in frames.items()}
         out["runs"][name] = {"threshold": threshold, "at_threshold": at, "at_0.3": default}
         shown = " | ".join(f"{k}: {r:.3f} / {p:.3f}" for k, (r, p) in at.items())
         print(f"{name}: threshold {threshold:.2f} | {shown}", flush=True)
