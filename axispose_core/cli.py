@@ -53,7 +53,7 @@ def _yaml_mapping(text: str) -> dict:
 def _synth(args: argparse.Namespace) -> int:
     from axispose_core.config import ConfigError, config_from_dict
     from axispose_core.data.bop import BopFormatError, load_camera
-    from axispose_core.data.synth.config import CameraPathConfig, RandomizationConfig, SynthConfig, recipe
+    from axispose_core.data.synth.config import CameraPathConfig, RandomizationConfig, SceneConfig, SynthConfig, recipe
     from axispose_core.data.synth.generate import generate
 
     K = SynthConfig().K
@@ -61,6 +61,8 @@ def _synth(args: argparse.Namespace) -> int:
         scene, randomization = recipe(args.recipe)
         if args.randomization:
             randomization = config_from_dict(RandomizationConfig, _yaml_mapping(args.randomization), "--randomization", randomization)
+        if args.scene:
+            scene = config_from_dict(SceneConfig, _yaml_mapping(args.scene), "--scene", scene)
     except (ConfigError, TypeError, ValueError) as err:
         print(f"axispose synth: {err}", file=sys.stderr)
         return 2
@@ -469,6 +471,8 @@ def build_parser(commands: Callable[[AddParser], None] | None = None) -> argpars
                     "earlier models), desk-held-out (the desk's held-out meshes and photographs: stress sets)")  # fmt: skip
     sy.add_argument("--randomization", metavar="YAML", help="the recipe's look changed where this YAML mapping (or file of "
                     "one) says, e.g. '{light: {ambient: [0.15, 1.0]}}': a partial RandomizationConfig (data/synth/config.py)")  # fmt: skip
+    sy.add_argument("--scene", metavar="YAML", help="the recipe's scenes changed where this YAML mapping (or file of one) "
+                    "says, e.g. '{lookalike_prob: 0.5}': a partial SceneConfig (data/synth/config.py)")  # fmt: skip
     sy.add_argument("--objects", type=object_ids, default=[], help="comma-separated object ids (default: all in models_info.json)")
     sy.add_argument("--width", type=int, default=640)
     sy.add_argument("--height", type=int, default=480)

@@ -144,6 +144,58 @@ def test_distractor_meshes_are_drawn_when_asked_and_only_then(models, monkeypatc
     assert calls == []
 
 
+def test_lookalike_distractors_wear_an_objects_own_colour_on_their_own_shape():
+    rng = np.random.default_rng(3)
+    mesh = clutter.distractor_mesh(rng, 0.05, "train", BackgroundConfig())
+    palettes = [np.array([[0.1, 0.2, 0.9]] * 5), np.array([[0.9, 0.8, 0.1]] * 7)]
+    tint = np.array([1.1, 1.0, 0.9])
+    seen = set()
+    for seed in range(12):
+        out = clutter.lookalike(np.random.default_rng(seed), mesh, palettes, tint)
+        assert out.vertices is mesh.vertices and out.faces is mesh.faces and out.normals is mesh.normals
+        base = np.median(out.colors, axis=0)
+        near = [float(np.abs(base - np.clip(p[0] * tint, 0, 1)).max()) for p in palettes]
+        assert min(near) < 0.05  # one palette's colour, tinted, under noise
+        seen.add(int(np.argmin(near)))
+        assert (out.colors >= 0).all() and (out.colors <= 1).all()
+        np.testing.assert_array_equal(out.colors, clutter.lookalike(np.random.default_rng(seed), mesh, palettes, tint).colors)
+    assert seen == {0, 1}
+
+
+def test_lookalikes_recolour_distractors_when_asked_and_only_then(models, monkeypatch):
+    calls = []
+    real = generate.lookalike
+
+    def counted(rng, mesh, palettes, tint):
+        calls.append(len(palettes))
+        for palette, i in zip(palettes, OBJECTS, strict=True):
+            np.testing.assert_array_equal(palette, models[0][i].colors)
+        return real(rng, mesh, palettes, tint)
+
+    distractors = []
+
+    def drawn(make):
+        def counted_distractor(*args, **kwargs):
+            distractors.append(make)
+            return make(*args, **kwargs)
+
+        return counted_distractor
+
+    monkeypatch.setattr(generate, "lookalike", counted)
+    monkeypatch.setattr(generate, "distractor_mesh", drawn(generate.distractor_mesh))
+    monkeypatch.setattr(generate, "primitive", drawn(generate.primitive))
+    base = render_image(DESK, *models, 1, 0)
+    assert calls == [] and len(distractors) >= 2
+    distractors.clear()
+    every = render_image(replace(DESK, scene=replace(DESK.scene, lookalike_prob=1.0)), *models, 1, 0)
+    assert len(calls) == len(distractors) >= 2 and set(calls) == {len(OBJECTS)}
+    for a, b in zip(every.gt, base.gt, strict=True):  # the same scene, only the distractors' colours changed
+        assert a.obj_id == b.obj_id and np.array_equal(a.R, b.R) and np.array_equal(a.t, b.t)
+    assert not np.array_equal(every.rgb, base.rgb)
+    with pytest.raises(ValueError, match="lookalike_prob"):
+        SceneConfig(lookalike_prob=1.5)
+
+
 @pytest.mark.slow
 def test_held_out_meshes_never_reach_the_training_split():
     train, held_out, every = (set(clutter.library(s)) for s in ("train", "held_out", "all"))

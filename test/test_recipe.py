@@ -125,6 +125,7 @@ def test_a_short_recipe_builds_resumes_and_records_itself(lmo_dir, tmp_path):
         (lambda r: r["estimator"].update(localiser="agm"), "localiser must name a localiser stage"),
         (lambda r: r["estimator"]["config"].update(ddim_stpes=2), "ddim_stpes"),
         (lambda r: r["data"]["frames"].update(randomization={"light": {"ambiant": [0.2, 1.0]}}), "ambiant"),
+        (lambda r: r["data"]["frames"].update(scene={"lookalike": 0.5}), "lookalike"),
     ],
 )
 def test_a_recipe_with_a_mistake_is_refused_before_training(lmo_dir, tmp_path, capsys, edit, message):
@@ -210,7 +211,7 @@ def test_the_pretrained_variant_recipe_differs_from_the_shipped_one_in_its_trunk
     assert variant.estimator["config"] == {k: v for k, v in shipped.estimator["config"].items() if k != "head_offaxis"}
 
 
-def test_a_data_entry_changes_only_the_part_of_its_frame_recipes_look_it_names():
+def test_a_data_entry_changes_only_the_part_of_its_frame_recipes_scenes_and_look_it_names():
     from axispose_core.data.synth.config import recipe as synth_recipe
     from axispose_core.train.recipe import _synth_config
 
@@ -220,3 +221,6 @@ def test_a_data_entry_changes_only_the_part_of_its_frame_recipes_look_it_names()
     assert cfg.randomization.light.ambient == (0.15, 1.0)
     assert cfg.randomization == dataclasses.replace(desk, light=dataclasses.replace(desk.light, ambient=(0.15, 1.0)))
     assert _synth_config({"scenes": 2, "seed": 5, "recipe": "desk"}).randomization == desk
+    scene, _ = synth_recipe("desk")
+    alike = _synth_config({**spec, "scene": {"lookalike_prob": 0.5}})
+    assert alike.scene == dataclasses.replace(scene, lookalike_prob=0.5) and alike.randomization == cfg.randomization

@@ -214,7 +214,7 @@ def test_a_camera_path_films_one_world(meshes):
     assert np.array_equal(render_image(cfg, meshes, diameters, 0, 2).rgb, frames[2].rgb)
 
 
-def test_the_cli_changes_the_recipes_look_where_told_and_refuses_a_bad_change(lmo_dir, tmp_path, capsys):
+def test_the_cli_changes_the_recipes_look_and_scenes_where_told_and_refuses_a_bad_change(lmo_dir, tmp_path, capsys):
     from axispose_core.cli import main
     from axispose_core.data.synth.config import recipe
 
@@ -226,8 +226,20 @@ def test_the_cli_changes_the_recipes_look_where_told_and_refuses_a_bad_change(lm
     assert SynthConfig.load(out / "synth_config.json").randomization == dataclasses.replace(plain, light=light)
     capsys.readouterr()  # the render's progress
 
-    for bad, message in (("{light: {ambiant: 1}}", "ambiant"), ("[1, 2]", "expected a YAML mapping")):
-        assert main([*base, "--out", str(tmp_path / "bad"), "--randomization", bad]) == 2
+    alike = tmp_path / "alike"
+    assert main([*base, "--out", str(alike), "--scene", "{lookalike_prob: 0.5, distractors_per_image: [2, 3]}"]) == 0
+    scene, _ = recipe("plain")
+    wanted = dataclasses.replace(scene, lookalike_prob=0.5, distractors_per_image=(2, 3))
+    assert SynthConfig.load(alike / "synth_config.json").scene == wanted
+    capsys.readouterr()
+
+    for option, bad, message in (
+        ("--randomization", "{light: {ambiant: 1}}", "ambiant"),
+        ("--randomization", "[1, 2]", "expected a YAML mapping"),
+        ("--scene", "{lookalike: 0.5}", "lookalike"),
+        ("--scene", "{lookalike_prob: 2}", "lookalike_prob must lie in [0, 1]"),
+    ):
+        assert main([*base, "--out", str(tmp_path / "bad"), option, bad]) == 2
         err = capsys.readouterr().err
         assert message in err and len(err.strip().splitlines()) == 1
     assert not (tmp_path / "bad").exists()

@@ -37,7 +37,7 @@ import yaml
 from axispose_core.agm.model import fresh_trunk
 from axispose_core.checkpoint import ESTIMATOR, read_metadata
 from axispose_core.config import ConfigError, config_from_dict
-from axispose_core.data.synth.config import RandomizationConfig, SynthConfig
+from axispose_core.data.synth.config import RandomizationConfig, SceneConfig, SynthConfig
 from axispose_core.data.synth.config import recipe as synth_recipe
 from axispose_core.data.synth.generate import generate
 from axispose_core.estimator import Estimator, EstimatorConfig
@@ -54,7 +54,7 @@ from axispose_core.train.sources import CropSources
 CONFIGS: dict[str, type] = {"reader": ReaderTrainConfig, "agm": TrainConfig, "localiser": LocaliserTrainConfig}
 """Each trainer's config class, by the name a stage gives as its `trainer`."""
 
-SYNTH_KEYS = {"scenes", "images_per_scene", "seed", "recipe", "depth", "objects", "randomization"}
+SYNTH_KEYS = {"scenes", "images_per_scene", "seed", "recipe", "depth", "objects", "scene", "randomization"}
 STAGE_KEYS = {"name", "trainer", "config", "changes", "init", "fresh_trunk", "data", "val", "schedule"}
 ESTIMATOR_KEYS = {"agm", "reader", "localiser", "config", "half"}
 ESTIMATOR_SETTINGS = {f.name for f in dataclasses.fields(EstimatorConfig)} - {"agm", "reader", "objects", "training", "localiser"}
@@ -284,9 +284,11 @@ def _saved_step(state: Path) -> int:
 
 
 def _synth_config(spec: dict[str, Any]) -> SynthConfig:
-    """A data entry's frames: its frame recipe's scenes and look, the look changed where `randomization` says (a
-    partial RandomizationConfig: what it leaves out stays the frame recipe's)."""
+    """A data entry's frames: its frame recipe's scenes and look, changed where `scene` and `randomization` say
+    (a partial SceneConfig and RandomizationConfig: what they leave out stays the frame recipe's)."""
     scene, randomization = synth_recipe(spec.get("recipe", "plain"))
+    if "scene" in spec:
+        scene = config_from_dict(SceneConfig, spec["scene"], "scene", scene)
     if "randomization" in spec:
         randomization = config_from_dict(RandomizationConfig, spec["randomization"], "randomization", randomization)
     return SynthConfig(

@@ -100,3 +100,13 @@ def distractor_mesh(
         px = np.clip(np.rint((uv / radius + 1) * 0.5 * (TEXTURE - 1)), 0, TEXTURE - 1).astype(np.int64)
         colors = texture[px[:, 1], px[:, 0]]
     return RenderMesh(v, f, np.clip(colors, 0, 1).astype(np.float64), normals)
+
+
+def lookalike(rng: np.random.Generator, mesh: RenderMesh, palettes: list[np.ndarray], tint: np.ndarray) -> RenderMesh:
+    """`mesh` coloured flat in one object's own colour (a random vertex colour of a random palette, the objects'
+    vertex colours), times `tint` as the objects are, with the flat distractors' noise: an object's colour on a
+    shape that is not the object, the hard negative a real desk's clutter is."""
+    palette = palettes[int(rng.integers(len(palettes)))]
+    base = palette[int(rng.integers(len(palette)))] * tint
+    colors = base + rng.normal(0, rng.uniform(0, 0.1), (len(mesh.vertices), 3))
+    return RenderMesh(mesh.vertices, mesh.faces, np.clip(colors, 0, 1).astype(np.float64), mesh.normals)

@@ -54,6 +54,10 @@ class SceneConfig:
     """Share of the distractors that are pybullet_data meshes (`clutter.py`) rather than primitive shapes."""
     distractor_split: str = "train"
     """Which of those meshes: "train" (nine in ten), "held_out" (the tenth, for stress sets) or "all"."""
+    lookalike_prob: float = 0.0
+    """Share of the distractors coloured in one of the objects' own colours (`clutter.lookalike_colours`): a real
+    scene's clutter shares colours with the objects (a blue toy car beside the blue hole punch, a yellow box beside
+    the duck), and a localiser that knows an object by its colour fires on them; these make shape tell them apart."""
     table_prob: float = 0.0
     """Share of frames whose objects rest on a textured table top (`table.py`) instead of floating in front of
     the background."""
@@ -66,6 +70,8 @@ class SceneConfig:
 
     def __post_init__(self) -> None:
         _check_split(self.distractor_split)
+        if not 0.0 <= self.lookalike_prob <= 1.0:
+            raise ValueError(f"lookalike_prob must lie in [0, 1], got {self.lookalike_prob}")
 
 
 @dataclass(frozen=True)

@@ -33,7 +33,7 @@ from axispose_core.data.bop import (
     write_scene_gt_info,
 )
 from axispose_core.data.meshes import load_render_mesh
-from axispose_core.data.synth.clutter import distractor_mesh
+from axispose_core.data.synth.clutter import distractor_mesh, lookalike
 from axispose_core.data.synth.config import TABLE_TEXTURE, CameraPathConfig, SynthConfig
 from axispose_core.data.synth.randomize import background, camera_effects, cutouts, light, object_tint
 from axispose_core.data.synth.raster import Light, RenderMesh, render
@@ -85,6 +85,7 @@ def sample_world(cfg: SynthConfig, meshes: dict[int, RenderMesh], diameters: dic
         table_top = background(rng, rcfg.table_top, TABLE_TEXTURE, TABLE_TEXTURE), rng.uniform(*cfg.scene.table_texel)
     placements, table = sample_scene(rng, cfg.scene, radii, K, w, h, table_top)
     own_faces = frozenset(len(m.faces) for m in meshes.values())
+    palettes = [meshes[i].colors for i in sorted(meshes)]
     posed = []
     for i, p in enumerate(placements):
         if p.obj_id:
@@ -94,6 +95,8 @@ def sample_world(cfg: SynthConfig, meshes: dict[int, RenderMesh], diameters: dic
             m = distractor_mesh(rng, p.radius, cfg.scene.distractor_split, rcfg.background, own_faces)
         else:
             m = primitive(rng, p.radius)
+        if not p.obj_id and cfg.scene.lookalike_prob > 0 and rng.uniform() < cfg.scene.lookalike_prob:
+            m = lookalike(rng, m, palettes, object_tint(rng, rcfg.light))
         if table is not None:
             placements[i] = p = Placement(p.obj_id, p.R, rest_on(table, m, p.R, p.t), p.radius)
         posed.append((m, p.R, p.t))
