@@ -10,12 +10,16 @@ IoU >= 0.5 scoring under it), a poor box (one of its object above it that did no
 for another object (a detection of a different object at IoU >= 0.5 above it), or nothing there. Prints tables
 and writes JSON. `--across-objects IOU` first drops every detection that overlaps a higher-scoring detection of
 another object at IoU >= IOU (class-agnostic NMS on top of the per-object peaks), to see whether confusions
-between objects can be removed that way.
+between objects can be removed that way. False alarms are also counted per object and, with `--sheet PNG`, drawn
+as a contact sheet of their crops (object id, kind, score): what the localiser takes for an object. `--models`
+gives frames without scene_gt_info.json (the real slice) their visibility from the object models.
 Recall at the checkpoint's threshold comes with its instance counts and a 95 % Wilson interval, so a held-out set's
 size shows in the figure; `--data` may be given several times to pool sets.
 
     python bench/localiser_breakdown.py --checkpoint stage1=runs/det_long/localiser.safetensors \\
         --checkpoint shipped=axispose_core/models/axispose_lmo.safetensors --data data/lmo_val
+    python bench/localiser_breakdown.py --checkpoint lite0=LOCALISER.safetensors --min-visib 0.1 \\
+        --data ../shared/data/lmo_real_val/test --models ../shared/data/lmo/models_eval --sheet /tmp/alarms.png
 """
 
 from __future__ import annotations
@@ -24,6 +28,7 @@ import argparse
 import datetime
 import platform
 
+import cv2
 import numpy as np
 import torch
 from scipy.stats import binomtest
@@ -31,6 +36,7 @@ from tqdm import tqdm
 from write_results import write_results
 
 from axispose_core.data.bop import BopScene, bop_frames
+from axispose_core.data.visibility import gt_info_from_models
 from axispose_core.localiser.decode import Detection, iou
 from axispose_core.localiser.model import Localiser
 from axispose_core.localiser.scoring import frame_instances, frame_outcome
@@ -39,6 +45,8 @@ from axispose_core.localiser.weights import load_localiser
 THRESHOLDS = (0.05, 0.1, 0.15, 0.2, 0.25, 0.3, 0.4, 0.5, 0.6, 0.7)
 VISIB = ((0.3, 0.5), (0.5, 0.8), (0.8, 1.01))
 SIZES = ((0, 60), (60, 100), (100, 160), (160, 10_000))
+TILE = 128
+"""Side (px) of a false alarm's crop on the sheet."""
 
 
 def miss_kind(inst: tuple[int, tuple[float, float, float, float], float], dets: list[Detection], threshold: float) -> str:
@@ -63,14 +71,42 @@ def suppress_across_objects(dets: list[Detection], min_iou: float) -> list[Detec
     return kept
 
 
-def breakdown(model: Localiser, frames: list[tuple[BopScene, int]], min_visib: float, across_objects: float | None = None) -> dict:
+def alarm_tile(image: np.ndarray, det: Detection, kind: str) -> np.ndarray:
+    """The false alarm's box with a quarter of its side around it, as a labelled BGR tile."""
+    x, y, w, h = det.box
+    x0, y0 = max(0, int(x - w / 4)), max(0, int(y - h / 4))
+    x1, y1 = min(image.shape[1], int(x + 1.25 * w) + 1), min(image.shape[0], int(y + 1.25 * h) + 1)
+    tile = cv2.resize(np.ascontiguousarray(image[y0:y1, x0:x1, ::-1]), (TILE, TILE))
+    cv2.putText(tile, f"{det.obj_id} {kind} {det.score:.2f}", (2, 12), cv2.FONT_HERSHEY_SIMPLEX, 0.4, (0, 255, 0), 1)
+    return tile
+
+
+def write_sheet(path: str, tiles: list[np.ndarray], columns: int = 12) -> None:
+    rows = max(1, -(-len(tiles) // columns))
+    sheet = np.zeros((rows * TILE, columns * TILE, 3), np.uint8)
+    for k, tile in enumerate(tiles):
+        r, c = divmod(k, columns)
+        sheet[r * TILE : (r + 1) * TILE, c * TILE : (c + 1) * TILE] = tile
+    cv2.imwrite(path, sheet)
+
+
+def breakdown(
+    model: Localiser,
+    frames: list[tuple[BopScene, int]],
+    min_visib: float,
+    across_objects: float | None = None,
+    tiles: list[np.ndarray] | None = None,
+) -> dict:
+    """The breakdown at the checkpoint's threshold and the sweep; each false alarm's tile appended to `tiles`."""
     sweep = {t: [0, 0, 0] for t in THRESHOLDS}  # hits, false alarms, GT
     at = model.config.threshold
     found, visib, size = [], [], []
     alarms = {"other_object": 0, "poor_box": 0, "background": 0}
+    alarms_by_object = {obj: dict.fromkeys(alarms, 0) for obj in model.config.obj_ids}
     misses = {"low_score": 0, "poor_box": 0, "other_object": 0, "nothing": 0}
     for scene, im_id in tqdm(frames, desc="detect", leave=False):
-        all_dets = model.detect(scene.rgb(im_id), threshold=min(THRESHOLDS))
+        image = scene.rgb(im_id)
+        all_dets = model.detect(image, threshold=min(THRESHOLDS))
         if across_objects is not None:
             all_dets = suppress_across_objects(all_dets, across_objects)
         insts = frame_instances(scene, im_id, model.config.obj_ids)
@@ -92,7 +128,11 @@ def breakdown(model: Localiser, frames: list[tuple[BopScene, int]], min_visib: f
             for d in (dets[k] for k in false_alarms):
                 same = max([iou(d.box, b) for o, b, _ in insts if o == d.obj_id], default=0.0)
                 other = max([iou(d.box, b) for o, b, _ in insts if o != d.obj_id], default=0.0)
-                alarms["other_object" if other >= 0.3 and same < 0.1 else "poor_box" if same >= 0.1 else "background"] += 1
+                kind = "other_object" if other >= 0.3 and same < 0.1 else "poor_box" if same >= 0.1 else "background"
+                alarms[kind] += 1
+                alarms_by_object[d.obj_id][kind] += 1
+                if tiles is not None:
+                    tiles.append(alarm_tile(image, d, kind))
     found_a, visib_a, size_a = np.array(found), np.array(visib), np.array(size)
 
     def band(values: np.ndarray, lo: float, hi: float) -> dict:
@@ -113,6 +153,7 @@ def breakdown(model: Localiser, frames: list[tuple[BopScene, int]], min_visib: f
         "by_visibility": [band(visib_a, lo, hi) for lo, hi in VISIB],
         "by_box_side_px": [band(size_a, lo, hi) for lo, hi in SIZES],
         "false_alarms": alarms,
+        "false_alarms_by_object": {str(obj): kinds for obj, kinds in alarms_by_object.items()},
         "misses": misses,
     }
 
@@ -124,16 +165,22 @@ def main() -> None:
     ap.add_argument("--min-visib", type=float, default=0.3)
     ap.add_argument("--across-objects", type=float, default=None, metavar="IOU",
                     help="drop detections overlapping a better one of another object at IoU >= IOU")  # fmt: skip
+    ap.add_argument("--models", default=None, help="BOP models folder: visibility of frames without scene_gt_info.json")
+    ap.add_argument("--sheet", default=None, metavar="PNG", help="false alarms as a contact sheet (_LABEL added with several checkpoints)")
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--json", default="bench/results/localiser_breakdown.json")
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
-    frames = bop_frames(args.data)
+    frames = bop_frames(args.data, gt_info_from_models(args.models))
     results = {}
     for item in args.checkpoint:
         label, _, path = item.partition("=")
         model = load_localiser(path)
-        r = results[label] = breakdown(model, frames, args.min_visib, args.across_objects) | {"checkpoint": path}
+        tiles: list[np.ndarray] | None = [] if args.sheet else None
+        r = results[label] = breakdown(model, frames, args.min_visib, args.across_objects, tiles) | {"checkpoint": path}
+        if tiles is not None:
+            r["sheet"] = args.sheet if len(args.checkpoint) == 1 else args.sheet.replace(".png", f"_{label}.png")
+            write_sheet(r["sheet"], tiles)
         lo, hi = r["recall_ci95"]
         print(f"\n{label} ({path}), {len(frames)} frames; recall {r['recall']:.3f} ({r['hits']}/{r['instances']}, "
               f"95 % interval {lo:.3f}-{hi:.3f}) at its threshold {r['threshold']}")  # fmt: skip
@@ -143,10 +190,11 @@ def main() -> None:
         for name, key in (("visib_fract", "by_visibility"), ("box side px", "by_box_side_px")):
             print(f"{name:<11}" + "  ".join(f"[{b['range'][0]:g},{b['range'][1]:g}) n={b['n']} {b['recall']:.3f}" for b in r[key]))
         print("false alarms: " + ", ".join(f"{k} {v}" for k, v in r["false_alarms"].items()))
+        print("  by object: " + ", ".join(f"{o} {sum(k.values())}" for o, k in r["false_alarms_by_object"].items()))
         print("misses: " + ", ".join(f"{k} {v}" for k, v in r["misses"].items()))
     meta = {"machine": f"{platform.machine()} {platform.processor()}".strip(), "threads": args.threads,
             "date": datetime.date.today().isoformat(), "data": args.data, "frames": len(frames),
-            "across_objects": args.across_objects}  # fmt: skip
+            "across_objects": args.across_objects, "min_visib": args.min_visib}  # fmt: skip
     write_results(args.json, meta | {"results": results})
 
 
