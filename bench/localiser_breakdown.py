@@ -10,8 +10,9 @@ IoU >= 0.5 scoring under it), a poor box (one of its object above it that did no
 for another object (a detection of a different object at IoU >= 0.5 above it), or nothing there. Prints tables
 and writes JSON. `--across-objects IOU` first drops every detection that overlaps a higher-scoring detection of
 another object at IoU >= IOU (class-agnostic NMS on top of the per-object peaks), to see whether confusions
-between objects can be removed that way. False alarms are also counted per object and, with `--sheet PNG`, drawn
-as a contact sheet of their crops (object id, kind, score): what the localiser takes for an object. `--models`
+between objects can be removed that way. False alarms are also counted per object, and `--sheet PNG` draws them
+and the misses as contact sheets of their crops (PNG_alarms.png: object id, kind, score; PNG_misses.png: object id,
+kind, visibility): what the localiser takes for an object, and what it does not see. `--models`
 gives frames without scene_gt_info.json (the real slice) their visibility from the object models.
 Recall at the checkpoint's threshold comes with its instance counts and a 95 % Wilson interval, so a held-out set's
 size shows in the figure; `--data` may be given several times to pool sets.
@@ -19,7 +20,7 @@ size shows in the figure; `--data` may be given several times to pool sets.
     python bench/localiser_breakdown.py --checkpoint stage1=runs/det_long/localiser.safetensors \\
         --checkpoint shipped=axispose_core/models/axispose_lmo.safetensors --data data/lmo_val
     python bench/localiser_breakdown.py --checkpoint lite0=LOCALISER.safetensors --min-visib 0.1 \\
-        --data ../shared/data/lmo_real_val/test --models ../shared/data/lmo/models_eval --sheet /tmp/alarms.png
+        --data ../shared/data/lmo_real_val/test --models ../shared/data/lmo/models_eval --sheet /tmp/lite0.png
 """
 
 from __future__ import annotations
@@ -46,7 +47,7 @@ THRESHOLDS = (0.05, 0.1, 0.15, 0.2, 0.25, 0.3, 0.4, 0.5, 0.6, 0.7)
 VISIB = ((0.3, 0.5), (0.5, 0.8), (0.8, 1.01))
 SIZES = ((0, 60), (60, 100), (100, 160), (160, 10_000))
 TILE = 128
-"""Side (px) of a false alarm's crop on the sheet."""
+"""Side (px) of a crop on the sheets."""
 
 
 def miss_kind(inst: tuple[int, tuple[float, float, float, float], float], dets: list[Detection], threshold: float) -> str:
@@ -71,22 +72,22 @@ def suppress_across_objects(dets: list[Detection], min_iou: float) -> list[Detec
     return kept
 
 
-def alarm_tile(image: np.ndarray, det: Detection, kind: str) -> np.ndarray:
-    """The false alarm's box with a quarter of its side around it, as a labelled BGR tile."""
-    x, y, w, h = det.box
+def tile(image: np.ndarray, box: tuple[float, float, float, float], label: str) -> np.ndarray:
+    """The box (x, y, w, h) with a quarter of its side around it, as a labelled BGR tile."""
+    x, y, w, h = box
     x0, y0 = max(0, int(x - w / 4)), max(0, int(y - h / 4))
     x1, y1 = min(image.shape[1], int(x + 1.25 * w) + 1), min(image.shape[0], int(y + 1.25 * h) + 1)
-    tile = cv2.resize(np.ascontiguousarray(image[y0:y1, x0:x1, ::-1]), (TILE, TILE))
-    cv2.putText(tile, f"{det.obj_id} {kind} {det.score:.2f}", (2, 12), cv2.FONT_HERSHEY_SIMPLEX, 0.4, (0, 255, 0), 1)
-    return tile
+    out = cv2.resize(np.ascontiguousarray(image[y0:y1, x0:x1, ::-1]), (TILE, TILE))
+    cv2.putText(out, label, (2, 12), cv2.FONT_HERSHEY_SIMPLEX, 0.4, (0, 255, 0), 1)
+    return out
 
 
 def write_sheet(path: str, tiles: list[np.ndarray], columns: int = 12) -> None:
     rows = max(1, -(-len(tiles) // columns))
     sheet = np.zeros((rows * TILE, columns * TILE, 3), np.uint8)
-    for k, tile in enumerate(tiles):
+    for k, one in enumerate(tiles):
         r, c = divmod(k, columns)
-        sheet[r * TILE : (r + 1) * TILE, c * TILE : (c + 1) * TILE] = tile
+        sheet[r * TILE : (r + 1) * TILE, c * TILE : (c + 1) * TILE] = one
     cv2.imwrite(path, sheet)
 
 
@@ -95,9 +96,10 @@ def breakdown(
     frames: list[tuple[BopScene, int]],
     min_visib: float,
     across_objects: float | None = None,
-    tiles: list[np.ndarray] | None = None,
+    tiles: dict[str, list[np.ndarray]] | None = None,
 ) -> dict:
-    """The breakdown at the checkpoint's threshold and the sweep; each false alarm's tile appended to `tiles`."""
+    """The breakdown at the checkpoint's threshold and the sweep; each false alarm's and miss's tile appended to
+    `tiles["alarms"]` and `tiles["misses"]`."""
     sweep = {t: [0, 0, 0] for t in THRESHOLDS}  # hits, false alarms, GT
     at = model.config.threshold
     found, visib, size = [], [], []
@@ -124,7 +126,10 @@ def breakdown(
                 visib.append(insts[g][2])
                 size.append(max(insts[g][1][2], insts[g][1][3]))
                 if not hit:
-                    misses[miss_kind(insts[g], all_dets, at)] += 1
+                    kind = miss_kind(insts[g], all_dets, at)
+                    misses[kind] += 1
+                    if tiles is not None:
+                        tiles["misses"].append(tile(image, insts[g][1], f"{insts[g][0]} {kind} {insts[g][2]:.2f}"))
             for d in (dets[k] for k in false_alarms):
                 same = max([iou(d.box, b) for o, b, _ in insts if o == d.obj_id], default=0.0)
                 other = max([iou(d.box, b) for o, b, _ in insts if o != d.obj_id], default=0.0)
@@ -132,7 +137,7 @@ def breakdown(
                 alarms[kind] += 1
                 alarms_by_object[d.obj_id][kind] += 1
                 if tiles is not None:
-                    tiles.append(alarm_tile(image, d, kind))
+                    tiles["alarms"].append(tile(image, d.box, f"{d.obj_id} {kind} {d.score:.2f}"))
     found_a, visib_a, size_a = np.array(found), np.array(visib), np.array(size)
 
     def band(values: np.ndarray, lo: float, hi: float) -> dict:
@@ -166,7 +171,7 @@ def main() -> None:
     ap.add_argument("--across-objects", type=float, default=None, metavar="IOU",
                     help="drop detections overlapping a better one of another object at IoU >= IOU")  # fmt: skip
     ap.add_argument("--models", default=None, help="BOP models folder: visibility of frames without scene_gt_info.json")
-    ap.add_argument("--sheet", default=None, metavar="PNG", help="false alarms as a contact sheet (_LABEL added with several checkpoints)")
+    ap.add_argument("--sheet", default=None, metavar="PNG", help="false alarms and misses as contact sheets (_LABEL added per checkpoint)")
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--json", default="bench/results/localiser_breakdown.json")
     args = ap.parse_args()
@@ -176,11 +181,13 @@ def main() -> None:
     for item in args.checkpoint:
         label, _, path = item.partition("=")
         model = load_localiser(path)
-        tiles: list[np.ndarray] | None = [] if args.sheet else None
+        tiles: dict[str, list[np.ndarray]] | None = {"alarms": [], "misses": []} if args.sheet else None
         r = results[label] = breakdown(model, frames, args.min_visib, args.across_objects, tiles) | {"checkpoint": path}
         if tiles is not None:
-            r["sheet"] = args.sheet if len(args.checkpoint) == 1 else args.sheet.replace(".png", f"_{label}.png")
-            write_sheet(r["sheet"], tiles)
+            stem = args.sheet.removesuffix(".png") + ("" if len(args.checkpoint) == 1 else f"_{label}")
+            r["sheets"] = {what: f"{stem}_{what}.png" for what in tiles}
+            for what, path in r["sheets"].items():
+                write_sheet(path, tiles[what])
         lo, hi = r["recall_ci95"]
         print(f"\n{label} ({path}), {len(frames)} frames; recall {r['recall']:.3f} ({r['hits']}/{r['instances']}, "
               f"95 % interval {lo:.3f}-{hi:.3f}) at its threshold {r['threshold']}")  # fmt: skip
