@@ -12,8 +12,8 @@ and writes JSON. `--across-objects IOU` first drops every detection that overlap
 another object at IoU >= IOU (class-agnostic NMS on top of the per-object peaks), to see whether confusions
 between objects can be removed that way. False alarms are also counted per object, and `--sheet PNG` draws them
 and the misses as contact sheets of their crops (PNG_alarms.png: object id, kind, score; PNG_misses.png: object id,
-kind, visibility): what the localiser takes for an object, and what it does not see. `--models`
-gives frames without scene_gt_info.json (the real slice) their visibility from the object models.
+kind, visibility): what the localiser takes for an object, and what it does not see. `--models` gives frames
+without scene_gt_info.json (the real slice) their visibility from the object models.
 Recall at the checkpoint's threshold comes with its instance counts and a 95 % Wilson interval, so a held-out set's
 size shows in the figure; `--data` may be given several times to pool sets.
 
@@ -73,11 +73,13 @@ def suppress_across_objects(dets: list[Detection], min_iou: float) -> list[Detec
 
 
 def tile(image: np.ndarray, box: tuple[float, float, float, float], label: str) -> np.ndarray:
-    """The box (x, y, w, h) with a quarter of its side around it, as a labelled BGR tile."""
+    """The box (x, y, w, h) with a quarter of its side around it, as a labelled BGR tile (black where the box lies
+    outside the image)."""
     x, y, w, h = box
     x0, y0 = max(0, int(x - w / 4)), max(0, int(y - h / 4))
     x1, y1 = min(image.shape[1], int(x + 1.25 * w) + 1), min(image.shape[0], int(y + 1.25 * h) + 1)
-    out = cv2.resize(np.ascontiguousarray(image[y0:y1, x0:x1, ::-1]), (TILE, TILE))
+    crop = image[y0:y1, x0:x1, ::-1]
+    out = cv2.resize(np.ascontiguousarray(crop), (TILE, TILE)) if crop.size else np.zeros((TILE, TILE, 3), np.uint8)
     cv2.putText(out, label, (2, 12), cv2.FONT_HERSHEY_SIMPLEX, 0.4, (0, 255, 0), 1)
     return out
 
@@ -186,8 +188,8 @@ def main() -> None:
         if tiles is not None:
             stem = args.sheet.removesuffix(".png") + ("" if len(args.checkpoint) == 1 else f"_{label}")
             r["sheets"] = {what: f"{stem}_{what}.png" for what in tiles}
-            for what, path in r["sheets"].items():
-                write_sheet(path, tiles[what])
+            for what, sheet in r["sheets"].items():
+                write_sheet(sheet, tiles[what])
         lo, hi = r["recall_ci95"]
         print(f"\n{label} ({path}), {len(frames)} frames; recall {r['recall']:.3f} ({r['hits']}/{r['instances']}, "
               f"95 % interval {lo:.3f}-{hi:.3f}) at its threshold {r['threshold']}")  # fmt: skip

@@ -55,7 +55,7 @@ class SceneConfig:
     distractor_split: str = "train"
     """Which of those meshes: "train" (nine in ten), "held_out" (the tenth, for stress sets) or "all"."""
     lookalike_prob: float = 0.0
-    """Share of the distractors coloured in one of the objects' own colours (`clutter.lookalike_colours`): a real
+    """Share of the distractors coloured in one of the objects' own colours (`clutter.lookalike`): a real
     scene's clutter shares colours with the objects (a blue toy car beside the blue hole punch, a yellow box beside
     the duck), and a localiser that knows an object by its colour fires on them; these make shape tell them apart."""
     table_prob: float = 0.0
