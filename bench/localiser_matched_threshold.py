@@ -9,10 +9,10 @@ precision on real frames are read there (and at 0.3, the node's default). Detect
 from __future__ import annotations
 
 import argparse
-import json
 
 import numpy as np
 import torch
+from write_results import write_results
 
 from axispose_core.data.bop import bop_frames
 from axispose_core.data.visibility import gt_info_from_models
@@ -58,8 +58,7 @@ def main() -> None:
         shown = " | ".join(f"{k}: {r:.3f} / {p:.3f}" for k, (r, p) in at.items())
         print(f"{name}: threshold {threshold:.2f} | {shown}", flush=True)
     if args.json:
-        with open(args.json, "w") as f:
-            json.dump(out, f, indent=1)
+        write_results(args.json, out)
 
 
 if __name__ == "__main__":
