@@ -1,0 +1,186 @@
+"""Does the pose the estimator finds for a detection tell a real object from a false alarm? Every detection down to
+--min-score is posed as the node poses it (1 sample, 3 steps, float32), and described by the localiser's score and
+three signals of the pose: the rotation and translation variance of the dense fusion's covariance (a crop whose
+points do not fit the object's model gets a wide one) and the IoU of the posed model's projected box with the
+detection's box. A logistic model of hit against false alarm is fitted on the synthetic frames (--fit) only, and read
+on every set: each signal's AUC, the average precision of the score alone and of the combination, and recall /
+precision where the combination's threshold gives the fit set the precision, or the recall, of score >= 0.3.
+
+    python bench/localiser_pose_verifier.py --checkpoint EST --fit data/lmo_val \
+        --data ../shared/data/lmo_real_val/test HELDOUT/test --json bench/results/localiser_pose_verifier.json
+"""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+import numpy as np
+import torch
+from scipy.optimize import minimize
+from scipy.stats import rankdata
+from write_results import write_results
+
+from axispose_core.data.bop import bbox_from_model, bop_frames
+from axispose_core.data.meshes import load_ply
+from axispose_core.data.visibility import gt_info_from_models
+from axispose_core.estimator import EstimateOptions, Estimator
+from axispose_core.localiser.decode import Detection, iou, match
+from axispose_core.localiser.scoring import Instance, frame_instances, tally
+
+FEATURES = ("score", "rotation_variance", "translation_variance", "box_iou")
+SIGNS = (1, -1, -1, 1)
+"""Which way each feature points to a hit (for its AUC)."""
+WORST_VARIANCE = 1e3
+"""The variance a detection without a pose (or without a covariance) is given: worse than any posed one."""
+
+Frame = tuple[list[Detection], list[Instance], np.ndarray]
+"""A frame's detections, its instances and one feature row per detection."""
+
+
+def pose_features(est: Estimator, rgb: np.ndarray, K: np.ndarray, dets: list[Detection], points: dict) -> np.ndarray:
+    """(n, 4) rows of FEATURES for the frame's detections, each posed as the node poses it."""
+    poses = est.estimate(rgb, K, [(d.obj_id, d.box) for d in dets], EstimateOptions(steps=3))
+    rows = []
+    for d, p in zip(dets, poses, strict=True):
+        cov = p.covariance if p.ok and p.covariance is not None else np.full((6, 6), np.nan)
+        var_t, var_r = np.trace(cov[:3, :3]), np.trace(cov[3:, 3:])
+        box_iou = iou(bbox_from_model(K, p.R, p.t, points[d.obj_id]), d.box) if p.ok and p.t[2] > 0 else 0.0
+        rows.append((d.score, var_r if np.isfinite(var_r) else WORST_VARIANCE, var_t if np.isfinite(var_t) else WORST_VARIANCE, box_iou))
+    return np.array(rows, float).reshape(-1, len(FEATURES))
+
+
+def design(rows: np.ndarray, names: tuple[str, ...]) -> np.ndarray:
+    """The logistic model's inputs: the score's logit, the variances' negative logs, the IoU, and a constant."""
+    score = np.clip(rows[:, 0], 1e-4, 1 - 1e-4)
+    columns = {
+        "score": np.log(score / (1 - score)),
+        "rotation_variance": -np.log(rows[:, 1]),
+        "translation_variance": -np.log(rows[:, 2]),
+        "box_iou": rows[:, 3],
+    }
+    return np.stack([columns[n] for n in names] + [np.ones(len(rows))], axis=1)
+
+
+def labels(frames: list[Frame], min_visib: float) -> np.ndarray:
+    """Per detection: 1 hit, 0 false alarm, -1 neither (it found an instance less visible than `min_visib`)."""
+    out = [np.zeros(0, int)]
+    for dets, insts, _ in frames:
+        lab = np.zeros(len(dets), int)
+        for g, k in enumerate(match(dets, [(o, b) for o, b, _ in insts])):
+            if k is not None:
+                lab[k] = 1 if insts[g][2] >= min_visib else -1
+        out.append(lab)
+    return np.concatenate(out)
+
+
+def fit_logistic(X: np.ndarray, y: np.ndarray) -> np.ndarray:
+    """Weights of a lightly regularised logistic regression of y on X."""
+
+    def loss(w: np.ndarray) -> float:
+        z = X @ w
+        return float(np.sum(np.logaddexp(0, z) - y * z) + 1e-3 * w @ w)
+
+    return minimize(loss, np.zeros(X.shape[1]), method="BFGS").x
+
+
+def auc(y: np.ndarray, x: np.ndarray) -> float:
+    """Area under the ROC curve of x separating y == 1 from y == 0 (Mann-Whitney)."""
+    r, n1 = rankdata(x), int(y.sum())
+    return float((r[y == 1].sum() - n1 * (n1 + 1) / 2) / (n1 * (len(y) - n1)))
+
+
+def kept(frames: list[Frame], z: np.ndarray, threshold: float) -> list[tuple[list[Detection], list[Instance]]]:
+    """The frames with only the detections whose combined value `z` reaches `threshold`."""
+    out, start = [], 0
+    for dets, insts, _ in frames:
+        zs = z[start : start + len(dets)]
+        out.append(([d for d, v in zip(dets, zs, strict=True) if v >= threshold], insts))
+        start += len(dets)
+    return out
+
+
+def recall_precision(frames: list[Frame], z: np.ndarray, threshold: float, ids: tuple[int, ...], min_visib: float) -> tuple[float, float]:
+    scores = tally(kept(frames, z, threshold), ids, min_visib)
+    return scores["recall"], scores["precision"]
+
+
+def average_precision(frames: list[Frame], z: np.ndarray, ids: tuple[int, ...], min_visib: float) -> float:
+    """Area under the recall / precision curve swept over every threshold (rectangles, as sklearn's)."""
+    points = [recall_precision(frames, z, t, ids, min_visib) for t in np.unique(z)[::-1]]
+    recalls = np.array([0.0] + [r for r, _ in points])
+    return float(np.sum(np.diff(recalls) * np.array([p for _, p in points])))
+
+
+def summary(result: dict) -> str:
+    """One line of a set's result."""
+    pairs = {k: result[k] for k in ("score_0.3", "combined_at_fit_precision", "combined_at_fit_recall")}
+    points = "; ".join(f"{k} {r:.3f} / {p:.3f}" for k, (r, p) in pairs.items())
+    aucs = ", ".join(f"{n} {v:.3f}" for n, v in result["auc"].items())
+    ap = result["average_precision"]
+    return f"AP {ap['score']:.3f} -> {ap['combined']:.3f}; recall / precision {points}; AUC {aucs}"
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--checkpoint", required=True, help="estimator checkpoint with a localiser")
+    ap.add_argument("--fit", required=True, help="synthetic BOP frames the logistic model is fitted on")
+    ap.add_argument("--data", nargs="+", required=True, help="BOP frame folders it is read on")
+    ap.add_argument("--models", default="../shared/data/lmo/models_eval", help="visibility and boxes from these models")
+    ap.add_argument("--min-score", type=float, default=0.1, help="detections down to this score are posed")
+    ap.add_argument("--min-visib", type=float, default=0.1)
+    ap.add_argument("--threads", type=int, default=2)
+    ap.add_argument("--json", default=None)
+    args = ap.parse_args()
+    torch.set_num_threads(args.threads)
+    est = Estimator.load(args.checkpoint)
+    est.set_precision("float32")
+    ids = tuple(o.obj_id for o in est.config.objects)
+    points = {o: load_ply(Path(args.models) / f"obj_{o:06d}.ply").vertices for o in ids}
+    info = gt_info_from_models(args.models)
+    frames: dict[str, list[Frame]] = {}
+    for path in [args.fit, *args.data]:
+        frames[path] = []
+        for scene, im_id in bop_frames([path], info):
+            rgb, K = scene.rgb(im_id), scene.cameras[im_id]
+            dets = est.detect(rgb, args.min_score)
+            rows = pose_features(est, rgb, K, dets, points) if dets else np.zeros((0, len(FEATURES)))
+            frames[path].append((dets, frame_instances(scene, im_id, ids), rows))
+        print(f"{path}: {sum(len(d) for d, _, _ in frames[path])} detections", flush=True)
+    rows = {k: np.concatenate([r for _, _, r in v]) for k, v in frames.items()}
+    y = {k: labels(v, args.min_visib) for k, v in frames.items()}
+    fit_rows, fit_y = rows[args.fit], y[args.fit]
+    counted = fit_y >= 0
+    w = fit_logistic(design(fit_rows[counted], FEATURES), fit_y[counted])
+    z = {k: design(r, FEATURES) @ w for k, r in rows.items()}
+    # The combination's operating points: the fit set's precision, or its recall, at the node's score threshold.
+    base_recall, base_precision = recall_precision(frames[args.fit], rows[args.fit][:, 0], 0.3, ids, args.min_visib)
+    grid = np.unique(z[args.fit])
+    at_fit = [(t, *recall_precision(frames[args.fit], z[args.fit], t, ids, args.min_visib)) for t in grid]
+    t_precision = max(((r, t) for t, r, p in at_fit if p >= base_precision), default=(0.0, grid[-1]))[1]
+    t_recall = min(at_fit, key=lambda a: (abs(a[1] - base_recall), -a[2]))[0]
+    out = {
+        "checkpoint": args.checkpoint,
+        "fit": args.fit,
+        "weights": dict(zip([*FEATURES, "constant"], w.tolist(), strict=True)),
+        "sets": {},
+    }
+    for k in frames:
+        c = y[k] >= 0
+        result = {
+            "detections": len(y[k]),
+            "auc": {n: auc(y[k][c], SIGNS[j] * rows[k][c, j]) for j, n in enumerate(FEATURES)} | {"combined": auc(y[k][c], z[k][c])},
+            "average_precision": {"score": average_precision(frames[k], rows[k][:, 0], ids, args.min_visib),
+                                  "combined": average_precision(frames[k], z[k], ids, args.min_visib)},
+            "score_0.3": recall_precision(frames[k], rows[k][:, 0], 0.3, ids, args.min_visib),
+            "combined_at_fit_precision": recall_precision(frames[k], z[k], t_precision, ids, args.min_visib),
+            "combined_at_fit_recall": recall_precision(frames[k], z[k], t_recall, ids, args.min_visib),
+        }  # fmt: skip
+        out["sets"][k] = result
+        print(f"{k}: {summary(result)}", flush=True)
+    if args.json:
+        write_results(args.json, out)
+
+
+if __name__ == "__main__":
+    main()
