@@ -101,6 +101,7 @@ def kept(frames: list[Frame], z: np.ndarray, threshold: float) -> list[tuple[lis
 
 
 def recall_precision(frames: list[Frame], z: np.ndarray, threshold: float, ids: tuple[int, ...], min_visib: float) -> tuple[float, float]:
+    """(recall, precision) over all instances of the detections whose `z` reaches `threshold` (pooled, `tally`)."""
     scores = tally(kept(frames, z, threshold), ids, min_visib)
     return scores["recall"], scores["precision"]
 
