@@ -17,7 +17,6 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from scipy.optimize import minimize
 from scipy.stats import rankdata
 from write_results import write_results
 
@@ -27,12 +26,10 @@ from axispose_core.data.visibility import gt_info_from_models
 from axispose_core.estimator import EstimateOptions, Estimator
 from axispose_core.localiser.decode import Detection, iou, match
 from axispose_core.localiser.scoring import Instance, frame_instances, tally
+from axispose_core.localiser.verifier import FEATURES, fit, signals
 
-FEATURES = ("score", "rotation_variance", "translation_variance", "box_iou")
 SIGNS = (1, -1, -1, 1)
-"""Which way each feature points to a hit (for its AUC)."""
-WORST_VARIANCE = 1e3
-"""The variance a detection without a pose (or without a covariance) is given: worse than any posed one."""
+"""Which way each of `FEATURES` points to a hit (for its AUC)."""
 
 Frame = tuple[list[Detection], list[Instance], np.ndarray]
 """A frame's detections, its instances and one feature row per detection."""
@@ -43,23 +40,9 @@ def pose_features(est: Estimator, rgb: np.ndarray, K: np.ndarray, dets: list[Det
     poses = est.estimate(rgb, K, [(d.obj_id, d.box) for d in dets], EstimateOptions(steps=3))
     rows = []
     for d, p in zip(dets, poses, strict=True):
-        cov = p.covariance if p.ok and p.covariance is not None else np.full((6, 6), np.nan)
-        var_t, var_r = np.trace(cov[:3, :3]), np.trace(cov[3:, 3:])
         box_iou = iou(bbox_from_model(K, p.R, p.t, points[d.obj_id]), d.box) if p.ok and p.t[2] > 0 else 0.0
-        rows.append((d.score, var_r if np.isfinite(var_r) else WORST_VARIANCE, var_t if np.isfinite(var_t) else WORST_VARIANCE, box_iou))
+        rows.append(signals(d.score, p.covariance if p.ok else None, box_iou))
     return np.array(rows, float).reshape(-1, len(FEATURES))
-
-
-def design(rows: np.ndarray, names: tuple[str, ...]) -> np.ndarray:
-    """The logistic model's inputs: the score's logit, the variances' negative logs, the IoU, and a constant."""
-    score = np.clip(rows[:, 0], 1e-4, 1 - 1e-4)
-    columns = {
-        "score": np.log(score / (1 - score)),
-        "rotation_variance": -np.log(rows[:, 1]),
-        "translation_variance": -np.log(rows[:, 2]),
-        "box_iou": rows[:, 3],
-    }
-    return np.stack([columns[n] for n in names] + [np.ones(len(rows))], axis=1)
 
 
 def labels(frames: list[Frame], min_visib: float) -> np.ndarray:
@@ -72,16 +55,6 @@ def labels(frames: list[Frame], min_visib: float) -> np.ndarray:
                 lab[k] = 1 if insts[g][2] >= min_visib else -1
         out.append(lab)
     return np.concatenate(out)
-
-
-def fit_logistic(X: np.ndarray, y: np.ndarray) -> np.ndarray:
-    """Weights of a lightly regularised logistic regression of y on X."""
-
-    def loss(w: np.ndarray) -> float:
-        z = X @ w
-        return float(np.sum(np.logaddexp(0, z) - y * z) + 1e-3 * w @ w)
-
-    return minimize(loss, np.zeros(X.shape[1]), method="BFGS").x
 
 
 def auc(y: np.ndarray, x: np.ndarray) -> float:
@@ -152,8 +125,8 @@ def main() -> None:
     y = {k: labels(v, args.min_visib) for k, v in frames.items()}
     fit_rows, fit_y = rows[args.fit], y[args.fit]
     counted = fit_y >= 0
-    w = fit_logistic(design(fit_rows[counted], FEATURES), fit_y[counted])
-    z = {k: design(r, FEATURES) @ w for k, r in rows.items()}
+    verifier = fit(fit_rows[counted], fit_y[counted])
+    z = {k: verifier.probability(r) for k, r in rows.items()}
     # The combination's operating points: the fit set's precision, or its recall, at the node's score threshold.
     base_recall, base_precision = recall_precision(frames[args.fit], rows[args.fit][:, 0], 0.3, ids, args.min_visib)
     grid = np.unique(z[args.fit])
@@ -163,7 +136,7 @@ def main() -> None:
     out = {
         "checkpoint": args.checkpoint,
         "fit": args.fit,
-        "weights": dict(zip([*FEATURES, "constant"], w.tolist(), strict=True)),
+        "weights": dict(zip([*FEATURES, "constant"], verifier.weights, strict=True)),
         "sets": {},
     }
     for k in frames:

@@ -1,0 +1,66 @@
+"""A second opinion on a detection from the pose the estimator finds for it. On real frames the localiser takes clutter
+in an object's colours for the object; the AGM's crop of such clutter does not fit the object's model, and the dense
+fusion says so with a wide covariance. A logistic model of the localiser's score and the pose's signals (`FEATURES`),
+fitted on rendered frames only, ranks detections better than the score alone (docs/BENCHMARKS.md, "The pose as a
+second opinion").
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.optimize import minimize
+
+FEATURES = ("score", "rotation_variance", "translation_variance", "box_iou")
+"""Per detection: the localiser's score, the traces of the pose covariance's rotation (rad²) and translation (m²)
+blocks, and the IoU of the posed model's projected box with the detection's box."""
+WORST_VARIANCE = 1e3
+"""The variance of a detection without a pose or a covariance: wider than any posed one."""
+
+
+@dataclass(frozen=True)
+class DetectionVerifier:
+    """A fitted logistic model over `FEATURES`: `weights` has one entry per feature and a constant last."""
+
+    weights: tuple[float, ...]
+
+    def probability(self, rows: np.ndarray) -> np.ndarray:
+        """P(hit) per row of `FEATURES`."""
+        return 1 / (1 + np.exp(-design(rows) @ np.asarray(self.weights)))
+
+
+def _variance(block: np.ndarray) -> float:
+    v = float(np.trace(block))
+    return v if np.isfinite(v) and v > 0 else WORST_VARIANCE
+
+
+def signals(score: float, covariance: np.ndarray | None, box_iou: float) -> tuple[float, float, float, float]:
+    """One detection's row of `FEATURES` from its (6, 6) pose covariance (x, y, z, rx, ry, rz); none (no pose) counts
+    as the widest."""
+    if covariance is None:
+        return (score, WORST_VARIANCE, WORST_VARIANCE, box_iou)
+    return (score, _variance(covariance[3:, 3:]), _variance(covariance[:3, :3]), box_iou)
+
+
+def design(rows: np.ndarray) -> np.ndarray:
+    """The model's inputs: the score's logit, the variances' negative logs, the IoU and a constant: scales on which
+    hits and false alarms differ about linearly."""
+    rows = np.asarray(rows, float).reshape(-1, len(FEATURES))
+    score = np.clip(rows[:, 0], 1e-4, 1 - 1e-4)
+    columns = [np.log(score / (1 - score)), -np.log(rows[:, 1]), -np.log(rows[:, 2]), rows[:, 3], np.ones(len(rows))]
+    return np.stack(columns, axis=1)
+
+
+def fit(rows: np.ndarray, hits: np.ndarray, ridge: float = 1e-3) -> DetectionVerifier:
+    """The lightly regularised logistic regression of `hits` (1 hit, 0 false alarm) on `rows`."""
+    X, y = design(rows), np.asarray(hits, float)
+    if len(y) == 0 or y.min() == y.max():
+        raise ValueError("fitting a verifier needs both hits and false alarms")
+
+    def loss(w: np.ndarray) -> tuple[float, np.ndarray]:
+        z = X @ w
+        p = 1 / (1 + np.exp(-z))
+        return float(np.sum(np.logaddexp(0, z) - y * z) + ridge * w @ w), X.T @ (p - y) + 2 * ridge * w
+
+    return DetectionVerifier(tuple(minimize(loss, np.zeros(X.shape[1]), jac=True, method="BFGS").x.tolist()))
