@@ -11,6 +11,7 @@ from dataclasses import dataclass
 
 import numpy as np
 from scipy.optimize import minimize
+from scipy.special import expit
 
 FEATURES = ("score", "rotation_variance", "translation_variance", "box_iou")
 """Per detection: the localiser's score, the traces of the pose covariance's rotation (rad²) and translation (m²)
@@ -27,7 +28,7 @@ class DetectionVerifier:
 
     def probability(self, rows: np.ndarray) -> np.ndarray:
         """P(hit) per row of `FEATURES`."""
-        return 1 / (1 + np.exp(-design(rows) @ np.asarray(self.weights)))
+        return expit(design(rows) @ np.asarray(self.weights))
 
 
 def _variance(block: np.ndarray) -> float:
@@ -60,7 +61,6 @@ def fit(rows: np.ndarray, hits: np.ndarray, ridge: float = 1e-3) -> DetectionVer
 
     def loss(w: np.ndarray) -> tuple[float, np.ndarray]:
         z = X @ w
-        p = 1 / (1 + np.exp(-z))
-        return float(np.sum(np.logaddexp(0, z) - y * z) + ridge * w @ w), X.T @ (p - y) + 2 * ridge * w
+        return float(np.sum(np.logaddexp(0, z) - y * z) + ridge * w @ w), X.T @ (expit(z) - y) + 2 * ridge * w
 
     return DetectionVerifier(tuple(minimize(loss, np.zeros(X.shape[1]), jac=True, method="BFGS").x.tolist()))
