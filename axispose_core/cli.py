@@ -224,6 +224,34 @@ def _score_and_attach(args: argparse.Namespace) -> int:
     return 0
 
 
+def _fit_verifier(args: argparse.Namespace) -> int:
+    import torch
+
+    from axispose_core.checkpoint import CheckpointError, stored_half
+    from axispose_core.data.bop import BopFormatError
+    from axispose_core.estimator import Estimator
+    from axispose_core.train.verifier import VerifierFitConfig, fit_verifier
+
+    torch.set_num_threads(args.threads)
+    if missing := [d for d in args.data if not Path(d).is_dir()]:
+        print(f"axispose fit-verifier: no BOP scenes at {', '.join(missing)}", file=sys.stderr)
+        return 2
+    try:
+        est = Estimator.load(args.checkpoint)
+        config = VerifierFitConfig(min_score=args.min_score, steps=args.steps)
+        verifier, record = fit_verifier(est, args.data, config, progress=True)
+    except (CheckpointError, BopFormatError, ValueError) as err:
+        print(f"axispose fit-verifier: {err}", file=sys.stderr)
+        return 2
+    fitted = est.with_verifier(verifier)
+    fitted = Estimator(dataclasses.replace(fitted.config, training={**est.config.training, "verifier": record}), fitted.agm,
+                       fitted.reader, "cpu", fitted.localiser)  # fmt: skip
+    fitted.save(args.out, half=stored_half(args.checkpoint))
+    print(f"{record['detections']} detections ({record['hits']} hits, {record['false_alarms']} false alarms) in "
+          f"{record['seconds']:.0f} s; weights {', '.join(f'{w:.3f}' for w in verifier.weights)}; wrote {args.out}")  # fmt: skip
+    return 0
+
+
 def _train_localiser(args: argparse.Namespace) -> int:
     import torch
 
@@ -275,20 +303,20 @@ def _eval(args: argparse.Namespace) -> int:
     precision = est.set_precision(args.precision)
     objects = [o for o in est.config.objects if not args.objects or o.obj_id in args.objects]
 
-    def predict(image, K, boxes):
-        options = EstimateOptions(steps=args.steps, guidance_scale=args.guidance, hypotheses=args.hypotheses, mode_sample=args.mode_sample)
-        poses = est.estimate(image, K, boxes, options)
-        return [Prediction(p.R, p.t, p.ok, p.spread_deg, p.covariance) for p in poses]
+    options = EstimateOptions(steps=args.steps, guidance_scale=args.guidance, hypotheses=args.hypotheses, mode_sample=args.mode_sample)
 
-    detector = None
-    if args.crops == "detect":
-        if est.localiser is None:
-            print(
-                f"axispose eval: {args.checkpoint} has no localiser (attach one with `axispose train-localiser --attach`)", file=sys.stderr
-            )
-            return 2
-        detector = est.detect
-    eval_options = EvalOptions(limit=args.limit, detector=detector, visib=tuple(args.visib), perturb=perturb, targets=targets, bop=True)
+    def predict(image, K, boxes):
+        return [Prediction(p.R, p.t, p.ok, p.spread_deg, p.covariance) for p in est.estimate(image, K, boxes, options)]
+
+    def detector(image, K):
+        found = est.find(image, K, options=options)
+        return found.detections, [Prediction(p.R, p.t, p.ok, p.spread_deg, p.covariance) for p in found.poses]
+
+    if args.crops == "detect" and est.localiser is None:
+        print(f"axispose eval: {args.checkpoint} has no localiser (attach one with `axispose train-localiser --attach`)", file=sys.stderr)
+        return 2
+    eval_options = EvalOptions(limit=args.limit, detector=detector if args.crops == "detect" else None, visib=tuple(args.visib),
+                               perturb=perturb, targets=targets, bop=True)  # fmt: skip
     run = evaluate(predict, args.data, args.models, objects, eval_options)
     records, notes, counts, bop = run.records, run.notes, run.detection_counts, run.bop
     config = {"checkpoint": str(args.checkpoint), "data": str(args.data), "steps": args.steps or est.config.ddim_steps,
@@ -506,6 +534,15 @@ def build_parser(commands: Callable[[AddParser], None] | None = None) -> argpars
     _training_args(tr, "regressor checkpoint", "DirectTrainConfig", "config/train_direct.yaml",
                    data_help="BOP folders to train on instead of the crop stream", stream=True)  # fmt: skip
     tr.set_defaults(func=_train_direct)
+
+    fv = sub.add_parser("fit-verifier", help="fit the detection verifier (rescoring by the pose's variances) on synthetic frames")
+    fv.add_argument("--checkpoint", required=True, help="estimator checkpoint with a localiser")
+    fv.add_argument("--data", nargs="+", required=True, help="synthetic BOP folders (never the real validation frames)")
+    fv.add_argument("--out", required=True, help="the checkpoint with the verifier (may be --checkpoint)")
+    fv.add_argument("--min-score", type=float, default=0.2, help="least localiser score of a detection posed and rescored")
+    fv.add_argument("--steps", type=int, default=3, help="DDIM steps per pose (the node's default)")
+    fv.add_argument("--threads", type=int, default=2)
+    fv.set_defaults(func=_fit_verifier)
 
     ev = sub.add_parser("eval", help="pose metrics of a checkpoint on BOP scenes (JSON report, plots)")
     ev.add_argument("--checkpoint", required=True)

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import json
 import math
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Container, Mapping
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
@@ -28,6 +28,7 @@ from axispose_core.checkpoint import ESTIMATOR, CheckpointError, load_state, rea
 from axispose_core.consensus import Consensus, consensus
 from axispose_core.localiser.decode import Detection
 from axispose_core.localiser.model import Localiser, LocaliserConfig, build_localiser
+from axispose_core.localiser.verifier import DetectionVerifier
 from axispose_core.objects import ObjectSpec
 from axispose_core.precision import bf16_native
 from axispose_core.tbm.backproject import backproject_readings
@@ -73,6 +74,9 @@ class EstimatorConfig:
     """Provenance: data recipe, steps, wall time, hardware."""
     localiser: LocaliserConfig | None = None
     """The 2D localiser's config when the checkpoint carries one."""
+    verifier: DetectionVerifier | None = None
+    """Where the checkpoint carries one (`axispose fit-verifier`), `find` rescores the localiser's detections with
+    their poses' variances and publishes its probability as the score."""
 
     def __post_init__(self) -> None:
         if len(self.head_offaxis) != 2 or not all(math.isfinite(c) for c in self.head_offaxis):
@@ -192,6 +196,17 @@ class PoseEstimate:
     and with the dense points (dense_fusion)."""
 
 
+@dataclass(frozen=True)
+class Found:
+    """A frame's objects found by the localiser (`Estimator.find`), each with its pose: `detections` carry the
+    published score (the verifier's probability where the checkpoint has one, else the localiser's); `dropped`
+    counts the detections posed and then refused by the verifier."""
+
+    detections: list[Detection]
+    poses: list[PoseEstimate]
+    dropped: int = 0
+
+
 def _guess(K_patch: np.ndarray, prior: tuple[np.ndarray, np.ndarray], lengths: np.ndarray, size: int) -> np.ndarray | None:
     """The axis image of a prior pose in a crop; None where it cannot be drawn (an axis behind the camera)."""
     try:
@@ -212,6 +227,8 @@ class Estimator:
             raise ValueError(f"AGM draws {agm.config.denoiser.size}px axis images, the reader reads {reader.config.size}px")
         if (localiser is None) != (config.localiser is None) or (localiser is not None and localiser.config != config.localiser):
             raise ValueError("the localiser and config.localiser must be given together and agree")
+        if config.verifier is not None and localiser is None:
+            raise ValueError("a verifier rescores the localiser's detections: this estimator has no localiser")
         if localiser is not None and not set(localiser.config.obj_ids) <= {o.obj_id for o in config.objects}:
             raise ValueError(f"the localiser finds objects {localiser.config.obj_ids}, not all known to the estimator")
         self.config = config
@@ -245,14 +262,43 @@ class Estimator:
         save_checkpoint(path, KIND, self.config, modules, half=half)
 
     def with_localiser(self, localiser: Localiser) -> Estimator:
-        """This estimator carrying `localiser` (replacing any it had), so one checkpoint serves the node."""
-        return Estimator(replace(self.config, localiser=localiser.config), self.agm, self.reader, str(self.device), localiser)
+        """This estimator carrying `localiser` (replacing any it had, and the verifier fitted to that one's scores), so
+        one checkpoint serves the node."""
+        config = replace(self.config, localiser=localiser.config, verifier=None)
+        return Estimator(config, self.agm, self.reader, str(self.device), localiser)
+
+    def with_verifier(self, verifier: DetectionVerifier | None) -> Estimator:
+        """This estimator with `verifier` (None: without one) rescoring what `find` finds."""
+        return Estimator(replace(self.config, verifier=verifier), self.agm, self.reader, str(self.device), self.localiser)
 
     def detect(self, image_rgb: np.ndarray, threshold: float | None = None) -> list[Detection]:
         """Objects found in a full frame by the checkpoint's localiser (none found: an empty list)."""
         if self._detector is None:
             raise ValueError("this checkpoint has no localiser: pass boxes, or attach one with `axispose train-localiser --attach`")
         return self._detector.detect(image_rgb, threshold)
+
+    def find(
+        self,
+        image_rgb: np.ndarray,
+        K: np.ndarray,
+        threshold: float | None = None,
+        options: EstimateOptions | None = None,
+        cancelled: Callable[[], bool] | None = None,
+        objects: Container[int] | None = None,
+    ) -> Found:
+        """The localiser's objects (of `objects`, None: all) scoring at least `threshold` (None: the localiser's),
+        posed. With a verifier the localiser's detections down to its `min_score` are posed and rescored with their
+        poses' variances, and `threshold` applies to that probability; the others are counted as dropped."""
+        verifier = self.config.verifier
+        floor = threshold if verifier is None else verifier.min_score
+        dets = [d for d in self.detect(image_rgb, floor) if objects is None or d.obj_id in objects]
+        poses = self.estimate(image_rgb, K, [(d.obj_id, d.box) for d in dets], options=options, cancelled=cancelled)
+        if verifier is None:
+            return Found(dets, poses)
+        least = self.localiser.config.threshold if threshold is None else threshold
+        scores = verifier.rescore([d.score for d in dets], [p.covariance if p.ok else None for p in poses])
+        keep = [k for k, s in enumerate(scores) if s >= least]
+        return Found([replace(dets[k], score=float(scores[k])) for k in keep], [poses[k] for k in keep], len(dets) - len(keep))
 
     def head_depth(self, log_depth: float, K_patch: np.ndarray, scale: float) -> float:
         """The encoder's depth (m) for a crop with intrinsics K_patch, its off-axis bias (`head_offaxis`) taken off."""

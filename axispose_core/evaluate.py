@@ -102,8 +102,8 @@ def object_symmetries(objects: Iterable[ObjectSpec], points: Mapping[int, np.nda
     return {o.obj_id: half_turn_symmetries(points[o.obj_id], o.diameter) for o in objects if o.symmetric and o.obj_id in points}
 
 
-Detector = Callable[[np.ndarray], list[Detection]]
-"""rgb image -> the localiser's detections."""
+Finder = Callable[[np.ndarray, np.ndarray], tuple[list[Detection], list[Prediction]]]
+"""(rgb image, K) -> the objects the localiser finds, each with its pose (`Estimator.find`)."""
 Perturbation = Callable[[np.ndarray, np.random.Generator], np.ndarray]
 """(rgb image, seeded generator) -> the degraded image (stress.py)."""
 Targets = dict[tuple[int, int], dict[int, int]]
@@ -115,15 +115,16 @@ class EvalOptions:
     """How `evaluate` runs, as against what it scores.
 
     Instances count when their visib_fract lies in `visib` (lower bound at least MIN_VISIB); `perturb`, seeded by
-    scene and frame, degrades each RGB frame first. The boxes are the GT boxes, or with `detector` the detections
-    matched to the GT instances (same object, IoU >= 0.5, greedy by score); an instance no detection matches
-    counts as a pose failure. `targets` limits the instances to BOP's: only the images it names, and per image and
-    object the `inst_count` most visible instances (within `visib`). `bop` also computes each image's BOP19
-    errors (`Evaluation.bop`). `limit` stops after that many instances (at a frame's end)."""
+    scene and frame, degrades each RGB frame first. The boxes are the GT boxes, posed by the predictor, or with
+    `detector` (a `Finder`) the objects it finds with their poses, matched to the GT instances (same object,
+    IoU >= 0.5, greedy by score); an instance no detection matches counts as a pose failure. `targets` limits the
+    instances to BOP's: only the images it names, and per image and object the `inst_count` most visible instances
+    (within `visib`). `bop` also computes each image's BOP19 errors (`Evaluation.bop`). `limit` stops after that
+    many instances (at a frame's end)."""
 
     limit: int | None = None
     progress: bool = True
-    detector: Detector | None = None
+    detector: Finder | None = None
     visib: tuple[float, float] = (MIN_VISIB, 1.0)
     perturb: Perturbation | None = None
     targets: Targets | None = None
@@ -197,10 +198,11 @@ class _Evaluator:
         if self.options.perturb is not None:
             rgb = self.options.perturb(rgb, np.random.default_rng([zlib.crc32(scene.root.name.encode()), im_id]))
         start = time.perf_counter()
-        boxes, box_scores, found = [(g.obj_id, info.bbox_obj) for g, info in insts], [1.0] * len(insts), None
         if self.options.detector is not None:
-            boxes, box_scores, found = self._detect(frame, rgb)
-        posed = self.predict(rgb, K, boxes) if boxes else []
+            boxes, box_scores, posed, found = self._detect(frame, rgb, K)
+        else:
+            boxes, box_scores, found = [(g.obj_id, info.bbox_obj) for g, info in insts], [1.0] * len(insts), None
+            posed = self.predict(rgb, K, boxes) if boxes else []
         frame_seconds = time.perf_counter() - start
         missed = Prediction(np.eye(3), np.zeros(3), False)
         if found is None:
@@ -214,10 +216,14 @@ class _Evaluator:
             self.bop.append(image_errors(image, made, [(g.obj_id, g.R, g.t) for g, _ in insts], self.bop_objects))
         self._score(frame, K, preds, frame_seconds / len(insts))
 
-    def _detect(self, frame: _Frame, rgb: np.ndarray) -> tuple[list[ObjectBox], list[float], dict[int, int | None]]:
-        """The detections of evaluated objects as boxes with their scores, which detection (if any) each GT
-        instance got (by id of its GTInstance), and the detection counts of the instances that count."""
-        dets = [d for d in self.options.detector(rgb) if d.obj_id in self.specs]
+    def _detect(
+        self, frame: _Frame, rgb: np.ndarray, K: np.ndarray
+    ) -> tuple[list[ObjectBox], list[float], list[Prediction], dict[int, int | None]]:
+        """The objects found of those evaluated as boxes with their scores and poses, which detection (if any) each
+        GT instance got (by id of its GTInstance), and the detection counts of the instances that count."""
+        found_dets, found_poses = self.options.detector(rgb, K)
+        pairs = [(d, p) for d, p in zip(found_dets, found_poses, strict=True) if d.obj_id in self.specs]
+        dets, posed = [d for d, _ in pairs], [p for _, p in pairs]
         everyone = [(g.obj_id, info.bbox_obj) for g, info in frame.pairs]
         hits = match(dets, everyone)  # detections of barely visible instances are neither hits nor false alarms
         found = dict(zip(map(id, frame.scene.gt[frame.im_id]), hits, strict=True))
@@ -228,7 +234,7 @@ class _Evaluator:
                 c["tp"] += found[id(g)] is not None
             for d in (dets[k] for k in false_alarms(hits, len(dets))):
                 self.counts.setdefault(d.obj_id, {"tp": 0, "fp": 0, "n": 0})["fp"] += 1
-        return [(d.obj_id, d.box) for d in dets], [d.score for d in dets], found
+        return [(d.obj_id, d.box) for d in dets], [d.score for d in dets], posed, found
 
     def _score(self, frame: _Frame, K: np.ndarray, preds: list[Prediction], seconds: float) -> None:
         """A Record per instance that counts, with its prediction and its share of the frame's time."""

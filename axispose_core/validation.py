@@ -29,6 +29,7 @@ class ValidationSettings:
     hypotheses: int = 1
     precision: str = "float32"
     score_threshold: float = 0.3
+    """Least published score: the verifier's probability where the checkpoint carries one, else the localiser's."""
     visib: tuple[float, float] = (MIN_VISIB, 1.0)
 
 
@@ -38,11 +39,16 @@ def run_crops(
     """One pass over `data` with GT crops or the localiser's; the records and the summary report."""
     objects = list(est.config.objects)
 
-    def predict(image, K, boxes):
-        poses = est.estimate(image, K, boxes, EstimateOptions(steps=settings.steps, hypotheses=settings.hypotheses))
-        return [Prediction(p.R, p.t, p.ok, p.spread_deg, p.covariance) for p in poses]
+    options = EstimateOptions(steps=settings.steps, hypotheses=settings.hypotheses)
 
-    detector = (lambda rgb: est.detect(rgb, settings.score_threshold)) if crops == "detect" else None
+    def predict(image, K, boxes):
+        return [Prediction(p.R, p.t, p.ok, p.spread_deg, p.covariance) for p in est.estimate(image, K, boxes, options)]
+
+    def find(image, K):
+        found = est.find(image, K, settings.score_threshold, options)
+        return found.detections, [Prediction(p.R, p.t, p.ok, p.spread_deg, p.covariance) for p in found.poses]
+
+    detector = find if crops == "detect" else None
     run = evaluate(predict, data, models, objects, EvalOptions(progress=progress, detector=detector, visib=settings.visib, bop=True))
     return run.records, summarize(run.records, objects, {"crops": crops, **run.notes}, run.detection_counts, run.bop)
 
@@ -58,7 +64,9 @@ def validate(
     """The checkpoint's report on `data` with GT crops and, where it carries a localiser, the localiser's."""
     est = Estimator.load(checkpoint)
     precision = est.set_precision(settings.precision)
-    report: dict = {"config": {"checkpoint": str(checkpoint), "data": str(data), **asdict(settings), "precision": precision}}
+    verifier = None if est.config.verifier is None else asdict(est.config.verifier)
+    report: dict = {"config": {"checkpoint": str(checkpoint), "data": str(data), **asdict(settings), "precision": precision,
+                               "verifier": verifier}}  # fmt: skip
     for crops in CROPS:
         if crops == "detect" and est.localiser is None:
             continue
@@ -115,6 +123,7 @@ def format_validation(report: dict) -> str:
                      f"{cal['rotation_median_d2']:.1f} (right: 2.37)")  # fmt: skip
         lines.append(line)
     c = report["config"]
-    lines.append(f"{c['steps']} DDIM steps, {c['hypotheses']} hypothesis/es, {c['precision']}, score threshold {c['score_threshold']}, "
-                 f"visib {c['visib'][0]}-{c['visib'][1]}; n: GT instances")  # fmt: skip
+    scored = " (the verifier's)" if c.get("verifier") else ""
+    lines.append(f"{c['steps']} DDIM steps, {c['hypotheses']} hypothesis/es, {c['precision']}, score threshold {c['score_threshold']}"
+                 f"{scored}, visib {c['visib'][0]}-{c['visib'][1]}; n: GT instances")  # fmt: skip
     return "\n".join(lines)

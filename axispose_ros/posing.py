@@ -1,6 +1,7 @@
-"""From a frame to the poses the node publishes: the boxes of fresh ROIs, else the localiser's, each posed on its
-own; or, with `tracking`, every object followed by a `Tracker` (crops from predicted poses, the localiser only
-where due, filtered poses with their filter's covariance and a track id)."""
+"""From a frame to the poses the node publishes: the boxes of fresh ROIs, else what the localiser finds (each posed
+on its own, rescored by the checkpoint's verifier where it has one: `Estimator.find`); or, with `tracking`, every
+object followed by a `Tracker` (crops from predicted poses, the localiser only where due, filtered poses with their
+filter's covariance and a track id)."""
 
 from __future__ import annotations
 
@@ -10,7 +11,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from axispose_core.estimator import EstimateOptions, Estimator, PoseEstimate
+from axispose_core.estimator import EstimateOptions, Estimator, Found, PoseEstimate
 from axispose_core.tracking.tracker import Crop, Tracker, TrackingConfig
 from axispose_ros.params import NodeSettings
 
@@ -30,7 +31,7 @@ class Posed:
 
 class FramePoser:
     """The estimator's side of the node's frame: which boxes, posed how, and the tracker across frames. What it
-    counts (`tracking_<event>`, `pose_refused` of tracked crops) goes to `count(key, n)`."""
+    counts (`verifier_dropped`, `tracking_<event>`, `pose_refused` of tracked crops) goes to `count(key, n)`."""
 
     def __init__(self, estimator: Estimator, published: dict[int, str], count: Callable[[str, int], None]) -> None:
         self.estimator, self.published, self.count = estimator, published, count
@@ -51,14 +52,24 @@ class FramePoser:
         if rois or self.estimator.localiser is None:
             return _each(list(rois), [1.0] * len(rois), estimate)
 
-        def dets() -> list:
-            return [d for d in self.estimator.detect(rgb, s.score_threshold) if d.obj_id in self.published]
+        def find() -> Found:
+            found = self.estimator.find(rgb, K, s.score_threshold, options, cancelled, objects=self.published)
+            if found.dropped:
+                self.count("verifier_dropped", found.dropped)
+            return found
 
         if not s.tracking:
             if self.tracker.tracks:
                 self.tracker.reset("disabled")
-            found = dets()
-            return _each([(d.obj_id, d.box) for d in found], [d.score for d in found], estimate)
+            found = find()
+            return Posed(found.poses, [d.score for d in found.detections], [d.box for d in found.detections], [0] * len(found.poses))
+
+        def dets() -> list:
+            """The tracker's detections, which it poses itself: a verifier's poses only score them."""
+            if self.estimator.config.verifier is None:
+                return [d for d in self.estimator.detect(rgb, s.score_threshold) if d.obj_id in self.published]
+            return find().detections
+
         self.tracker.config = TrackingConfig(
             redetect_period=s.redetect_period, measure_every=s.measure_every, track_timeout=s.track_timeout
         )

@@ -1,10 +1,10 @@
 """Does the pose the estimator finds for a detection tell a real object from a false alarm? Every detection down to
 --min-score is posed as the node poses it (1 sample, 3 steps, float32), and described by the localiser's score and
-three signals of the pose: the rotation and translation variance of the dense fusion's covariance (a crop whose
-points do not fit the object's model gets a wide one) and the IoU of the posed model's projected box with the
-detection's box. A logistic model of hit against false alarm is fitted on the synthetic frames (--fit) only, and read
-on every set: each signal's AUC, the average precision of the score alone and of the combination, and recall /
-precision where the combination's threshold gives the fit set the precision, or the recall, of score >= 0.3.
+two signals of the pose: the rotation and translation variance of the dense fusion's covariance (a crop whose
+points do not fit the object's model gets a wide one). The verifier (`axispose_core/localiser/verifier.py`) is fitted
+on the synthetic frames (--fit) only, as `axispose fit-verifier` fits it, and read on every set: each signal's AUC,
+the average precision of the score alone and of the verifier's probability, and recall / precision at the node's
+threshold 0.3 on either, and where the probability's threshold gives the fit set the recall of score >= 0.3.
 
     python bench/localiser_pose_verifier.py --checkpoint EST --fit data/lmo_val \
         --data ../shared/data/lmo_real_val/test HELDOUT/test --json bench/results/localiser_pose_verifier.json
@@ -13,48 +13,30 @@ precision where the combination's threshold gives the fit set the precision, or 
 from __future__ import annotations
 
 import argparse
-from pathlib import Path
 
 import numpy as np
 import torch
 from scipy.stats import rankdata
 from write_results import write_results
 
-from axispose_core.data.bop import bbox_from_model, bop_frames
-from axispose_core.data.meshes import load_ply
+from axispose_core.data.bop import bop_frames
 from axispose_core.data.visibility import gt_info_from_models
-from axispose_core.estimator import EstimateOptions, Estimator
-from axispose_core.localiser.decode import Detection, iou, match
-from axispose_core.localiser.scoring import Instance, frame_instances, tally
-from axispose_core.localiser.verifier import FEATURES, fit, signals
+from axispose_core.estimator import Estimator
+from axispose_core.localiser.decode import Detection
+from axispose_core.localiser.scoring import Instance, detection_outcomes, frame_instances, tally
+from axispose_core.localiser.verifier import FEATURES, fit
+from axispose_core.train.verifier import pose_signals
 
-SIGNS = (1, -1, -1, 1)
+SIGNS = (1, -1, -1)
 """Which way each of `FEATURES` points to a hit (for its AUC)."""
 
 Frame = tuple[list[Detection], list[Instance], np.ndarray]
 """A frame's detections, its instances and one feature row per detection."""
 
 
-def pose_features(est: Estimator, rgb: np.ndarray, K: np.ndarray, dets: list[Detection], points: dict) -> np.ndarray:
-    """(n, 4) rows of FEATURES for the frame's detections, each posed as the node poses it."""
-    poses = est.estimate(rgb, K, [(d.obj_id, d.box) for d in dets], EstimateOptions(steps=3))
-    rows = []
-    for d, p in zip(dets, poses, strict=True):
-        box_iou = iou(bbox_from_model(K, p.R, p.t, points[d.obj_id]), d.box) if p.ok and p.t[2] > 0 else 0.0
-        rows.append(signals(d.score, p.covariance if p.ok else None, box_iou))
-    return np.array(rows, float).reshape(-1, len(FEATURES))
-
-
 def labels(frames: list[Frame], min_visib: float) -> np.ndarray:
     """Per detection: 1 hit, 0 false alarm, -1 neither (it found an instance less visible than `min_visib`)."""
-    out = [np.zeros(0, int)]
-    for dets, insts, _ in frames:
-        lab = np.zeros(len(dets), int)
-        for g, k in enumerate(match(dets, [(o, b) for o, b, _ in insts])):
-            if k is not None:
-                lab[k] = 1 if insts[g][2] >= min_visib else -1
-        out.append(lab)
-    return np.concatenate(out)
+    return np.array([o for dets, insts, _ in frames for o in detection_outcomes(dets, insts, min_visib)], int)
 
 
 def auc(y: np.ndarray, x: np.ndarray) -> float:
@@ -88,7 +70,7 @@ def average_precision(frames: list[Frame], z: np.ndarray, ids: tuple[int, ...], 
 
 def summary(result: dict) -> str:
     """One line of a set's result."""
-    pairs = {k: result[k] for k in ("score_0.3", "combined_at_fit_precision", "combined_at_fit_recall")}
+    pairs = {k: result[k] for k in ("score_0.3", "combined_0.3", "combined_at_fit_recall")}
     points = "; ".join(f"{k} {r:.3f} / {p:.3f}" for k, (r, p) in pairs.items())
     aucs = ", ".join(f"{n} {v:.3f}" for n, v in result["auc"].items())
     ap = result["average_precision"]
@@ -100,8 +82,8 @@ def main() -> None:
     ap.add_argument("--checkpoint", required=True, help="estimator checkpoint with a localiser")
     ap.add_argument("--fit", required=True, help="synthetic BOP frames the logistic model is fitted on")
     ap.add_argument("--data", nargs="+", required=True, help="BOP frame folders it is read on")
-    ap.add_argument("--models", default="../shared/data/lmo/models_eval", help="visibility and boxes from these models")
-    ap.add_argument("--min-score", type=float, default=0.1, help="detections down to this score are posed")
+    ap.add_argument("--models", default="../shared/data/lmo/models_eval", help="visibility from these models")
+    ap.add_argument("--min-score", type=float, default=0.2, help="detections down to this score are posed")
     ap.add_argument("--min-visib", type=float, default=0.1)
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--json", default=None)
@@ -110,7 +92,6 @@ def main() -> None:
     est = Estimator.load(args.checkpoint)
     est.set_precision("float32")
     ids = tuple(o.obj_id for o in est.config.objects)
-    points = {o: load_ply(Path(args.models) / f"obj_{o:06d}.ply").vertices for o in ids}
     info = gt_info_from_models(args.models)
     frames: dict[str, list[Frame]] = {}
     for path in [args.fit, *args.data]:
@@ -118,24 +99,23 @@ def main() -> None:
         for scene, im_id in bop_frames([path], info):
             rgb, K = scene.rgb(im_id), scene.cameras[im_id]
             dets = est.detect(rgb, args.min_score)
-            rows = pose_features(est, rgb, K, dets, points) if dets else np.zeros((0, len(FEATURES)))
+            rows = pose_signals(est, rgb, K, dets, 3)
             frames[path].append((dets, frame_instances(scene, im_id, ids), rows))
         print(f"{path}: {sum(len(d) for d, _, _ in frames[path])} detections", flush=True)
     rows = {k: np.concatenate([r for _, _, r in v]) for k, v in frames.items()}
     y = {k: labels(v, args.min_visib) for k, v in frames.items()}
     fit_rows, fit_y = rows[args.fit], y[args.fit]
     counted = fit_y >= 0
-    verifier = fit(fit_rows[counted], fit_y[counted])
+    verifier = fit(fit_rows[counted], fit_y[counted], args.min_score)
     z = {k: verifier.probability(r) for k, r in rows.items()}
-    # The combination's operating points: the fit set's precision, or its recall, at the node's score threshold.
-    base_recall, base_precision = recall_precision(frames[args.fit], rows[args.fit][:, 0], 0.3, ids, args.min_visib)
-    grid = np.unique(z[args.fit])
-    at_fit = [(t, *recall_precision(frames[args.fit], z[args.fit], t, ids, args.min_visib)) for t in grid]
-    t_precision = max(((r, t) for t, r, p in at_fit if p >= base_precision), default=(0.0, grid[-1]))[1]
+    # Beside the node's threshold, the probability's that gives the fit set the recall of score >= 0.3.
+    base_recall, _ = recall_precision(frames[args.fit], rows[args.fit][:, 0], 0.3, ids, args.min_visib)
+    at_fit = [(t, *recall_precision(frames[args.fit], z[args.fit], t, ids, args.min_visib)) for t in np.unique(z[args.fit])]
     t_recall = min(at_fit, key=lambda a: (abs(a[1] - base_recall), -a[2]))[0]
     out = {
         "checkpoint": args.checkpoint,
         "fit": args.fit,
+        "min_score": args.min_score,
         "weights": dict(zip([*FEATURES, "constant"], verifier.weights, strict=True)),
         "sets": {},
     }
@@ -147,7 +127,7 @@ def main() -> None:
             "average_precision": {"score": average_precision(frames[k], rows[k][:, 0], ids, args.min_visib),
                                   "combined": average_precision(frames[k], z[k], ids, args.min_visib)},
             "score_0.3": recall_precision(frames[k], rows[k][:, 0], 0.3, ids, args.min_visib),
-            "combined_at_fit_precision": recall_precision(frames[k], z[k], t_precision, ids, args.min_visib),
+            "combined_0.3": recall_precision(frames[k], z[k], 0.3, ids, args.min_visib),
             "combined_at_fit_recall": recall_precision(frames[k], z[k], t_recall, ids, args.min_visib),
         }  # fmt: skip
         out["sets"][k] = result

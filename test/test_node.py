@@ -23,6 +23,7 @@ from axispose_core.checkpoint import CheckpointError
 from axispose_core.estimator import Estimator, EstimatorConfig, PoseEstimate, bf16_native
 from axispose_core.lmo import LMO_K
 from axispose_core.localiser.model import Localiser, LocaliserConfig
+from axispose_core.localiser.verifier import DetectionVerifier
 from axispose_core.objects import lmo_objects
 from axispose_core.tbm.reader import SHIPPED_READER, load_reader
 from axispose_core.trunks import ResidualBNConfig
@@ -488,6 +489,29 @@ def test_objects_not_asked_for_are_neither_estimated_nor_published(localised_che
         assert sorted(m.id for m in arrows) == [0, 1, 2, 3, 4, 5] and {m.ns for m in arrows} == {"axispose/ape"}
         assert all(m.lifetime.sec == 0 and m.lifetime.nanosec == 500_000_000 for m in arrows)
         assert h.peer.count_subscribers("/axispose/roi/ape") == 1 and h.peer.count_subscribers("/axispose/roi/can") == 0
+    finally:
+        h.close()
+
+
+@pytest.mark.parametrize("constant", [-3.0, 2.0])
+def test_the_checkpoints_verifier_sets_the_published_score_and_its_drops_are_counted(localised_checkpoint, tmp_path, constant):
+    """A verifier whose probability is sigmoid(constant) whatever the detection: below the threshold every detection
+    of the untrained localiser (ape and can, twice each) is dropped and counted, above it every one is published with
+    that score."""
+    est = Estimator.load(localised_checkpoint)
+    path = tmp_path / "verified.safetensors"
+    est.with_verifier(DetectionVerifier((0.0, 0.0, 0.0, constant), min_score=1e-3)).save(path)
+    h = Harness(path, score_threshold=0.3)
+    try:
+        _fixed_poses(h.node)
+        h.spin_until(lambda: h.pub_image.get_subscription_count() > 0, 5.0)
+        h.frame(sec=31)
+        assert h.spin_until(lambda: h.got["det"])
+        scores = [d.score for d in h.got["det"][0].detections]
+        if constant < 0:
+            assert scores == [] and h.node.counters()["verifier_dropped"] == 4
+        else:
+            assert scores == pytest.approx([1 / (1 + np.exp(-constant))] * 4, abs=1e-6) and "verifier_dropped" not in h.node.counters()
     finally:
         h.close()
 

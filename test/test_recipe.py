@@ -126,6 +126,9 @@ def test_a_short_recipe_builds_resumes_and_records_itself(lmo_dir, tmp_path):
         (lambda r: r["estimator"]["config"].update(ddim_stpes=2), "ddim_stpes"),
         (lambda r: r["data"]["frames"].update(randomization={"light": {"ambiant": [0.2, 1.0]}}), "ambiant"),
         (lambda r: r["data"]["frames"].update(scene={"lookalike": 0.5}), "lookalike"),
+        (lambda r: r["estimator"].update(verifier={"data": ["elsewhere"]}), "verifier needs data from the recipe's data"),
+        (lambda r: r["estimator"].update(verifier={"data": ["frames"], "min_scor": 0.2}), "min_scor"),
+        (lambda r: r["estimator"].update(verifier={"data": ["frames"], "min_score": 1.5}), "min_score must lie in"),
     ],
 )
 def test_a_recipe_with_a_mistake_is_refused_before_training(lmo_dir, tmp_path, capsys, edit, message):
@@ -136,6 +139,37 @@ def test_a_recipe_with_a_mistake_is_refused_before_training(lmo_dir, tmp_path, c
         load_recipe(path)
     assert main(["train", "--recipe", str(path), "--out", str(tmp_path / "run")]) == 2  # one line, exit 2
     assert message.split("'")[0] in capsys.readouterr().err and not (tmp_path / "run").exists()
+
+
+def test_the_verifier_is_fitted_on_the_assembled_checkpoint_and_an_adopted_one_is_not_kept(lmo_dir, tmp_path, monkeypatch):
+    """Assembly fits the recipe's verifier on its data with the checkpoint as stored; an adopted file's verifier,
+    fitted to other weights, does not carry over into a checkpoint whose recipe has none."""
+    from axispose_core.localiser.model import Localiser, LocaliserConfig
+    from axispose_core.localiser.verifier import DetectionVerifier
+    from axispose_core.trunks import ResidualBNConfig
+
+    old = DetectionVerifier((1.0, 0.0, 0.0, 0.0))
+    tiny = Estimator.load(save_tiny_estimator(tmp_path / "tiny.safetensors"))
+    localiser = Localiser(LocaliserConfig(obj_ids=(1, 5), input_size=(160, 128), trunk=ResidualBNConfig(widths=(8, 16, 24, 32))))
+    tiny.with_localiser(localiser).with_verifier(old).save(tmp_path / "verified.safetensors")
+    verified = str(tmp_path / "verified.safetensors")
+    adopt = {"reader": str(SHIPPED_READER), "agm_more": verified, "localiser": verified}
+    calls = []
+
+    def fake_fit(est, data, config, progress=False):
+        calls.append((est.config.verifier, [Path(d).name for d in data], config.min_score))
+        return DetectionVerifier((0.5, 1.0, 0.0, -1.0), config.min_score), {"hits": 3}
+
+    monkeypatch.setattr("axispose_core.train.recipe.fit_verifier", fake_fit)
+    plain = RecipeRunner(load_recipe(_write(tmp_path, _recipe(lmo_dir / "models"))), tmp_path / "plain", RunOptions(progress=False), adopt)
+    assert Estimator.load(plain.run_all()).config.verifier is None and calls == []
+    recipe = _recipe(lmo_dir / "models")
+    recipe["estimator"]["verifier"] = {"data": ["frames"], "min_score": 0.25}
+    path = RecipeRunner(load_recipe(_write(tmp_path, recipe, "v.yaml")), tmp_path / "v", RunOptions(progress=False), adopt).run_all()
+    est = Estimator.load(path)
+    assert calls == [(None, ["frames"], 0.25)]  # fitted on the assembled checkpoint, not the adopted one's verifier
+    assert est.config.verifier == DetectionVerifier((0.5, 1.0, 0.0, -1.0), 0.25) and est.config.training["verifier"] == {"hits": 3}
+    assert est.config.training["recipe"]["estimator"]["verifier"] == {"data": ["frames"], "min_score": 0.25}
 
 
 def test_a_fresh_trunk_stage_starts_from_its_inits_denoiser_with_a_new_trunk(tmp_path):

@@ -1,35 +1,46 @@
-"""The detection verifier: a detection's pose signals, and a logistic model fitted on them that ranks hits first."""
+"""The detection verifier: a detection's pose signals, the logistic model fitted on them, the estimator's `find` that
+rescores with it, its place in the checkpoint, and `axispose fit-verifier`."""
 
 import numpy as np
 import pytest
+from conftest import TINY_AGM
+from scipy.special import expit
 
+from axispose_core.agm.model import AxisGenerator
+from axispose_core.cli import main
+from axispose_core.data.bop import bop_frames
+from axispose_core.estimator import Estimator, EstimatorConfig
+from axispose_core.lmo import LMO_K
+from axispose_core.localiser.decode import Detection
+from axispose_core.localiser.model import Localiser, LocaliserConfig
 from axispose_core.localiser.verifier import FEATURES, WORST_VARIANCE, DetectionVerifier, fit, signals
+from axispose_core.objects import lmo_objects
+from axispose_core.tbm.reader import SHIPPED_READER, load_reader
+from axispose_core.trunks import ResidualBNConfig
 
 
 def test_signals_read_the_covariance_blocks_and_count_no_pose_as_the_widest():
     cov = np.diag([1e-4, 2e-4, 3e-4, 0.01, 0.02, 0.03])
-    score, var_r, var_t, box_iou = signals(0.7, cov, 0.8)
-    assert (score, box_iou) == (0.7, 0.8)
-    assert var_r == pytest.approx(0.06) and var_t == pytest.approx(6e-4)
-    assert signals(0.7, None, 0.0)[1:3] == (WORST_VARIANCE, WORST_VARIANCE)
-    assert signals(0.7, np.full((6, 6), np.nan), 0.0)[1:3] == (WORST_VARIANCE, WORST_VARIANCE)
+    score, var_r, var_t = signals(0.7, cov)
+    assert score == 0.7 and var_r == pytest.approx(0.06) and var_t == pytest.approx(6e-4)
+    assert signals(0.7, None)[1:] == (WORST_VARIANCE, WORST_VARIANCE)
+    assert signals(0.7, np.full((6, 6), np.nan))[1:] == (WORST_VARIANCE, WORST_VARIANCE)
 
 
 def _detections(rng: np.random.Generator, n: int) -> tuple[np.ndarray, np.ndarray]:
-    """Hits with higher scores, narrower rotation variance and better boxes than false alarms, overlapping."""
+    """Hits with higher scores and narrower rotation variance than false alarms, overlapping."""
     hits = rng.uniform(size=n) < 0.5
     score = np.clip(rng.normal(np.where(hits, 0.6, 0.4), 0.15), 0.01, 0.99)
     var_r = np.exp(rng.normal(np.where(hits, -5.0, -3.0), 1.0))
     var_t = np.exp(rng.normal(-7.0, 1.0, n))
-    box_iou = np.clip(rng.normal(np.where(hits, 0.8, 0.5), 0.15), 0, 1)
-    return np.stack([score, var_r, var_t, box_iou], axis=1), hits.astype(int)
+    return np.stack([score, var_r, var_t], axis=1), hits.astype(int)
 
 
 def test_fit_ranks_hits_above_false_alarms_better_than_the_score():
     rows, hits = _detections(np.random.default_rng(0), 2000)
-    verifier = fit(rows, hits)
-    assert len(verifier.weights) == len(FEATURES) + 1
-    assert verifier.weights[0] > 0 and verifier.weights[1] > 0 and verifier.weights[3] > 0  # score, -log var_r, IoU
+    verifier = fit(rows, hits, min_score=0.25)
+    assert len(verifier.weights) == len(FEATURES) + 1 and verifier.min_score == 0.25
+    assert verifier.weights[0] > 0 and verifier.weights[1] > 0  # score, -log var_r
     test_rows, test_hits = _detections(np.random.default_rng(1), 2000)
     p = verifier.probability(test_rows)
     assert p.shape == (2000,) and np.all((p > 0) & (p < 1))
@@ -38,7 +49,7 @@ def test_fit_ranks_hits_above_false_alarms_better_than_the_score():
         return float(np.mean(x[test_hits == 1][:, None] > x[test_hits == 0][None, :]))
 
     assert auc(p) > auc(test_rows[:, 0]) + 0.05
-    assert fit(rows, hits) == verifier  # deterministic
+    assert fit(rows, hits, min_score=0.25) == verifier  # deterministic
 
 
 def test_fit_needs_both_hits_and_false_alarms():
@@ -47,7 +58,111 @@ def test_fit_needs_both_hits_and_false_alarms():
         fit(rows, np.ones(10))
 
 
-def test_a_verifier_is_plain_data():
-    verifier = DetectionVerifier((1.0, 0.5, 0.0, 2.0, -1.0))
-    assert DetectionVerifier(**{"weights": tuple(verifier.weights)}) == verifier
-    assert verifier.probability(np.array([0.5, 1e-3, 1e-5, 0.5]))[0] == pytest.approx(1 / (1 + np.exp(-(0.5 * np.log(1e3) + 1.0 - 1.0))))
+def test_a_verifier_is_plain_data_and_refuses_a_wrong_one():
+    verifier = DetectionVerifier((0.5, 1.0, 0.0, -1.0), min_score=0.2)
+    assert DetectionVerifier(**{"weights": tuple(verifier.weights), "min_score": 0.2}) == verifier
+    expected = expit(0.5 * np.log(0.5 / 0.5) + np.log(1e3) - 1.0)
+    assert verifier.probability(np.array([0.5, 1e-3, 1e-5]))[0] == pytest.approx(expected)
+    assert verifier.rescore([0.5], [np.diag([1e-5 / 3] * 3 + [1e-3 / 3] * 3)])[0] == pytest.approx(expected)
+    with pytest.raises(ValueError, match="4 finite weights"):
+        DetectionVerifier((1.0, 2.0, 3.0, 4.0, 5.0))
+    with pytest.raises(ValueError, match="min_score"):
+        DetectionVerifier((0.0,) * 4, min_score=0.0)
+
+
+@pytest.fixture(scope="module")
+def localised():
+    """The tiny AGM with an untrained localiser of ape (1) and can (5)."""
+    reader = load_reader(SHIPPED_READER)
+    cfg = EstimatorConfig(agm=TINY_AGM, reader=reader.config, objects=tuple(lmo_objects()[:2]), ddim_steps=1)
+    localiser = Localiser(LocaliserConfig(obj_ids=(1, 5), input_size=(160, 128), trunk=ResidualBNConfig(widths=(8, 16, 24, 32))))
+    return Estimator(cfg, AxisGenerator(cfg.agm), reader).with_localiser(localiser)
+
+
+DETECTIONS = [Detection(1, 0.25, (200.0, 200.0), (60.0, 70.0)), Detection(5, 0.5, (400.0, 250.0), (80.0, 90.0)),
+              Detection(1, 0.9, (300.0, 300.0), (50.0, 60.0))]  # fmt: skip
+
+
+def _detect(est: Estimator, monkeypatch) -> list[float]:
+    """Make `est.detect` give DETECTIONS (those scoring at least its threshold) and record the thresholds asked for."""
+    asked: list[float] = []
+
+    def detect(image, threshold=None):
+        asked.append(threshold)
+        return [d for d in DETECTIONS if d.score >= threshold]
+
+    monkeypatch.setattr(est, "detect", detect)
+    return asked
+
+
+def test_without_a_verifier_find_poses_the_localisers_detections_above_the_threshold(localised, monkeypatch):
+    asked = _detect(localised, monkeypatch)
+    image = np.zeros((480, 640, 3), np.uint8)
+    found = localised.find(image, LMO_K, 0.3)
+    assert asked == [0.3] and found.detections == DETECTIONS[1:] and found.dropped == 0
+    assert [p.obj_id for p in found.poses] == [5, 1]
+    assert [d.obj_id for d in localised.find(image, LMO_K, 0.3, objects={1}).detections] == [1]
+
+
+def test_a_verifier_poses_down_to_its_min_score_and_publishes_its_probability(localised, monkeypatch):
+    score_only = localised.with_verifier(DetectionVerifier((1.0, 0.0, 0.0, 0.0), min_score=0.2))  # P(hit) = the score
+    asked = _detect(score_only, monkeypatch)
+    image = np.zeros((480, 640, 3), np.uint8)
+    found = score_only.find(image, LMO_K, 0.3)
+    assert asked == [0.2] and found.dropped == 1
+    assert [d.score for d in found.detections] == pytest.approx([0.5, 0.9]) and [p.obj_id for p in found.poses] == [5, 1]
+    # The probability of each kept detection is the verifier's of its score and its pose's covariance.
+    lifted = localised.with_verifier(DetectionVerifier((0.0, 1.0, 0.0, 0.0), min_score=0.2))
+    _detect(lifted, monkeypatch)
+    found = lifted.find(image, LMO_K, 0.0)
+    assert found.dropped == 0 and len(found.detections) == 3
+    for d, original, pose in zip(found.detections, DETECTIONS, found.poses, strict=True):
+        expected = lifted.config.verifier.rescore([original.score], [pose.covariance if pose.ok else None])[0]
+        assert d.score == pytest.approx(expected) and d.box == original.box
+
+
+def test_the_verifier_travels_in_the_checkpoint_and_leaves_with_its_localiser(localised, tmp_path):
+    verifier = DetectionVerifier((2.5, 1.5, -1.0, 3.4), min_score=0.2)
+    path = tmp_path / "v.safetensors"
+    localised.with_verifier(verifier).save(path)
+    loaded = Estimator.load(path)
+    assert loaded.config.verifier == verifier
+    assert loaded.with_localiser(loaded.localiser).config.verifier is None  # fitted to that localiser's scores
+    bare = EstimatorConfig(agm=TINY_AGM, reader=loaded.config.reader, objects=loaded.config.objects, verifier=verifier)
+    with pytest.raises(ValueError, match="no localiser"):
+        Estimator(bare, loaded.agm, loaded.reader)
+
+
+def test_fit_verifier_labels_each_detection_by_the_protocol_and_writes_the_checkpoint(localised, frames, tmp_path, monkeypatch, capsys):
+    """Detections at every visible instance's box (hits) and one off in a corner per frame (a false alarm): the fit
+    counts them so and the written checkpoint carries a verifier that ranks the hits first."""
+    by_image = {}
+    for scene, im_id in bop_frames([frames]):
+        insts = [(g.obj_id, info.bbox_obj) for g, info in scene.instances(im_id) if info.visib_fract >= 0.1]
+        hits = [Detection(o, 0.6, (x + w / 2, y + h / 2), (w, h)) for o, (x, y, w, h) in insts]
+        by_image[scene.rgb(im_id).tobytes()] = ([*hits, Detection(1, 0.3, (20.0, 20.0), (30.0, 30.0))], len(hits))
+    n_hits = sum(n for _, n in by_image.values())
+
+    def detect(self, image, threshold=None):
+        return by_image[image.tobytes()][0]
+
+    monkeypatch.setattr(Estimator, "detect", detect)
+    checkpoint, out = tmp_path / "in.safetensors", tmp_path / "out.safetensors"
+    localised.save(checkpoint)
+    assert main(["fit-verifier", "--checkpoint", str(checkpoint), "--data", str(frames), "--out", str(out), "--steps", "1",
+                 "--threads", "1"]) == 0  # fmt: skip
+    est = Estimator.load(out)
+    record = est.config.training["verifier"]
+    assert (record["hits"], record["false_alarms"], record["min_score"]) == (n_hits, len(by_image), 0.2)
+    assert est.config.verifier.weights[0] > 0  # the score tells hits (0.6) from the false alarms (0.3)
+    assert "wrote" in capsys.readouterr().out
+
+
+def test_fit_verifier_refuses_what_it_cannot_fit_in_one_line(tmp_path, capsys):
+    from conftest import save_tiny_estimator
+
+    bare = save_tiny_estimator(tmp_path / "bare.safetensors")
+    assert main(["fit-verifier", "--checkpoint", str(bare), "--data", str(tmp_path / "none"), "--out", str(tmp_path / "o")]) == 2
+    assert main(["fit-verifier", "--checkpoint", str(bare), "--data", str(tmp_path), "--out", str(tmp_path / "o")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 2 and "no BOP scenes" in err[0] and "no localiser" in err[1]

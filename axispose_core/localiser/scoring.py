@@ -38,6 +38,16 @@ def frame_outcome(dets: list[Detection], insts: list[Instance], min_visib: float
     return found, false_alarms(hits, len(dets))
 
 
+def detection_outcomes(dets: list[Detection], insts: list[Instance], min_visib: float) -> list[int]:
+    """The detection protocol per detection: 1 it found an instance with visib_fract >= min_visib, 0 a false alarm,
+    -1 neither (it found a less visible instance)."""
+    out = [0] * len(dets)
+    for (_, _, visib), k in zip(insts, match(dets, [(o, b) for o, b, _ in insts]), strict=True):
+        if k is not None:
+            out[k] = 1 if visib >= min_visib else -1
+    return out
+
+
 def tally(frames: Iterable[tuple[list[Detection], list[Instance]]], obj_ids: tuple[int, ...], min_visib: float) -> dict:
     """Recall and precision per object and over all instances of frames' detections against their (obj_id, bbox_obj,
     visib_fract) instances (`frame_outcome`)."""

@@ -10,7 +10,8 @@ A recipe (YAML; the shipped model's: config/recipes/axispose_lmo.yaml) holds
   from (`init`; an AGM stage's with its trunk anew, drawn with the seed `fresh_trunk`); the data a localiser
   stage trains and validates on; and its `schedule` where the cosine's length changes part-way (segments of
   `steps`, each but the last stopping at `until`);
-- `estimator`: the stages that make the checkpoint and the estimator settings it ships with.
+- `estimator`: the stages that make the checkpoint, the estimator settings it ships with, and the detection
+  verifier fitted on the assembled checkpoint (`verifier`: the data it is fitted on and its `VerifierFitConfig`).
 
 The runner builds, in the recipe's order, the stages the checkpoint needs. A stage with OUT/NAME.done.json is done
 and must have been built from the same config; one with a resume state goes on from it; others start. An existing
@@ -50,13 +51,14 @@ from axispose_core.train.loop import DEFAULT_RUN, RunOptions
 from axispose_core.train.reader import ReaderTrainConfig, train_reader
 from axispose_core.train.resume import state_path
 from axispose_core.train.sources import CropSources
+from axispose_core.train.verifier import VerifierFitConfig, fit_verifier
 
 CONFIGS: dict[str, type] = {"reader": ReaderTrainConfig, "agm": TrainConfig, "localiser": LocaliserTrainConfig}
 """Each trainer's config class, by the name a stage gives as its `trainer`."""
 
 SYNTH_KEYS = {"scenes", "images_per_scene", "seed", "recipe", "depth", "objects", "scene", "randomization"}
 STAGE_KEYS = {"name", "trainer", "config", "changes", "init", "fresh_trunk", "data", "val", "schedule"}
-ESTIMATOR_KEYS = {"agm", "reader", "localiser", "config", "half"}
+ESTIMATOR_KEYS = {"agm", "reader", "localiser", "config", "half", "verifier"}
 ESTIMATOR_SETTINGS = {f.name for f in dataclasses.fields(EstimatorConfig)} - {"agm", "reader", "objects", "training", "localiser"}
 
 
@@ -253,8 +255,21 @@ def load_recipe(path: str | Path) -> Recipe:
         if not any(st.name == est.get(part) and st.trainer == part for st in stages):
             raise RecipeError(f"estimator: {part} must name a {part} stage, got {est.get(part)!r}")
     _unknown("estimator: config", set(est.get("config") or {}), ESTIMATOR_SETTINGS)
+    if "verifier" in est:
+        _verifier_spec(dict(est["verifier"] or {}), data)
     est = {"config": {}, "half": False} | est
     return Recipe(str(raw.get("models", "")), data, tuple(stages), est)
+
+
+def _verifier_spec(spec: dict[str, Any], data: dict[str, dict[str, Any]]) -> tuple[tuple[str, ...], VerifierFitConfig]:
+    """The estimator's `verifier` entry: the recipe's data it is fitted on and how."""
+    names = tuple(spec.pop("data", None) or ())
+    if not names or any(d not in data for d in names):
+        raise RecipeError(f"estimator: verifier needs data from the recipe's data, got {names or 'none'}")
+    try:
+        return names, config_from_dict(VerifierFitConfig, spec, "estimator: verifier")
+    except (ConfigError, TypeError, ValueError) as err:
+        raise RecipeError(str(err)) from err
 
 
 def _training_record(meta: dict[str, str]) -> dict[str, Any]:
@@ -436,7 +451,14 @@ class RecipeRunner:
 
         stages = [done[s.name] for s in self.recipe.needed(chain_ends)]  # the whole chain
         training = {"recipe": self.recipe.as_dict(), "recipe_sha256": self.recipe.sha256, "stages": stages}
-        config = dataclasses.replace(agm.config, reader=reader.config, localiser=localiser.config, training=training, **est["config"])
+        config = dataclasses.replace(agm.config, reader=reader.config, localiser=localiser.config, verifier=None, training=training,
+                                     **est["config"])  # fmt: skip
         path = self.checkpoint(self.name)
         Estimator(config, agm.agm, reader, "cpu", localiser).save(path, half=bool(est["half"]))
+        if "verifier" in est:  # fitted on the checkpoint as it runs: its stored weights, in float32
+            names, fit_config = _verifier_spec(dict(est["verifier"]), self.recipe.data)
+            assembled = Estimator.load(path)
+            verifier, record = fit_verifier(assembled, self._data(names), fit_config, progress=self.run.progress)
+            fitted = dataclasses.replace(assembled.config, verifier=verifier, training={**training, "verifier": record})
+            Estimator(fitted, assembled.agm, assembled.reader, "cpu", assembled.localiser).save(path, half=bool(est["half"]))
         return path
