@@ -191,6 +191,10 @@ class PoseEstimate:
     """(6, 6) pose covariance (x, y, z, rx, ry, rz; camera frame; m², rad²): the dense fusion's (`FusedPose`) plus
     the samples' scatter about their consensus (consensus.py); without the fusion the scatter alone, with a floor
     (None for a single sample)."""
+    fit_covariance: np.ndarray | None = None
+    """(6, 6) the dense fusion's own covariance, without the samples' scatter: how well the crop's dense points fit
+    the object's model, alike at any number of samples (what the detection verifier reads; None without the
+    fusion)."""
     head_depth: float = float("nan")
     """The encoder's depth for this crop (m, linear in λ_O); t already fuses it with the TBM's (head_depth_weight)
     and with the dense points (dense_fusion)."""
@@ -296,7 +300,7 @@ class Estimator:
         if verifier is None:
             return Found(dets, poses)
         least = self.localiser.config.threshold if threshold is None else threshold
-        scores = verifier.rescore([d.score for d in dets], [p.covariance if p.ok else None for p in poses])
+        scores = verifier.rescore([d.score for d in dets], [p.fit_covariance if p.ok else None for p in poses])
         keep = [k for k, s in enumerate(scores) if s >= least]
         return Found([replace(dets[k], score=float(scores[k])) for k in keep], [poses[k] for k in keep], len(dets) - len(keep))
 
@@ -473,9 +477,10 @@ class Estimator:
             many = len(s.poses) > 1
             axis_image = images[s.poses[c.medoid][0]].permute(1, 2, 0).cpu().numpy()
             spread = dict(spread_deg=c.spread_deg, spread_m=c.spread_m) if many else {}
-            R, t, cov = c.R, c.t, (c.covariance if many else None)
+            R, t, cov, fit = c.R, c.t, (c.covariance if many else None), None
             if dense is not None and (fused := fuse_pose(cut.K_patch, R, t, dense[i], s.head_depth, self.config.dense_fusion)) is not None:
                 # The law of total covariance: the fusion's own (given the consensus) plus the samples' scatter about it.
-                R, t, cov = fused.R, fused.t, fused.covariance + (c.scatter if many else 0.0)
-            out.append(PoseEstimate(R=R, t=t, ok=True, reason="", axis_image=axis_image, covariance=cov, **pick, **spread))
+                R, t, cov, fit = fused.R, fused.t, fused.covariance + (c.scatter if many else 0.0), fused.covariance
+            out.append(PoseEstimate(R=R, t=t, ok=True, reason="", axis_image=axis_image, covariance=cov, fit_covariance=fit, **pick,
+                                    **spread))  # fmt: skip
         return out

@@ -9,7 +9,7 @@ from scipy.special import expit
 from axispose_core.agm.model import AxisGenerator
 from axispose_core.cli import main
 from axispose_core.data.bop import bop_frames
-from axispose_core.estimator import Estimator, EstimatorConfig
+from axispose_core.estimator import SHIPPED_ESTIMATOR, EstimateOptions, Estimator, EstimatorConfig
 from axispose_core.lmo import LMO_K
 from axispose_core.localiser.decode import Detection
 from axispose_core.localiser.model import Localiser, LocaliserConfig
@@ -117,8 +117,23 @@ def test_a_verifier_poses_down_to_its_min_score_and_publishes_its_probability(lo
     found = lifted.find(image, LMO_K, 0.0)
     assert found.dropped == 0 and len(found.detections) == 3
     for d, original, pose in zip(found.detections, DETECTIONS, found.poses, strict=True):
-        expected = lifted.config.verifier.rescore([original.score], [pose.covariance if pose.ok else None])[0]
+        expected = lifted.config.verifier.rescore([original.score], [pose.fit_covariance if pose.ok else None])[0]
         assert d.score == pytest.approx(expected) and d.box == original.box
+
+
+def test_the_verifier_reads_the_fusions_own_covariance_alike_at_any_number_of_samples(frames):
+    """With one sample the pose's covariance is the dense fusion's; with several it adds their scatter, which the
+    verifier leaves out: the variances it was fitted on (one sample) keep their meaning."""
+    est = Estimator.load(SHIPPED_ESTIMATOR)
+    scene, im_id = bop_frames([frames])[0]
+    boxes = [(g.obj_id, info.bbox_obj) for g, info in scene.instances(im_id) if info.visib_fract > 0.5]
+    one = [p for p in est.estimate(scene.rgb(im_id), scene.cameras[im_id], boxes, EstimateOptions(steps=1)) if p.ok]
+    assert one and all(np.array_equal(p.covariance, p.fit_covariance) for p in one)
+    options = EstimateOptions(steps=1, hypotheses=3)
+    many = [p for p in est.estimate(scene.rgb(im_id), scene.cameras[im_id], boxes, options) if p.ok and p.samples_ok > 1]
+    assert many and all(p.fit_covariance is not None for p in many)
+    for p in many:  # the total covariance is the fusion's plus a positive semi-definite scatter
+        assert np.linalg.eigvalsh(p.covariance - p.fit_covariance).min() > -1e-12
 
 
 def test_the_verifier_travels_in_the_checkpoint_and_leaves_with_its_localiser(localised, tmp_path):

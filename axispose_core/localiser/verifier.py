@@ -1,8 +1,9 @@
 """A second opinion on a detection from the pose the estimator finds for it. On real frames the localiser takes clutter
 in an object's colours for the object; the AGM's crop of such clutter does not fit the object's model, and the dense
-fusion says so with a wide covariance. A logistic model of the localiser's score and the pose's variances
-(`FEATURES`), fitted on rendered frames only (`axispose fit-verifier`), ranks detections better than the score alone
-(docs/BENCHMARKS.md, "The pose as a second opinion"); the estimator publishes its probability as the score.
+fusion says so with a wide covariance (its own, without the samples' scatter: alike at any number of samples). A
+logistic model of the localiser's score and the pose's variances (`FEATURES`), fitted on rendered frames only
+(`axispose fit-verifier`), ranks detections better than the score alone (docs/BENCHMARKS.md, "The pose as a second
+opinion"); the estimator publishes its probability as the score.
 """
 
 from __future__ import annotations
@@ -42,7 +43,8 @@ class DetectionVerifier:
         return expit(design(rows) @ np.asarray(self.weights))
 
     def rescore(self, scores: Sequence[float], covariances: Sequence[np.ndarray | None]) -> np.ndarray:
-        """P(hit) of detections with these localiser scores and pose covariances (None: not posed)."""
+        """P(hit) of detections with these localiser scores and their poses' dense-fusion covariances
+        (`PoseEstimate.fit_covariance`; None: no pose)."""
         return self.probability(np.array([signals(s, c) for s, c in zip(scores, covariances, strict=True)], float))
 
 

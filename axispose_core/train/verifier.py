@@ -54,7 +54,7 @@ def verifier_rows(
 def pose_signals(est: Estimator, rgb: np.ndarray, K: np.ndarray, dets: list[Detection], steps: int) -> np.ndarray:
     """(n, len(FEATURES)) rows of a frame's detections, each posed as the node poses it (one sample, `steps`)."""
     poses = est.estimate(rgb, K, [(d.obj_id, d.box) for d in dets], EstimateOptions(steps=steps))
-    rows = [signals(d.score, p.covariance if p.ok else None) for d, p in zip(dets, poses, strict=True)]
+    rows = [signals(d.score, p.fit_covariance if p.ok else None) for d, p in zip(dets, poses, strict=True)]
     return np.array(rows, float).reshape(-1, len(FEATURES))
 
 
