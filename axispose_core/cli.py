@@ -276,7 +276,7 @@ def _eval(args: argparse.Namespace) -> int:
     from axispose_core.checkpoint import read_metadata
     from axispose_core.data.bop import BopFormatError
     from axispose_core.estimator import EstimateOptions, Estimator
-    from axispose_core.evaluate import EvalOptions, Prediction, evaluate
+    from axispose_core.evaluate import EvalOptions, Prediction, estimator_runs, evaluate
     from axispose_core.stress import PERTURBATIONS
 
     torch.set_num_threads(args.threads)
@@ -304,14 +304,7 @@ def _eval(args: argparse.Namespace) -> int:
     objects = [o for o in est.config.objects if not args.objects or o.obj_id in args.objects]
 
     options = EstimateOptions(steps=args.steps, guidance_scale=args.guidance, hypotheses=args.hypotheses, mode_sample=args.mode_sample)
-
-    def predict(image, K, boxes):
-        return [Prediction(p.R, p.t, p.ok, p.spread_deg, p.covariance) for p in est.estimate(image, K, boxes, options)]
-
-    def detector(image, K):
-        found = est.find(image, K, options=options)
-        return found.detections, [Prediction(p.R, p.t, p.ok, p.spread_deg, p.covariance) for p in found.poses]
-
+    predict, detector = estimator_runs(est, options)
     if args.crops == "detect" and est.localiser is None:
         print(f"axispose eval: {args.checkpoint} has no localiser (attach one with `axispose train-localiser --attach`)", file=sys.stderr)
         return 2

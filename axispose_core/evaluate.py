@@ -18,7 +18,7 @@ import zlib
 from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import cv2
 import numpy as np
@@ -34,6 +34,9 @@ from axispose_core.localiser.decode import Detection, match
 from axispose_core.localiser.scoring import false_alarms
 from axispose_core.metrics import ADD_THRESHOLDS, REPROJ_THRESHOLDS, Symmetry, half_turn_symmetries, mahalanobis_sq, pose_scores
 from axispose_core.objects import ObjectSpec
+
+if TYPE_CHECKING:  # evaluate scores any predictor; `estimator_runs` adapts the estimator's
+    from axispose_core.estimator import EstimateOptions, Estimator
 
 MIN_VISIB = 0.1
 SUMMARY_KEYS = [f"add_{f:g}d" for f in ADD_THRESHOLDS] + [f"reproj_{p:g}px" for p in REPROJ_THRESHOLDS]
@@ -104,6 +107,23 @@ def object_symmetries(objects: Iterable[ObjectSpec], points: Mapping[int, np.nda
 
 Finder = Callable[[np.ndarray, np.ndarray], tuple[list[Detection], list[Prediction]]]
 """(rgb image, K) -> the objects the localiser finds, each with its pose (`Estimator.find`)."""
+
+
+def estimator_runs(est: Estimator, options: EstimateOptions, threshold: float | None = None) -> tuple[Predictor, Finder]:
+    """The estimator's poses of given boxes and what it finds itself (at `threshold`, None: its own), as `evaluate`
+    takes them."""
+
+    def predictions(poses: list) -> list[Prediction]:
+        return [Prediction(p.R, p.t, p.ok, p.spread_deg, p.covariance) for p in poses]
+
+    def predict(image: np.ndarray, K: np.ndarray, boxes: list[ObjectBox]) -> list[Prediction]:
+        return predictions(est.estimate(image, K, boxes, options))
+
+    def find(image: np.ndarray, K: np.ndarray) -> tuple[list[Detection], list[Prediction]]:
+        found = est.find(image, K, threshold, options)
+        return found.detections, predictions(found.poses)
+
+    return predict, find
 Perturbation = Callable[[np.ndarray, np.random.Generator], np.ndarray]
 """(rgb image, seeded generator) -> the degraded image (stress.py)."""
 Targets = dict[tuple[int, int], dict[int, int]]

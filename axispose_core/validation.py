@@ -16,7 +16,7 @@ from pathlib import Path
 import numpy as np
 
 from axispose_core.estimator import EstimateOptions, Estimator
-from axispose_core.evaluate import MIN_VISIB, EvalOptions, Prediction, Record, evaluate, plot_cdfs, summarize
+from axispose_core.evaluate import MIN_VISIB, EvalOptions, Record, estimator_runs, evaluate, plot_cdfs, summarize
 
 CROPS = ("gt", "detect")
 
@@ -39,15 +39,7 @@ def run_crops(
     """One pass over `data` with GT crops or the localiser's; the records and the summary report."""
     objects = list(est.config.objects)
 
-    options = EstimateOptions(steps=settings.steps, hypotheses=settings.hypotheses)
-
-    def predict(image, K, boxes):
-        return [Prediction(p.R, p.t, p.ok, p.spread_deg, p.covariance) for p in est.estimate(image, K, boxes, options)]
-
-    def find(image, K):
-        found = est.find(image, K, settings.score_threshold, options)
-        return found.detections, [Prediction(p.R, p.t, p.ok, p.spread_deg, p.covariance) for p in found.poses]
-
+    predict, find = estimator_runs(est, EstimateOptions(steps=settings.steps, hypotheses=settings.hypotheses), settings.score_threshold)
     detector = find if crops == "detect" else None
     run = evaluate(predict, data, models, objects, EvalOptions(progress=progress, detector=detector, visib=settings.visib, bop=True))
     return run.records, summarize(run.records, objects, {"crops": crops, **run.notes}, run.detection_counts, run.bop)

@@ -129,6 +129,7 @@ def test_a_short_recipe_builds_resumes_and_records_itself(lmo_dir, tmp_path):
         (lambda r: r["estimator"].update(verifier={"data": ["elsewhere"]}), "verifier needs data from the recipe's data"),
         (lambda r: r["estimator"].update(verifier={"data": ["frames"], "min_scor": 0.2}), "min_scor"),
         (lambda r: r["estimator"].update(verifier={"data": ["frames"], "min_score": 1.5}), "min_score must lie in"),
+        (lambda r: r["estimator"]["config"].update(verifier={"weights": [1, 0, 0, 0]}), "verifier"),  # fitted, not set
     ],
 )
 def test_a_recipe_with_a_mistake_is_refused_before_training(lmo_dir, tmp_path, capsys, edit, message):

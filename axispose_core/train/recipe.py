@@ -59,7 +59,8 @@ CONFIGS: dict[str, type] = {"reader": ReaderTrainConfig, "agm": TrainConfig, "lo
 SYNTH_KEYS = {"scenes", "images_per_scene", "seed", "recipe", "depth", "objects", "scene", "randomization"}
 STAGE_KEYS = {"name", "trainer", "config", "changes", "init", "fresh_trunk", "data", "val", "schedule"}
 ESTIMATOR_KEYS = {"agm", "reader", "localiser", "config", "half", "verifier"}
-ESTIMATOR_SETTINGS = {f.name for f in dataclasses.fields(EstimatorConfig)} - {"agm", "reader", "objects", "training", "localiser"}
+ESTIMATOR_SETTINGS = {f.name for f in dataclasses.fields(EstimatorConfig)} - {"agm", "reader", "objects", "training", "localiser",
+                                                                               "verifier"}  # fmt: skip
 
 
 class RecipeError(ValueError):
