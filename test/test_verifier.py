@@ -9,7 +9,7 @@ from scipy.special import expit
 from axispose_core.agm.model import AxisGenerator
 from axispose_core.cli import main
 from axispose_core.data.bop import bop_frames
-from axispose_core.estimator import SHIPPED_ESTIMATOR, EstimateOptions, Estimator, EstimatorConfig
+from axispose_core.estimator import SHIPPED_ESTIMATOR, EstimateOptions, Estimator, EstimatorConfig, Found
 from axispose_core.lmo import LMO_K
 from axispose_core.localiser.decode import Detection
 from axispose_core.localiser.model import Localiser, LocaliserConfig
@@ -111,6 +111,8 @@ def test_a_verifier_poses_down_to_its_min_score_and_publishes_its_probability(lo
     found = score_only.find(image, LMO_K, 0.3)
     assert asked == [0.2] and found.dropped == 1
     assert [d.score for d in found.detections] == pytest.approx([0.5, 0.9]) and [p.obj_id for p in found.poses] == [5, 1]
+    monkeypatch.setattr(score_only, "detect", lambda image, threshold=None: [])
+    assert score_only.find(image, LMO_K, 0.3) == Found([], [], 0)  # nothing found: nothing posed, nothing dropped
     # The probability of each kept detection is the verifier's of its score and its pose's covariance.
     lifted = localised.with_verifier(DetectionVerifier((0.0, 1.0, 0.0, 0.0), min_score=0.2))
     _detect(lifted, monkeypatch)
