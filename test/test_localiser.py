@@ -362,6 +362,20 @@ def test_a_warm_started_run_keeps_naming_its_start_when_resumed(frames, trained,
     assert record["steps"] == 3 and record["init"] == str(trained[1])
 
 
+def test_frozen_parts_stay_as_loaded_while_the_box_heads_train(frames, trained, tmp_path):
+    """The neck and the heatmap kept as loaded (weights and BatchNorm statistics): what finds the objects stays, the
+    size and offset heads learn."""
+    optim = OptimConfig(steps=3, batch=2, lr=1e-2, warmup=1, workers=0, save_every=1000, ema_decay=0.0)
+    cfg = LocaliserTrainConfig(localiser=TINY, optim=optim, frozen_parts=("fuse", "heat"))
+    out = tmp_path / "boxes.safetensors"
+    train_localiser(cfg, [frames], out, run=RunOptions(progress=False), init=trained[1])
+    before, after = load_localiser(trained[1]).state_dict(), load_localiser(out).state_dict()
+    assert not all(torch.equal(before[k], after[k]) for k in before if k.startswith(("size.", "offset.")))
+    assert all(torch.equal(before[k], after[k]) for k in before if k.startswith(("fuse.", "heat.")))
+    with pytest.raises(ValueError, match="fuse32"):
+        Localiser(TINY).freeze_parts(("fuse32",))  # a 4-stage trunk has no stride-32 fusion
+
+
 def test_load_localiser_reads_an_estimator_checkpoint_and_refuses_one_without_a_localiser(trained, estimator_with_localiser):
     own, carried = load_localiser(trained[1]), load_localiser(estimator_with_localiser)
     assert carried.config == own.config and not carried.training

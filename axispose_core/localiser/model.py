@@ -53,6 +53,11 @@ class LocaliserConfig:
         return data
 
 
+PARTS = ("fuse32", "fuse", "heat", "size", "offset")
+"""The localiser's parts after its trunk: the stride-32 fusion (a 5-stage trunk only), the neck, the heatmap, the box
+size and the centre offset heads."""
+
+
 class Localiser(nn.Module):
     """RGB frames (B,3,H,W) uint8 at `input_size` -> heatmap (B,C,H/8,W/8), log size (B,2,..), offset (B,2,..)."""
 
@@ -74,6 +79,7 @@ class Localiser(nn.Module):
         self.heat = nn.Sequential(conv_bn_act(neck, neck, 1), nn.Conv2d(neck, len(config.obj_ids), 1))
         self.size = nn.Sequential(conv_bn_act(neck, neck, 1), nn.Conv2d(neck, 2, 1))
         self.offset = nn.Sequential(conv_bn_act(neck, neck, 1), nn.Conv2d(neck, 2, 1))
+        self.frozen_parts: tuple[str, ...] = ()
         nn.init.constant_(self.heat[-1].bias, -2.19)  # CenterNet's prior: sigmoid(-2.19) = 0.1
 
     def forward(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
@@ -85,6 +91,24 @@ class Localiser(nn.Module):
         with torch.autocast(f.device.type, enabled=False):  # bfloat16 rounds the heatmap to 1, and the focal loss's log to -inf
             f = f.float()
             return torch.sigmoid(self.heat(f)), self.size(f), self.offset(f)
+
+    def freeze_parts(self, parts: tuple[str, ...]) -> None:
+        """Keep these parts after the trunk (of `PARTS` it has) as they are while the rest trains: no gradients,
+        BatchNorm statistics not updated. The neck and the heatmap frozen, the box heads train on without moving what
+        finds the objects."""
+        have = [name for name in PARTS if hasattr(self, name)]
+        if unknown := [name for name in parts if name not in have]:
+            raise ValueError(f"a localiser's parts are {', '.join(have)}; got {', '.join(unknown)}")
+        self.frozen_parts = tuple(parts)
+        for name in parts:
+            getattr(self, name).requires_grad_(False)
+        self.train(self.training)
+
+    def train(self, mode: bool = True) -> Localiser:
+        super().train(mode)
+        for name in self.frozen_parts:
+            getattr(self, name).eval()
+        return self
 
     @staticmethod
     def upgrade_state(state: dict[str, torch.Tensor], prefix: str) -> None:

@@ -61,6 +61,9 @@ class LocaliserTrainConfig:
     the frames have BOP `mask_visib` files (off by default)."""
     style_mix: StyleMixConfig = field(default_factory=StyleMixConfig)
     """Feature statistics mixed between the frames of a batch after the trunk's middle stages (off by default)."""
+    frozen_parts: tuple[str, ...] = ()
+    """Parts after the trunk kept as loaded (`localiser.model.PARTS`; the trunk's stages: `optim.freeze_trunk`), e.g.
+    `[fuse32, fuse, heat]` to train the box heads of a localiser whose detections should stay as they are."""
 
 
 class LocaliserDataset(Dataset):
@@ -193,6 +196,7 @@ def train_localiser(
         fresh = warm_start(model, init)
         shown = (": " + ", ".join(fresh[:6]) + (" ..." if len(fresh) > 6 else "")) if fresh else ""
         print(f"started from {init}; {len(fresh)} of {len(model.state_dict())} tensors start fresh{shown}")
+    model.freeze_parts(cfg.frozen_parts)
     job = TrainJob(
         cfg, model, epochs(train_set, cfg.optim), lambda net, batch, _: localiser_loss(net, batch, cfg), out, save,
         validation=Validation(("val_recall", "val_precision"), validate if val_data else None), device=dev,
