@@ -124,6 +124,8 @@ def estimator_runs(est: Estimator, options: EstimateOptions, threshold: float | 
         return found.detections, predictions(found.poses)
 
     return predict, find
+
+
 Perturbation = Callable[[np.ndarray, np.random.Generator], np.ndarray]
 """(rgb image, seeded generator) -> the degraded image (stress.py)."""
 Targets = dict[tuple[int, int], dict[int, int]]
