@@ -243,10 +243,7 @@ def _fit_verifier(args: argparse.Namespace) -> int:
     except (CheckpointError, BopFormatError, ValueError) as err:
         print(f"axispose fit-verifier: {err}", file=sys.stderr)
         return 2
-    fitted = est.with_verifier(verifier)
-    fitted = Estimator(dataclasses.replace(fitted.config, training={**est.config.training, "verifier": record}), fitted.agm,
-                       fitted.reader, "cpu", fitted.localiser)  # fmt: skip
-    fitted.save(args.out, half=stored_half(args.checkpoint))
+    est.with_verifier(verifier, record).save(args.out, half=stored_half(args.checkpoint))
     print(f"{record['detections']} detections ({record['hits']} hits, {record['false_alarms']} false alarms) in "
           f"{record['seconds']:.0f} s; weights {', '.join(f'{w:.3f}' for w in verifier.weights)}; wrote {args.out}")  # fmt: skip
     return 0

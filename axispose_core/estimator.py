@@ -271,9 +271,12 @@ class Estimator:
         config = replace(self.config, localiser=localiser.config, verifier=None)
         return Estimator(config, self.agm, self.reader, str(self.device), localiser)
 
-    def with_verifier(self, verifier: DetectionVerifier | None) -> Estimator:
-        """This estimator with `verifier` (None: without one) rescoring what `find` finds."""
-        return Estimator(replace(self.config, verifier=verifier), self.agm, self.reader, str(self.device), self.localiser)
+    def with_verifier(self, verifier: DetectionVerifier | None, record: dict | None = None) -> Estimator:
+        """This estimator with `verifier` (None: without one) rescoring what `find` finds; `record`, how it was fitted,
+        joins the training record (`training["verifier"]`)."""
+        training = self.config.training if record is None else {**self.config.training, "verifier": record}
+        config = replace(self.config, verifier=verifier, training=training)
+        return Estimator(config, self.agm, self.reader, str(self.device), self.localiser)
 
     def detect(self, image_rgb: np.ndarray, threshold: float | None = None) -> list[Detection]:
         """Objects found in a full frame by the checkpoint's localiser (none found: an empty list)."""

@@ -460,6 +460,5 @@ class RecipeRunner:
             names, fit_config = _verifier_spec(dict(est["verifier"]), self.recipe.data)
             assembled = Estimator.load(path)
             verifier, record = fit_verifier(assembled, self._data(names), fit_config, progress=self.run.progress)
-            fitted = dataclasses.replace(assembled.config, verifier=verifier, training={**training, "verifier": record})
-            Estimator(fitted, assembled.agm, assembled.reader, "cpu", assembled.localiser).save(path, half=bool(est["half"]))
+            assembled.with_verifier(verifier, record).save(path, half=bool(est["half"]))
         return path
