@@ -12,7 +12,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from axispose_core.estimator import EstimateOptions, Estimator, Found, PoseEstimate
-from axispose_core.tracking.tracker import Crop, Tracker, TrackingConfig
+from axispose_core.tracking.tracker import Crop, Sighting, Tracker, TrackingConfig
 from axispose_ros.params import NodeSettings
 
 Box = tuple[float, float, float, float]
@@ -65,10 +65,14 @@ class FramePoser:
             return Posed(found.poses, [d.score for d in found.detections], [d.box for d in found.detections], [0] * len(found.poses))
 
         def dets() -> list:
-            """The tracker's detections, which it poses itself: a verifier's poses only score them."""
+            """The tracker's detections: with a verifier, posed already to score them (the tracker takes those poses);
+            without one, boxes it poses itself."""
             if self.estimator.config.verifier is None:
                 return [d for d in self.estimator.detect(rgb, s.score_threshold) if d.obj_id in self.published]
-            return find().detections
+            found = find()
+            if refused := sum(not p.ok for p in found.poses):
+                self.count("pose_refused", refused)
+            return [Sighting(d.obj_id, d.score, d.box, p) for d, p in zip(found.detections, found.poses, strict=True)]
 
         self.tracker.config = TrackingConfig(
             redetect_period=s.redetect_period, measure_every=s.measure_every, track_timeout=s.track_timeout

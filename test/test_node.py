@@ -516,6 +516,22 @@ def test_the_checkpoints_verifier_sets_the_published_score_and_its_drops_are_cou
         h.close()
 
 
+def test_with_tracking_a_verified_detection_is_posed_once(localised_checkpoint, tmp_path):
+    """With tracking on, the verifier's poses of a frame's detections start the tracks: the localiser's frame goes
+    through the AGM once, not once to score and again to track."""
+    path = tmp_path / "verified.safetensors"
+    Estimator.load(localised_checkpoint).with_verifier(DetectionVerifier((0.0, 0.0, 0.0, 2.0), min_score=1e-3)).save(path)
+    h = Harness(path, score_threshold=0.3, tracking=True)
+    try:
+        calls = _fixed_poses(h.node)
+        h.spin_until(lambda: h.pub_image.get_subscription_count() > 0, 5.0)
+        h.frame(sec=41)
+        assert h.spin_until(lambda: h.got["det"])
+        assert [sorted(c) for c in calls] == [[1, 1, 5, 5]] and len(h.got["det"][0].detections) == 4
+    finally:
+        h.close()
+
+
 def test_frames_lost_in_transport_are_estimated_from_stamp_gaps(harness):
     for sec in (*range(70, 77), 79):  # a steady 1 s camera, then two frames that never arrived
         harness.frame(sec=sec)

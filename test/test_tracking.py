@@ -11,7 +11,7 @@ from scipy.spatial.transform import Rotation
 from axispose_core.data.bop import GTInstance
 from axispose_core.tracking.filter import FilterConfig, PoseFilter
 from axispose_core.tracking.motion import camera_motion
-from axispose_core.tracking.tracker import Crop, Tracker, TrackingConfig
+from axispose_core.tracking.tracker import Crop, Sighting, Tracker, TrackingConfig
 
 K = np.array([[572.4, 0.0, 325.3], [0.0, 573.6, 242.0], [0.0, 0.0, 1.0]])
 SIGMA_T, SIGMA_R = 0.01, np.deg2rad(5.0)
@@ -182,6 +182,30 @@ def _run(tracker: Tracker, scene: Scene, stamps) -> list:
 def _scene() -> Scene:
     tilted = Rotation.from_euler("x", 40, degrees=True).as_matrix()
     return Scene({1: (np.eye(3), np.array([0.05, 0.0, 0.9])), 5: (tilted, np.array([-0.1, 0.05, 1.1]))})
+
+
+def test_a_sighting_brings_its_pose_and_is_not_posed_again():
+    """Detections their caller has posed (a verifier's `Estimator.find`) are their crops' measurements: the
+    estimator poses only the tracks no detection refreshed, once."""
+    scene, tracker = _scene(), Tracker(TrackingConfig(redetect_period=2))
+    given: dict[int, Pose] = {}
+
+    def sightings() -> list[Sighting]:
+        dets = scene.detect()
+        given.clear()
+        given.update({d.obj_id: Pose(True, *_noisy(scene.rng, *scene.poses[d.obj_id]), COV) for d in dets})
+        return [Sighting(d.obj_id, d.score, d.box, given[d.obj_id]) for d in dets]
+
+    first = tracker.step(0.0, K, sightings, scene.estimate)
+    assert scene.crops == [] and len(first) == 2
+    assert all(p.measurement is given[p.obj_id] for p in first)
+    tracker.step(1 / 15, K, sightings, scene.estimate)  # no localiser: the tracks' crops are posed
+    assert [sorted(c.obj_id for c in crops) for crops in scene.crops] == [[1, 5]]
+    scene.hidden = {5}
+    third = tracker.step(2 / 15, K, sightings, scene.estimate)  # the localiser finds object 1 only
+    assert [c.obj_id for c in scene.crops[-1]] == [5] and scene.crops[-1][0].prior is not None
+    assert {p.obj_id: p.measurement is given.get(p.obj_id) for p in third} == {1: True, 5: False}
+    assert {p.track_id for p in first} == {p.track_id for p in third}
 
 
 def test_tracks_keep_their_ids_and_the_localiser_runs_every_period():

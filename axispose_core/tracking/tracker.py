@@ -4,7 +4,8 @@ A tracked object's crop comes from its predicted pose (the box it had, moved wit
 with its depth), so the localiser runs only every `redetect_period` frames, while nothing is tracked, or after a
 track missed a frame or ended (but not when the localiser itself stopped finding it); its detections then refresh
 the tracks' boxes (matched by object and nearness) and start tracks for new objects. Every crop goes through the
-estimator in one batch, and each pose that comes back is a measurement for its track's `PoseFilter`; with
+estimator in one batch, and each pose that comes back is a measurement for its track's `PoseFilter` (a detection
+the caller has posed already, a `Sighting`, brings its pose and is not posed again); with
 `measure_every` n the tracks take turns between localiser runs, the others publishing their filters' predictions.
 Tracks end after `track_timeout` seconds without a measurement, `max_misses` frames in a row without a pose, or
 `max_unseen` localiser runs in a row that do not find them; all end when the stamps go backwards (a looped bag) or
@@ -81,14 +82,27 @@ class Detected(Protocol):
 
 
 @dataclass(frozen=True)
+class Sighting:
+    """A detection with the pose its caller made of its box (e.g. to verify it, `Estimator.find`): the tracker takes
+    that pose as the measurement of the detection's crop instead of posing the box again."""
+
+    obj_id: int
+    score: float
+    box: Box
+    measurement: Measurement
+
+
+@dataclass(frozen=True)
 class Crop:
-    """One box to estimate: a track's (`track` its id; `prior` its predicted pose) or a new detection's."""
+    """One box to estimate: a track's (`track` its id; `prior` its predicted pose) or a new detection's;
+    `measurement`: its pose where a `Sighting` brought one (the estimator is not asked)."""
 
     obj_id: int
     box: Box
     score: float
     track: int | None = None
     prior: tuple[np.ndarray, np.ndarray] | None = None
+    measurement: Measurement | None = None
 
 
 @dataclass
@@ -139,6 +153,20 @@ def _project(K: np.ndarray, t: np.ndarray) -> np.ndarray:
     return p[:2] / p[2]
 
 
+def _posed(d: Detected) -> Measurement | None:
+    return d.measurement if isinstance(d, Sighting) else None
+
+
+def _measurements(crops: list[Crop], estimate: Callable[[list[Crop]], Sequence[Measurement]]) -> list[Measurement]:
+    """Each crop's pose: the one it came with, else the estimator's (one call for all the others)."""
+    todo = [c for c in crops if c.measurement is None]
+    fresh = list(estimate(todo)) if todo else []
+    if len(fresh) != len(todo):
+        raise ValueError(f"the estimator gave {len(fresh)} poses for {len(todo)} crops")
+    posed = iter(fresh)
+    return [c.measurement if c.measurement is not None else next(posed) for c in crops]
+
+
 def _iou(a: Box, b: Box) -> float:
     ix = max(0.0, min(a[0] + a[2], b[0] + b[2]) - max(a[0], b[0]))
     iy = max(0.0, min(a[1] + a[3], b[1] + b[3]) - max(a[1], b[1]))
@@ -173,14 +201,15 @@ class Tracker:
     def step(
         self, stamp: float, K: np.ndarray, detect: Callable[[], Sequence[Detected]], estimate: Callable[[list[Crop]], Sequence[Measurement]]
     ) -> list[TrackedPose]:
-        """One frame: resets and timeouts, prediction, the localiser where due, one estimator batch, the updates."""
+        """One frame: resets and timeouts, prediction, the localiser where due, one estimator batch (of the crops
+        without a pose), the updates."""
         self._start_frame(stamp, K)
         detecting = self._detection_due()
         crops = self._track_crops(K, every=detecting)
         if detecting:
             crops = self._with_detections(crops, detect())
             self._count("localiser_runs")
-        measurements = estimate(crops) if crops else []
+        measurements = _measurements(crops, estimate)
         out = [self._measure(crop, m, K, stamp) for crop, m in zip(crops, measurements, strict=True)]
         cropped = {c.track for c in crops}
         out += [self._predicted(tr, K) for tr in self.tracks if tr.id not in cropped and not tr.measured and tr.last is not None]
@@ -238,11 +267,11 @@ class Tracker:
             taken_c.add(i)
             taken_d.add(j)
             d = detections[j]
-            crops[i] = Crop(d.obj_id, tuple(d.box), d.score, crops[i].track, crops[i].prior)
+            crops[i] = Crop(d.obj_id, tuple(d.box), d.score, crops[i].track, crops[i].prior, _posed(d))
         for i, c in enumerate(crops):
             tr = next(t for t in self.tracks if t.id == c.track)
             tr.unseen = 0 if i in taken_c else tr.unseen + 1
-        return crops + [Crop(d.obj_id, tuple(d.box), d.score) for j, d in enumerate(detections) if j not in taken_d]
+        return crops + [Crop(d.obj_id, tuple(d.box), d.score, measurement=_posed(d)) for j, d in enumerate(detections) if j not in taken_d]
 
     def _match(self, a: Box, b: Box) -> float | None:
         """How far detection box `b` is from track box `a` (centre distance over the larger diagonal); None when
