@@ -5,8 +5,8 @@ import dataclasses
 import numpy as np
 import pytest
 
-from axispose_core.data.synth.appearance import _enhance, demosaic, photometric, random_convolution, surface
-from axispose_core.data.synth.config import STREAM_RANDOMIZATION, PhotometricConfig, RandConvConfig, StreamConfig, SurfaceConfig
+from axispose_core.data.synth.appearance import _enhance, demosaic, photometric, surface
+from axispose_core.data.synth.config import STREAM_RANDOMIZATION, PhotometricConfig, StreamConfig, SurfaceConfig
 from axispose_core.data.synth.randomize import wrong_texture
 from axispose_core.data.synth.stream import CropStream
 
@@ -22,8 +22,7 @@ def test_off_by_default_and_draws_no_random_number():
     image = _image()
     out, dropped = photometric(rng, PhotometricConfig(), image)
     out2 = surface(rng, SurfaceConfig(), out, np.ones(image.shape[:2], bool))
-    out3 = random_convolution(rng, RandConvConfig(), out2)
-    assert out3 is image and dropped is None
+    assert out2 is image and dropped is None
     assert rng.uniform() == np.random.default_rng(0).uniform()
 
 
@@ -71,44 +70,9 @@ def test_surface_changes_only_the_objects_pixels():
     assert np.array_equal(out[~mask], image[~mask]) and not np.allclose(out[mask], image[mask])
 
 
-def test_a_random_1x1_convolution_is_one_colour_map_for_every_pixel():
-    """Kernel 1, nothing of the original kept: each pixel's colour is the same affine function of its own colour
-    (refit by least squares, exactly, where nothing was clipped), and another seed draws another map."""
-    image = _image()
-    cfg = RandConvConfig(prob=1.0, kernels=(1,), mix=(0.0, 0.0))
-    outs = [random_convolution(np.random.default_rng(k), cfg, image) for k in (0, 1)]
-    for out in outs:
-        assert out.dtype == np.float32 and out.shape == image.shape and 0 <= out.min() and out.max() <= 1
-        inside = ((out > 0) & (out < 1)).all(axis=2)
-        X = np.c_[image[inside], np.ones(inside.sum())]
-        coef, *_ = np.linalg.lstsq(X, out[inside], rcond=None)
-        np.testing.assert_allclose(X @ coef, out[inside], atol=1e-4)
-        assert not np.allclose(out, image, atol=0.05)
-    assert not np.allclose(outs[0], outs[1], atol=0.05)
-
-
-def test_a_wider_random_convolution_mixes_neighbours_and_keeps_the_seed():
-    """A 5 x 5 filter on one bright pixel spreads it into its neighbourhood; the same seed gives the same image."""
-    image = np.full((15, 15, 3), 0.5, np.float32)
-    image[7, 7] = 1.0
-    cfg = RandConvConfig(prob=1.0, kernels=(5,), mix=(0.0, 0.0))
-    out = random_convolution(np.random.default_rng(3), cfg, image)
-    np.testing.assert_array_equal(out, random_convolution(np.random.default_rng(3), cfg, image))
-    changed = np.abs(out - np.median(out, axis=(0, 1))).max(axis=2) > 1e-3
-    assert changed[5:10, 5:10].sum() > 1 and not changed[:4].any() and not changed[11:].any()
-
-
-def test_randconv_refuses_even_kernels_and_a_mix_outside_0_1():
-    with pytest.raises(ValueError, match="odd"):
-        RandConvConfig(kernels=(2,))
-    with pytest.raises(ValueError, match="mix"):
-        RandConvConfig(mix=(0.5, 1.5))
-
-
 @pytest.mark.slow
 def test_crop_stream_with_appearance_is_seeded_and_keeps_its_targets(lmo_dir):
-    rand = dataclasses.replace(STREAM_RANDOMIZATION, photometric=STRONG, surface=SurfaceConfig(detail_prob=1.0, response_prob=1.0),
-                               randconv=RandConvConfig(prob=1.0))  # fmt: skip
+    rand = dataclasses.replace(STREAM_RANDOMIZATION, photometric=STRONG, surface=SurfaceConfig(detail_prob=1.0, response_prob=1.0))
     plain = StreamConfig(objects=(1, 5), seed=4)
     strong = dataclasses.replace(plain, randomization=rand)
     a, b, c = CropStream(strong, lmo_dir / "models"), CropStream(strong, lmo_dir / "models"), CropStream(plain, lmo_dir / "models")

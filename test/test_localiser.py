@@ -16,7 +16,7 @@ from axispose_core.checkpoint import CheckpointError, read_checkpoint, stored_ha
 from axispose_core.cli import _score_and_attach, main
 from axispose_core.config import config_from_dict
 from axispose_core.data.bop import BopFormatError, BopScene
-from axispose_core.data.synth.config import RandConvConfig, SurfaceConfig
+from axispose_core.data.synth.config import SurfaceConfig
 from axispose_core.estimator import Estimator, EstimatorConfig
 from axispose_core.localiser.decode import Detection, decode, draw_targets, focal_loss, iou, match
 from axispose_core.localiser.model import STRIDE, Localiser, LocaliserConfig, build_localiser
@@ -25,7 +25,7 @@ from axispose_core.localiser.weights import KIND, load_localiser, warm_start
 from axispose_core.objects import objects_from_models
 from axispose_core.tbm.reader import SHIPPED_READER, load_reader
 from axispose_core.train.dataset import AxisCropDataset
-from axispose_core.train.localiser import FrameLooks, LocaliserDataset, LocaliserTrainConfig, localiser_loss, train_localiser
+from axispose_core.train.localiser import LocaliserDataset, LocaliserTrainConfig, localiser_loss, train_localiser
 from axispose_core.train.loop import OptimConfig, RunOptions
 from axispose_core.train.resume import state_path
 from axispose_core.trunks import ResidualBNConfig
@@ -89,7 +89,7 @@ def test_occluded_instances_weigh_by_their_hidden_fraction(frames):
 
 def test_surface_varies_the_objects_own_pixels_only(frames):
     """The objects' look varies inside their visible masks and nowhere else; off (the default) draws nothing."""
-    looks = LocaliserDataset([frames], TINY, min_visib=0.0, looks=FrameLooks(surface=SurfaceConfig(response_prob=1.0, detail_prob=1.0)))
+    looks = LocaliserDataset([frames], TINY, min_visib=0.0, surface=SurfaceConfig(response_prob=1.0, detail_prob=1.0))
     scene, im_id = looks.frames[0]
     rgb = scene.rgb(im_id).astype(np.float32) / 255
     varied = looks._surfaces(np.random.default_rng(0), scene, im_id, rgb.copy())
@@ -100,16 +100,8 @@ def test_surface_varies_the_objects_own_pixels_only(frames):
     changed = np.abs(varied - rgb).max(axis=2) > 1e-6
     assert known.any() and changed.any() and not (changed & ~known).any()
     plain = LocaliserDataset([frames], TINY, min_visib=0.0)
-    default = LocaliserDataset([frames], TINY, min_visib=0.0, looks=FrameLooks(surface=SurfaceConfig()))
+    default = LocaliserDataset([frames], TINY, min_visib=0.0, surface=SurfaceConfig())
     assert torch.equal(plain[0]["image"], default[0]["image"])
-
-
-def test_random_convolutions_change_the_frame_not_its_targets(frames):
-    plain = LocaliserDataset([frames], TINY, min_visib=0.0)
-    convolved = LocaliserDataset([frames], TINY, min_visib=0.0, looks=FrameLooks(randconv=RandConvConfig(prob=1.0)))
-    a, b = plain[0], convolved[0]
-    assert not torch.equal(a["image"], b["image"]) and torch.equal(b["image"], convolved[0]["image"])
-    assert all(torch.equal(a[k], b[k]) for k in a if k != "image")
 
 
 def test_the_loss_is_finite_under_bfloat16_autocast(frames):

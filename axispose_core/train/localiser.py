@@ -21,8 +21,8 @@ from torch.utils.data import Dataset
 
 from axispose_core.checkpoint import save_checkpoint
 from axispose_core.data.bop import BopScene, bop_frames
-from axispose_core.data.synth.appearance import photometric, random_convolution, surface
-from axispose_core.data.synth.config import PhotometricConfig, RandConvConfig, SurfaceConfig
+from axispose_core.data.synth.appearance import photometric, surface
+from axispose_core.data.synth.config import PhotometricConfig, SurfaceConfig
 from axispose_core.data.visibility import gt_info_from_models
 from axispose_core.localiser.decode import draw_targets, focal_loss
 from axispose_core.localiser.model import STRIDE, Localiser, LocaliserConfig, build_localiser
@@ -59,22 +59,11 @@ class LocaliserTrainConfig:
     surface: SurfaceConfig = field(default_factory=SurfaceConfig)
     """Each object's own look (fine detail, colour response) varied on its visible pixels, one draw per instance, where
     the frames have BOP `mask_visib` files (off by default)."""
-    randconv: RandConvConfig = field(default_factory=RandConvConfig)
-    """Random convolutions of each training frame after the chain (off by default)."""
     style_mix: StyleMixConfig = field(default_factory=StyleMixConfig)
     """Feature statistics mixed between the frames of a batch after the trunk's middle stages (off by default)."""
     frozen_parts: tuple[str, ...] = ()
     """Parts after the trunk kept as loaded (`localiser.model.PARTS`; the trunk's stages: `optim.freeze_trunk`), e.g.
     `[fuse32, fuse, heat]` to train the box heads of a localiser whose detections should stay as they are."""
-
-
-@dataclass(frozen=True)
-class FrameLooks:
-    """How a training frame's look is varied (`LocaliserTrainConfig`'s fields of the same names)."""
-
-    photometric: PhotometricConfig = field(default_factory=PhotometricConfig)
-    surface: SurfaceConfig = field(default_factory=SurfaceConfig)
-    randconv: RandConvConfig = field(default_factory=RandConvConfig)
 
 
 class LocaliserDataset(Dataset):
@@ -89,10 +78,12 @@ class LocaliserDataset(Dataset):
         seed: int = 0,
         occluded_weight: float = 0.0,
         models_dir: str | Path | None = None,
-        looks: FrameLooks = FrameLooks(),
+        photometric: PhotometricConfig | None = None,
+        surface: SurfaceConfig | None = None,
     ) -> None:
         self.config, self.seed, self.epoch = config, seed, 0
-        self.looks = looks
+        self.photometric = photometric or PhotometricConfig()
+        self.surface = surface or SurfaceConfig()
         self.occluded_weight = occluded_weight
         self.classes = {o: k for k, o in enumerate(config.obj_ids)}
         self.frames = bop_frames(roots, gt_info_from_models(models_dir))
@@ -121,12 +112,11 @@ class LocaliserDataset(Dataset):
         z = rng.uniform(0.8, 1.25)
         tx, ty = rng.uniform(-0.1, 0.1) * w, rng.uniform(-0.1, 0.1) * h
         A = np.array([[z, 0, (1 - z) * w / 2 + tx], [0, z, (1 - z) * h / 2 + ty]]) @ np.vstack([A, [0, 0, 1]])
-        if self.looks.surface.detail_prob > 0 or self.looks.surface.response_prob > 0:
+        if self.surface.detail_prob > 0 or self.surface.response_prob > 0:
             rgb = np.round(255 * self._surfaces(rng, scene, im_id, rgb.astype(np.float32) / 255)).astype(np.uint8)
         image = cv2.warpAffine(rgb, A, (w, h), flags=cv2.INTER_AREA, borderMode=cv2.BORDER_REFLECT101).astype(np.float32) / 255
         image = np.clip(image * rng.uniform(0.7, 1.3, 3) + rng.uniform(-0.1, 0.1), 0, 1)
-        image, _ = photometric(rng, self.looks.photometric, image, scale=A[0, 0])
-        image = random_convolution(rng, self.looks.randconv, image)
+        image, _ = photometric(rng, self.photometric, image, scale=A[0, 0])
         instances = self.boxes(i)
         boxes = [(c, (A[0, 0] * x + A[0, 2], A[1, 1] * y + A[1, 2], A[0, 0] * bw, A[1, 1] * bh)) for c, (x, y, bw, bh), _ in instances]
         weights = [wt for _, _, wt in instances]
@@ -150,7 +140,7 @@ class LocaliserDataset(Dataset):
             ys, xs = np.nonzero(mask)
             if len(ys):
                 box = np.s_[ys.min() : ys.max() + 1, xs.min() : xs.max() + 1]
-                image[box] = surface(rng, self.looks.surface, image[box], mask[box])
+                image[box] = surface(rng, self.surface, image[box], mask[box])
         return image
 
 
@@ -184,7 +174,8 @@ def train_localiser(
         cfg.min_visib,
         seed=cfg.optim.seed,
         occluded_weight=cfg.occluded_weight,
-        looks=FrameLooks(cfg.photometric, cfg.surface, cfg.randconv),
+        photometric=cfg.photometric,
+        surface=cfg.surface,
     )
     if not len(train_set):
         raise ValueError(f"no frames in {data}")

@@ -14,7 +14,7 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-from axispose_core.data.synth.config import PhotometricConfig, RandConvConfig, SurfaceConfig
+from axispose_core.data.synth.config import PhotometricConfig, SurfaceConfig
 
 _LUMA = np.array([0.299, 0.587, 0.114], np.float32)
 _SMOOTH = np.array([[1, 1, 1], [1, 5, 1], [1, 1, 1]], np.float32) / 13  # PIL's ImageFilter.SMOOTH
@@ -135,20 +135,3 @@ def surface(rng: np.random.Generator, cfg: SurfaceConfig, image: np.ndarray, mas
         gamma = rng.uniform(*cfg.response_gamma, 3).astype(np.float32)
         image = np.where(mask[..., None], np.clip(image, 0, 1) ** gamma, image)
     return image.astype(np.float32, copy=False)
-
-
-def random_convolution(rng: np.random.Generator, cfg: RandConvConfig, image: np.ndarray) -> np.ndarray:
-    """With probability `cfg.prob`, `image` blended with itself through a random 3-to-3-channel k x k filter (He-
-    initialised, as RandConv draws it), the result given the image's own mean and spread so it stays in range."""
-    if cfg.prob <= 0 or rng.uniform() >= cfg.prob:
-        return image
-    k = int(cfg.kernels[int(rng.integers(len(cfg.kernels)))])
-    weights = rng.normal(0.0, 1.0 / np.sqrt(3 * k * k), (3, 3, k, k)).astype(np.float32)
-    x = image.astype(np.float32) * 2 - 1
-    y = np.zeros_like(x)
-    for out in range(3):
-        for inp in range(3):
-            y[..., out] += cv2.filter2D(x[..., inp], -1, weights[out, inp], borderType=cv2.BORDER_REFLECT)
-    y = (y - y.mean()) / (y.std() + 1e-6) * x.std() + x.mean()
-    keep = np.float32(rng.uniform(*cfg.mix))
-    return np.clip((keep * x + (1 - keep) * y + 1) / 2, 0, 1).astype(np.float32)

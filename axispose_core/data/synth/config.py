@@ -192,25 +192,6 @@ class SurfaceConfig:
 
 
 @dataclass(frozen=True)
-class RandConvConfig:
-    """Random convolutions of a finished image (`appearance.random_convolution`; RandConv, Xu et al., ICLR 2021):
-    a random k x k filter bank mixes the colour channels and their neighbourhoods, so texture and colour take a new
-    random mapping while edges and shapes stay; 0 draws nothing."""
-
-    prob: float = 0.0
-    kernels: tuple[int, ...] = (1, 3, 5, 7)
-    """Odd filter sizes, drawn uniformly."""
-    mix: tuple[float, float] = (0.0, 1.0)
-    """Range of the original image's weight in the blend with its convolved self."""
-
-    def __post_init__(self) -> None:
-        if not self.kernels or any(k < 1 or k % 2 == 0 for k in self.kernels):
-            raise ValueError(f"randconv kernels must be odd sizes >= 1, got {self.kernels}")
-        if not 0.0 <= self.mix[0] <= self.mix[1] <= 1.0:
-            raise ValueError(f"randconv mix must be a range within [0, 1], got {self.mix}")
-
-
-@dataclass(frozen=True)
 class RandomizationConfig:
     """Domain randomisation of appearance, by what it varies."""
 
@@ -226,7 +207,6 @@ class RandomizationConfig:
     """Side of a cut-out occluder as a fraction of the image width."""
     surface: SurfaceConfig = field(default_factory=SurfaceConfig)
     photometric: PhotometricConfig = field(default_factory=PhotometricConfig)
-    randconv: RandConvConfig = field(default_factory=RandConvConfig)
 
 
 @dataclass(frozen=True)

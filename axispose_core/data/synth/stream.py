@@ -38,7 +38,7 @@ from axispose_core.axis_image import axis_keypoints, render_axis_keypoints
 from axispose_core.camera import crop_intrinsics, square_around_box
 from axispose_core.data.bop import bbox_from_model, load_models_info, model_path
 from axispose_core.data.meshes import load_render_mesh, ply_vertex_properties
-from axispose_core.data.synth.appearance import photometric, random_convolution, surface
+from axispose_core.data.synth.appearance import photometric, surface
 from axispose_core.data.synth.clutter import distractor_mesh
 from axispose_core.data.synth.config import StreamConfig
 from axispose_core.data.synth.randomize import background, camera_effects, jpeg, light, object_tint, wrong_texture
@@ -242,7 +242,6 @@ class CropStream:
         image = np.where(owned[..., None], image, bg).astype(np.float32)
         image = self._camera(rng, image, center, side)
         image, dropped = photometric(rng, rcfg.photometric, image, scale=S / side)
-        image = random_convolution(rng, rcfg.randconv, image)
         image[~inside] = 0.0
         mask_visib = visible & ~covered
         visib = float(mask_visib.sum() / full.sum())
