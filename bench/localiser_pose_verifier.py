@@ -15,13 +15,12 @@ from __future__ import annotations
 import argparse
 
 import numpy as np
-import torch
+from node_estimator import add_common_arguments, node_estimator
 from scipy.stats import rankdata
 from write_results import write_results
 
 from axispose_core.data.bop import bop_frames
 from axispose_core.data.visibility import gt_info_from_models
-from axispose_core.estimator import Estimator
 from axispose_core.localiser.decode import Detection
 from axispose_core.localiser.scoring import Instance, detection_outcomes, frame_instances, tally
 from axispose_core.localiser.verifier import FEATURES, fit
@@ -79,18 +78,12 @@ def summary(result: dict) -> str:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--checkpoint", required=True, help="estimator checkpoint with a localiser")
+    add_common_arguments(ap, "visibility from these models")
     ap.add_argument("--fit", required=True, help="synthetic BOP frames the logistic model is fitted on")
     ap.add_argument("--data", nargs="+", required=True, help="BOP frame folders it is read on")
-    ap.add_argument("--models", default="../shared/data/lmo/models_eval", help="visibility from these models")
     ap.add_argument("--min-score", type=float, default=0.2, help="detections down to this score are posed")
-    ap.add_argument("--min-visib", type=float, default=0.1)
-    ap.add_argument("--threads", type=int, default=2)
-    ap.add_argument("--json", default=None)
     args = ap.parse_args()
-    torch.set_num_threads(args.threads)
-    est = Estimator.load(args.checkpoint)
-    est.set_precision("float32")
+    est = node_estimator(args)
     ids = tuple(o.obj_id for o in est.config.objects)
     info = gt_info_from_models(args.models)
     frames: dict[str, list[Frame]] = {}

@@ -12,7 +12,7 @@ from __future__ import annotations
 import argparse
 
 import numpy as np
-import torch
+from node_estimator import add_common_arguments, node_estimator
 from scipy.spatial import ConvexHull
 from write_results import write_results
 
@@ -71,18 +71,12 @@ def summary(rows: list[dict], key: str) -> dict[str, float]:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--checkpoint", required=True, help="estimator checkpoint with a localiser")
+    add_common_arguments(ap, "hulls, metrics and visibility")
     ap.add_argument("--data", required=True, help="BOP frames")
-    ap.add_argument("--models", default="../shared/data/lmo/models_eval", help="hulls, metrics and visibility")
     ap.add_argument("--hull-points", type=int, default=64)
     ap.add_argument("--score-threshold", type=float, default=0.3, help="the node's")
-    ap.add_argument("--min-visib", type=float, default=0.1)
-    ap.add_argument("--threads", type=int, default=2)
-    ap.add_argument("--json", default=None)
     args = ap.parse_args()
-    torch.set_num_threads(args.threads)
-    est = Estimator.load(args.checkpoint)
-    est.set_precision("float32")
+    est = node_estimator(args)
     options = EstimateOptions(steps=3)
     specs = {o.obj_id: o for o in est.config.objects}
     points = {i: load_ply(model_path(args.models, i)).vertices for i in specs}
