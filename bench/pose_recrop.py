@@ -2,7 +2,9 @@
 localiser finds (IoU 0.5, as `axispose validate` counts hits, through the checkpoint's verifier where it has one) the
 pose from the detection's box (the node's path: 1 sample, 3 steps, float32) is compared with the pose from the box
 of the object's hull projected at that pose (once and twice), and with the pose from the GT box. The hull is a
-farthest-point sample of the model's convex hull (what a checkpoint would have to carry).
+farthest-point sample of the model's convex hull (what a checkpoint would have to carry). It also asks how much of
+the detection box's scale error the depth takes on: the slope of the depth's log error from the detection's crop,
+less the GT box's, on the log ratio of the two crops' sides.
 
     python bench/pose_recrop.py --checkpoint EST --data HELDOUT/test --json bench/results/pose_recrop_held.json
 """
@@ -16,6 +18,7 @@ from node_estimator import add_common_arguments, node_estimator
 from scipy.spatial import ConvexHull
 from write_results import write_results
 
+from axispose_core.camera import square_around_box
 from axispose_core.data.bop import GTInstance, bbox_from_model, bop_frames, model_path
 from axispose_core.data.meshes import load_ply
 from axispose_core.data.visibility import gt_info_from_models
@@ -55,7 +58,17 @@ def scores(p: PoseEstimate, gt: GTInstance, K: np.ndarray, points: np.ndarray, s
     if not p.ok:
         return None
     s = pose_scores(p.R, p.t, gt.R, gt.t, K, points, spec.diameter, syms if spec.symmetric else None)
-    return s | {"depth_abs_log": abs(float(np.log(p.t[2] / gt.t[2])))}
+    return s | {"depth_log": float(np.log(p.t[2] / gt.t[2])), "depth_abs_log": abs(float(np.log(p.t[2] / gt.t[2])))}
+
+
+def depth_on_framing(rows: list[dict]) -> dict[str, float]:
+    """Least-squares slope and correlation of (detection crop's - GT crop's) log depth error on the crops' log side
+    ratio, over the instances both posed."""
+    both = [r for r in rows if r["detection"] and r["gt_box"]]
+    scale = np.array([r["side_log_ratio"] for r in both])
+    gap = np.array([r["detection"]["depth_log"] - r["gt_box"]["depth_log"] for r in both])
+    return {"slope": float(np.polyfit(scale, gap, 1)[0]), "correlation": float(np.corrcoef(scale, gap)[0, 1]),
+            "side_log_ratio_robust_std": float(1.4826 * np.median(np.abs(scale - np.median(scale))))}  # fmt: skip
 
 
 def summary(rows: list[dict], key: str) -> dict[str, float]:
@@ -97,10 +110,12 @@ def main() -> None:
             passes.append(est.estimate(rgb, K, [(obj, insts[g][1])], options)[0])
             scored = [scores(p, truths[g], K, points[obj], specs[obj], syms.get(obj)) for p in passes]
             box_iou = iou(found.detections[k].box, bbox_from_model(K, first.R, first.t, hulls[obj]))
-            rows.append({"obj_id": obj, "visib": insts[g][2], "box_iou": box_iou} | dict(zip(PASSES, scored, strict=True)))
+            side = np.log(square_around_box(found.detections[k].box)[1] / square_around_box(insts[g][1])[1])
+            rows.append({"obj_id": obj, "visib": insts[g][2], "box_iou": box_iou, "side_log_ratio": float(side)}
+                        | dict(zip(PASSES, scored, strict=True)))  # fmt: skip
     results = {"checkpoint": args.checkpoint, "data": args.data, "hits": len(rows), "hull_points": args.hull_points}
-    results |= {key: summary(rows, key) for key in PASSES}
-    for key in PASSES:
+    results |= {key: summary(rows, key) for key in PASSES} | {"depth_on_framing": depth_on_framing(rows)}
+    for key in (*PASSES, "depth_on_framing"):
         print(key, {m: round(v, 4) for m, v in results[key].items()})
     if args.json:
         write_results(args.json, results)
