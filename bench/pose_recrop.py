@@ -24,7 +24,7 @@ from axispose_core.data.meshes import load_ply
 from axispose_core.data.visibility import gt_info_from_models
 from axispose_core.estimator import EstimateOptions, Estimator, PoseEstimate
 from axispose_core.evaluate import object_symmetries
-from axispose_core.localiser.decode import iou, match
+from axispose_core.localiser.decode import match
 from axispose_core.localiser.scoring import frame_instances, frame_outcome
 from axispose_core.metrics import pose_scores
 from axispose_core.objects import ObjectSpec
@@ -46,10 +46,10 @@ def hull_sample(points: np.ndarray, n: int) -> np.ndarray:
 def recropped(est: Estimator, rgb: np.ndarray, K: np.ndarray, obj: int, first: PoseEstimate, hull: np.ndarray,
               options: EstimateOptions) -> list[PoseEstimate]:  # fmt: skip
     """The poses of one and two more passes, each cropped around the hull's box at the pose before it."""
-    out = []
+    out, pose = [], first
     for _ in range(2):
-        first = est.estimate(rgb, K, [(obj, bbox_from_model(K, first.R, first.t, hull))], options)[0] if first.ok else first
-        out.append(first)
+        pose = est.estimate(rgb, K, [(obj, bbox_from_model(K, pose.R, pose.t, hull))], options)[0] if pose.ok else pose
+        out.append(pose)
     return out
 
 
@@ -58,7 +58,8 @@ def scores(p: PoseEstimate, gt: GTInstance, K: np.ndarray, points: np.ndarray, s
     if not p.ok:
         return None
     s = pose_scores(p.R, p.t, gt.R, gt.t, K, points, spec.diameter, syms if spec.symmetric else None)
-    return s | {"depth_log": float(np.log(p.t[2] / gt.t[2])), "depth_abs_log": abs(float(np.log(p.t[2] / gt.t[2])))}
+    depth_log = float(np.log(p.t[2] / gt.t[2]))
+    return s | {"depth_log": depth_log, "depth_abs_log": abs(depth_log)}
 
 
 def depth_on_framing(rows: list[dict]) -> dict[str, float]:
@@ -109,10 +110,8 @@ def main() -> None:
             passes = [first, *recropped(est, rgb, K, obj, first, hulls[obj], options)]
             passes.append(est.estimate(rgb, K, [(obj, insts[g][1])], options)[0])
             scored = [scores(p, truths[g], K, points[obj], specs[obj], syms.get(obj)) for p in passes]
-            box_iou = iou(found.detections[k].box, bbox_from_model(K, first.R, first.t, hulls[obj]))
             side = np.log(square_around_box(found.detections[k].box)[1] / square_around_box(insts[g][1])[1])
-            rows.append({"obj_id": obj, "visib": insts[g][2], "box_iou": box_iou, "side_log_ratio": float(side)}
-                        | dict(zip(PASSES, scored, strict=True)))  # fmt: skip
+            rows.append({"side_log_ratio": float(side)} | dict(zip(PASSES, scored, strict=True)))
     results = {"checkpoint": args.checkpoint, "data": args.data, "hits": len(rows), "hull_points": args.hull_points}
     results |= {key: summary(rows, key) for key in PASSES} | {"depth_on_framing": depth_on_framing(rows)}
     for key in (*PASSES, "depth_on_framing"):
