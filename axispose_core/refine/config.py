@@ -1,0 +1,79 @@
+"""The contour refiner's settings: one dataclass, saved in the estimator's checkpoint (`EstimatorConfig.refine`)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+from axispose_core.refine.viewpoints import ViewpointSettings
+
+
+@dataclass(frozen=True)
+class RefineConfig:
+    """How a pose is refined on the image's colours along the object's contour (region-based, after ICG: Stoiber et
+    al. 2022). The defaults of the line model (`function_*`, `distribution_length`, `min_variance_*`, histogram
+    bins) are ICG's; the schedule is set relative to the object's size in the image, since LM-O's objects span
+    30-300 px where ICG's tracker expects a few hundred."""
+
+    viewpoints: ViewpointSettings = field(default_factory=ViewpointSettings)
+    function_length: int = 8
+    """Segments the smoothed step function spans (even)."""
+    distribution_length: int = 12
+    """Places along a line where the contour may lie (even), in segments."""
+    function_amplitude: float = 0.43
+    """The step's height: a segment inside the object is foreground with 0.5 + amplitude."""
+    function_slope: float = 0.5
+    """The step's width (segments)."""
+    min_continuous: float = 3.0
+    """Least run (segments) of foreground inwards and background outwards that a line needs along the model's
+    silhouette: a line shorter than its own step sees the object's far side."""
+    histogram_bins: int = 16
+    """Bins per colour channel (RGB): 2, 4, 8, 16, 32 or 64."""
+    histogram_margin: float = 0.5
+    """Pixels either side of the contour left out of the colour histograms (the contour's own pixels mix both)."""
+    histogram_reach: float = 20.0
+    """Most pixels along a line, each side, that feed the histograms."""
+    histogram_rate: float = 0.2
+    """Weight of the colours sampled at the current pose against those already learned, after each correspondence
+    pass (the first pass learns them from scratch)."""
+    scales: tuple[float, ...] = (0.04, 0.02, 0.01, 0.0, 0.0)
+    """Per correspondence pass: the segment length as a fraction of the object's projected diameter (at least one
+    pixel): coarse passes reach far, fine ones place the contour to the pixel."""
+    sigmas: tuple[float, ...] = (15.0, 5.0, 3.5, 1.5, 1.5)
+    """Per pass: the user-set standard deviation (px) that weighs the lines against the regularisation (ICG's)."""
+    newton_steps: int = 2
+    """Newton steps per correspondence pass; the first uses each line's Gaussian fit, later ones its distribution's
+    local slope (ICG's global-then-local scheme)."""
+    learning_rate: float = 1.3
+    """Step factor on the distributions' local slopes."""
+    damping: tuple[float, float] = (1000.0, 30000.0)
+    """Tikhonov terms on each step's rotation (1/rad²) and translation (1/m²), ICG's, keeping steps stable."""
+    prior: bool = True
+    """Hold the pose to the estimate it starts from with that estimate's covariance (the dense fusion's, plus the
+    samples' scatter), so evidence the contour does not give (depth of a flat silhouette, spin of a round one)
+    stays the network's."""
+    lines: int = 200
+    """Correspondence lines per object (at most the viewpoint model's points)."""
+    min_lines: int = 20
+    """Fewer valid lines than this at any pass keep the unrefined pose (the object hardly visible or off the image)."""
+    max_jump: float = 21.1
+    """Most squared Mahalanobis length of the refined pose's change in rotation, or in translation, under the
+    starting covariance (χ²(3) at 0.9999): a larger jump is a run-away, and the unrefined pose is kept."""
+    covariance_scale: tuple[float, float] = (1.0, 1.0)
+    """Factors on the refined pose's translation and rotation variances that make its errors' median squared
+    Mahalanobis lengths χ²(3)'s on rendered frames."""
+    min_size: float = 12.0
+    """Objects whose projected diameter is smaller than this (px) are not refined."""
+
+    def __post_init__(self) -> None:
+        if self.function_length < 2 or self.function_length % 2 or self.distribution_length < 2 or self.distribution_length % 2:
+            raise ValueError("refine: function_length and distribution_length must be even and at least 2")
+        if self.histogram_bins not in (2, 4, 8, 16, 32, 64):
+            raise ValueError(f"refine.histogram_bins must be 2, 4, 8, 16, 32 or 64, got {self.histogram_bins}")
+        if not self.scales or len(self.sigmas) != len(self.scales) or min(self.sigmas) <= 0 or min(self.scales) < 0:
+            raise ValueError("refine: scales and sigmas need one non-negative scale and one positive sigma per pass")
+        if not 0 < self.histogram_rate <= 1 or not 0 < self.function_amplitude < 0.5 or self.function_slope < 0:
+            raise ValueError("refine: histogram_rate in (0, 1], function_amplitude in (0, 0.5) and function_slope >= 0")
+        if self.lines < 8 or self.lines > self.viewpoints.points or self.newton_steps < 1 or self.min_lines < 1:
+            raise ValueError(f"refine: 8 <= lines <= viewpoints.points ({self.viewpoints.points}), newton_steps >= 1, min_lines >= 1")
+        if len(self.damping) != 2 or min(self.damping) <= 0 or len(self.covariance_scale) != 2 or min(self.covariance_scale) <= 0:
+            raise ValueError("refine: damping and covariance_scale are two positive numbers each")

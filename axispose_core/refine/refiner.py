@@ -1,0 +1,254 @@
+"""Region-based refinement of a frame's poses on the image itself: each object's contour is moved until it
+separates the colours the image shows inside it from those around it (after ICG's tracker, Stoiber et al. 2022).
+
+Per frame: the colour-bin image once; per object: colour histograms learned at its current pose, then passes
+from coarse to fine line scales, each placing correspondence lines across the contour of the nearest view of the
+object's viewpoint model, finding where along each line the contour lies, and taking Newton steps on their
+log-likelihood with the starting pose (and its covariance) as a prior. The frame's objects mask each other's lines
+in their depth order. A pose that cannot be refined (too small, off the image, too few lines, a jump its
+covariance does not allow) is kept as it came, with the reason.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+
+import cv2
+import numpy as np
+
+from axispose_core.refine.config import RefineConfig
+from axispose_core.refine.histograms import ColourHistograms, colour_bins
+from axispose_core.refine.region import (
+    Lines,
+    StepFunction,
+    contour_distributions,
+    gradient_hessian,
+    place_lines,
+    sample_posteriors,
+)
+from axispose_core.refine.viewpoints import ViewpointModel, viewpoint_model
+
+KEPT_REASONS = ("invalid", "small", "few_lines", "run_away")
+"""Why a pose is kept unrefined: not a finite pose in front of the camera; smaller than `min_size`; fewer valid lines
+than `min_lines`; a jump its covariance does not allow (`max_jump`)."""
+_ORDER = [3, 4, 5, 0, 1, 2]
+"""(ω, δ) <-> (x, y, z, rx, ry, rz): the refiner's state and geometry_msgs' covariance order swap halves."""
+
+
+@dataclass(frozen=True)
+class Start:
+    """A pose to refine: object, rotation, translation (m) and its (6,6) covariance in geometry_msgs' order (None:
+    no prior)."""
+
+    obj_id: int
+    R: np.ndarray
+    t: np.ndarray
+    covariance: np.ndarray | None = None
+
+
+@dataclass(frozen=True)
+class Refinement:
+    """A refined pose, or the starting one kept (`refined` False, `reason` one of KEPT_REASONS). `lines`: the
+    fraction of the object's lines usable at the end; `agreement`: how well its contour separates the learned
+    colours there (the mean over lines of P(foreground) inside and P(background) outside, 0.5 for no contrast)."""
+
+    R: np.ndarray
+    t: np.ndarray
+    covariance: np.ndarray | None
+    refined: bool
+    reason: str = ""
+    lines: float = 0.0
+    agreement: float = float("nan")
+
+
+@dataclass
+class _State:
+    """One object's refinement under way."""
+
+    start: Start
+    model: ViewpointModel
+    diameter: float
+    R: np.ndarray
+    t: np.ndarray
+    precision: np.ndarray
+    """The prior's (6,6) information in (ω, δ), zero without one."""
+    histograms: ColourHistograms
+    hessian: np.ndarray = field(default_factory=lambda: np.zeros((6, 6)))
+    lines: Lines | None = None
+    valid: float = 0.0
+    reason: str = ""
+
+
+def _finite_pose(s: Start) -> bool:
+    R, t = np.asarray(s.R, dtype=float), np.asarray(s.t, dtype=float)
+    return R.shape == (3, 3) and t.shape == (3,) and bool(np.all(np.isfinite(R)) and np.all(np.isfinite(t))) and t[2] > 0
+
+
+def _information(covariance: np.ndarray | None) -> np.ndarray | None:
+    """The covariance's inverse in (ω, δ) order, or None where it is missing or not positive definite."""
+    if covariance is None:
+        return None
+    C = np.asarray(covariance, dtype=float)
+    if C.shape != (6, 6) or not np.all(np.isfinite(C)):
+        return None
+    C = C[np.ix_(_ORDER, _ORDER)]
+    try:
+        np.linalg.cholesky(C)
+        return np.linalg.inv(C)
+    except np.linalg.LinAlgError:
+        return None
+
+
+def _rotvec(R: np.ndarray) -> np.ndarray:
+    return cv2.Rodrigues(np.ascontiguousarray(R))[0][:, 0]
+
+
+class ContourRefiner:
+    """Refines poses of the objects whose meshes it holds; viewpoint models are built on first use (or `prepare`)."""
+
+    def __init__(self, config: RefineConfig, meshes: Mapping[int, tuple[np.ndarray, np.ndarray]]) -> None:
+        self.config = config
+        self.meshes = {k: (np.asarray(v, dtype=np.float64), np.asarray(f, dtype=np.int64)) for k, (v, f) in meshes.items()}
+        self.diameters = {k: 2.0 * float(np.linalg.norm(v, axis=1).max()) for k, (v, _) in self.meshes.items()}
+        self.step = StepFunction.of(config)
+        self._models: dict[int, ViewpointModel] = {}
+
+    def model(self, obj_id: int) -> ViewpointModel:
+        if obj_id not in self._models:
+            self._models[obj_id] = viewpoint_model(*self.meshes[obj_id], self.config.viewpoints)
+        return self._models[obj_id]
+
+    def prepare(self, obj_ids: Sequence[int] | None = None) -> None:
+        """Build (or load from the cache) the viewpoint models of `obj_ids` (None: all) now, not on first use."""
+        for obj_id in self.meshes if obj_ids is None else obj_ids:
+            self.model(obj_id)
+
+    def refine(self, image_rgb: np.ndarray, K: np.ndarray, starts: Sequence[Start]) -> list[Refinement]:
+        """Each start refined on the image (H,W,3 uint8 RGB) seen through K; one Refinement per start, in order."""
+        cfg = self.config
+        K = np.asarray(K, dtype=np.float64)
+        shape = image_rgb.shape[:2]
+        bins = colour_bins(image_rgb, cfg.histogram_bins)
+        states: list[_State | None] = []
+        kept: dict[int, str] = {}
+        for i, s in enumerate(starts):
+            if s.obj_id not in self.meshes:
+                raise ValueError(f"the refiner has no mesh of object {s.obj_id} (it has {sorted(self.meshes)})")
+            if not _finite_pose(s):
+                kept[i] = "invalid"
+            elif K[0, 0] * self.diameters[s.obj_id] / s.t[2] < cfg.min_size:
+                kept[i] = "small"
+            states.append(None if i in kept else self._state(s))
+        for scale_fraction, sigma in zip(cfg.scales, cfg.sigmas, strict=True):
+            live = [s for s in states if s is not None and not s.reason]
+            masks = self._occluders(live, K, shape)
+            for s, occluded in zip(live, masks, strict=True):
+                scale = max(1, round(scale_fraction * K[0, 0] * s.diameter / s.t[2]))
+                self._pass(s, bins, K, scale, sigma, occluded)
+        out = []
+        for i, (start, s) in enumerate(zip(starts, states, strict=True)):
+            out.append(self._finish(start, s, bins, K, kept.get(i, "")))
+        return out
+
+    def _state(self, s: Start) -> _State:
+        info = _information(s.covariance) if self.config.prior else None
+        return _State(s, self.model(s.obj_id), self.diameters[s.obj_id], np.asarray(s.R, float), np.asarray(s.t, float),
+                      np.zeros((6, 6)) if info is None else info, ColourHistograms.empty(self.config.histogram_bins))  # fmt: skip
+
+    def _occluders(self, states: list[_State], K: np.ndarray, shape: tuple[int, int]) -> list[np.ndarray]:
+        """Per object, the mask of the frame's objects nearer the camera than it (their outline polygons)."""
+        order = sorted(range(len(states)), key=lambda i: states[i].t[2])
+        acc = np.zeros(shape, dtype=np.uint8)
+        masks: list[np.ndarray] = [acc] * len(states)
+        for i in order:
+            masks[i] = acc.copy()
+            s = states[i]
+            v = s.model.closest_view(s.R, s.t)
+            p = s.model.points[v][s.model.outline[v]] @ s.R.T + s.t
+            if len(p) >= 3 and np.all(p[:, 2] > 1e-6):
+                uv = p @ K.T
+                poly = np.round(uv[:, :2] / uv[:, 2:] * 4).astype(np.int32)
+                cv2.fillPoly(acc, [poly], 1, lineType=cv2.LINE_8, shift=2)
+        return masks
+
+    def _pass(self, s: _State, bins: np.ndarray, K: np.ndarray, scale: int, sigma: float, occluded: np.ndarray) -> None:
+        """One correspondence pass: lines at the current pose, histograms learned there, distributions, Newton steps."""
+        cfg = self.config
+        n_seg = cfg.function_length + cfg.distribution_length - 1
+        reach = n_seg * scale / 2
+        placed = place_lines(s.model, s.R, s.t, K, cfg.lines, reach, cfg.min_continuous * scale, bins.shape)
+        c = np.round(placed.centres).astype(np.int64)
+        inside_image = (c[:, 0] >= 0) & (c[:, 0] < bins.shape[1]) & (c[:, 1] >= 0) & (c[:, 1] < bins.shape[0])
+        valid = placed.valid & inside_image
+        valid[valid] &= occluded[c[valid, 1], c[valid, 0]] == 0
+        s.valid = float(valid.mean())
+        if valid.sum() < cfg.min_lines:
+            s.reason = "few_lines"
+            return
+        self._learn(s, bins, placed.centres[valid], placed.normals[valid], placed.inside_px[valid], placed.outside_px[valid], occluded)
+        table = s.histograms.posterior()
+        centres, normals = placed.centres[valid], placed.normals[valid]
+        offsets = (np.arange(n_seg * scale) + 0.5) - n_seg * scale / 2
+        dist = contour_distributions(sample_posteriors(table, bins, centres, normals, offsets), scale, self.step, cfg.distribution_length)
+        weight = np.full(len(centres), self.step.min_variance * scale**2 / sigma**2)
+        s.lines = Lines(placed.model_points[valid], centres, normals, float(scale), dist, weight)
+        damping = np.repeat(np.asarray(cfg.damping, dtype=float), 3)
+        for k in range(cfg.newton_steps):
+            g, H = gradient_hessian(s.lines, K, s.R, s.t, local=k > 0, learning_rate=cfg.learning_rate)
+            if k == 0:
+                s.hessian = H
+            e = np.concatenate([_rotvec(s.R @ s.start.R.T), s.t - s.start.t])
+            A = -H + s.precision + np.diag(damping)
+            step = np.linalg.solve(A, g - s.precision @ e)
+            s.R = cv2.Rodrigues(step[:3])[0] @ s.R
+            s.t = s.t + step[3:]
+
+    def _learn(self, s: _State, bins: np.ndarray, centres: np.ndarray, normals: np.ndarray, inside: np.ndarray, outside: np.ndarray,
+               occluded: np.ndarray) -> None:  # fmt: skip
+        """The colours along the lines at the current pose into the histograms: inwards foreground, outwards
+        background, each side from `histogram_margin` to its silhouette run or `histogram_reach`."""
+        cfg = self.config
+        m = cfg.histogram_margin
+        steps = m + np.arange(int(np.ceil(cfg.histogram_reach)))
+        h, w = bins.shape
+        sides = []
+        for sign, run in ((-1.0, inside), (1.0, outside)):
+            q = np.round(centres[:, None, :] + sign * steps[None, :, None] * normals[:, None, :]).astype(np.int64)
+            ok = (steps[None, :] <= np.minimum(run - m, cfg.histogram_reach)[:, None]) & (q[..., 0] >= 0) & (q[..., 0] < w)
+            ok &= (q[..., 1] >= 0) & (q[..., 1] < h)
+            x, y = q[..., 0][ok], q[..., 1][ok]
+            keep = occluded[y, x] == 0
+            sides.append(bins[y[keep], x[keep]])
+        first = s.lines is None
+        s.histograms.learn(sides[0], sides[1], 1.0 if first else cfg.histogram_rate)
+
+    def _finish(self, start: Start, s: _State | None, bins: np.ndarray, K: np.ndarray, reason: str) -> Refinement:
+        """The refined pose with its covariance and agreement, or the start kept with the reason."""
+        if s is None or s.reason or s.lines is None:
+            return Refinement(start.R, start.t, start.covariance, False, reason or (s.reason if s else "") or "few_lines",
+                              s.valid if s else 0.0)  # fmt: skip
+        cfg = self.config
+        H = -s.hessian + s.precision
+        jump = (_rotvec(s.R @ s.start.R.T), s.t - s.start.t)
+        if start.covariance is not None and cfg.max_jump > 0:
+            C = np.asarray(start.covariance, dtype=float)
+            d2 = (float(jump[1] @ np.linalg.solve(C[:3, :3], jump[1])), float(jump[0] @ np.linalg.solve(C[3:, 3:], jump[0])))
+            if max(d2) > cfg.max_jump:
+                return Refinement(start.R, start.t, start.covariance, False, "run_away", s.valid)
+        try:
+            cov = np.linalg.inv(H + np.eye(6) * 1e-9)[np.ix_(_ORDER, _ORDER)]
+            d = np.sqrt(np.repeat(cfg.covariance_scale, 3))
+            cov = (cov + cov.T) / 2 * np.outer(d, d)
+        except np.linalg.LinAlgError:
+            cov = start.covariance
+        return Refinement(s.R, s.t, cov, True, "", s.valid, self._agreement(s, bins))
+
+    def _agreement(self, s: _State, bins: np.ndarray) -> float:
+        """Mean over the last pass's lines of P(foreground) a few pixels inside the contour and P(background) as
+        far outside, under the learned colours."""
+        lines = s.lines
+        offsets = np.arange(-3.5, 4.0, 1.0)
+        pf = sample_posteriors(s.histograms.posterior(), bins, lines.centres, lines.normals, offsets)
+        inner, outer = pf[:, offsets < 0].mean(axis=1), 1 - pf[:, offsets > 0].mean(axis=1)
+        return float(np.mean((inner + outer) / 2))

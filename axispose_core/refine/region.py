@@ -1,0 +1,189 @@
+"""The region modality: correspondence lines across the object's projected contour, the probability of where the
+contour lies along each (from the colour histograms' per-pixel posteriors and a smoothed step function), and the
+gradient and Hessian of their log-likelihood in the pose (ICG's region modality, Stoiber et al. 2022; written
+here, vectorised over lines).
+
+Pose perturbations are the dense fusion's (`tbm/dense.py`): R ← exp([ω]×) R, t ← t + δ, camera frame, state (ω, δ).
+Along a line, positions are in segments of `scale` pixels, 0 at the line's centre, positive outwards.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.lib.stride_tricks import sliding_window_view
+
+from axispose_core.refine.config import RefineConfig
+from axispose_core.refine.viewpoints import ViewpointModel
+
+EPS = 1e-4
+"""Per-pixel posteriors are held inside [EPS, 1 - EPS]: one pixel's colour never settles a segment alone."""
+
+
+@dataclass(frozen=True)
+class StepFunction:
+    """The smoothed step (foreground probability of the segments around a contour) and its derived constants."""
+
+    foreground: np.ndarray
+    """(F,): P(foreground) of segment i of the window, the contour between segments F/2 - 1 and F/2."""
+    min_variance: float
+    """Least variance (segments²) a line's contour distribution is given: what the step itself blurs."""
+
+    @classmethod
+    def of(cls, config: RefineConfig) -> StepFunction:
+        x = np.arange(config.function_length) - (config.function_length - 1) / 2
+        a, s = config.function_amplitude, config.function_slope
+        f = 0.5 - a * (np.sign(x) if s == 0 else np.tanh(x / (2 * s)))
+        laplace = 1 / (2 * np.arctanh(2 * a) ** 2)
+        return cls(f, max(laplace, s))
+
+
+@dataclass(frozen=True)
+class LinePlacement:
+    """One object's lines at one pass: model points (N,3), their camera-frame points (N,3), centres (N,2, px),
+    unit outward normals (N,2) and which are usable (N,) bool."""
+
+    model_points: np.ndarray
+    camera_points: np.ndarray
+    centres: np.ndarray
+    normals: np.ndarray
+    valid: np.ndarray
+    inside_px: np.ndarray
+    outside_px: np.ndarray
+
+
+def place_lines(
+    model: ViewpointModel,
+    R: np.ndarray,
+    t: np.ndarray,
+    K: np.ndarray,
+    count: int,
+    reach_px: float,
+    min_run_px: float,
+    shape: tuple[int, int],
+) -> LinePlacement:
+    """The contour points of the view nearest the pose, projected: `count` of them, each valid where it lies in
+    front of the camera, its whole line (`reach_px` each side) inside the image, and the silhouette's runs inwards
+    and outwards at least `min_run_px`."""
+    v = model.closest_view(R, t)
+    pick = np.linspace(0, model.points.shape[1], count, endpoint=False).astype(int)
+    X = model.points[v, pick]
+    p = X @ R.T + t
+    z = p[:, 2]
+    safe = np.where(z > 1e-6, z, 1.0)
+    q = p @ K.T
+    uv = q[:, :2] / np.where(q[:, 2:] > 1e-9, q[:, 2:], 1.0)
+    n3 = model.normals[v, pick] @ R.T
+    # The normal's image direction: the projection's Jacobian applied to the 3D normal.
+    du = K[0, 0] * n3[:, 0] + K[0, 1] * n3[:, 1] - (uv[:, 0] - K[0, 2]) * n3[:, 2]
+    n = np.stack([du, K[1, 1] * n3[:, 1] - (uv[:, 1] - K[1, 2]) * n3[:, 2]], axis=1)
+    n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-12)
+    px_per_m = K[0, 0] / safe
+    inside, outside = model.inside[v, pick] * px_per_m, model.outside[v, pick] * px_per_m
+    h, w = shape
+    ends = uv[:, None, :] + np.array([-reach_px, reach_px])[None, :, None] * n[:, None, :]
+    on_image = np.all((ends[..., 0] >= 0) & (ends[..., 0] <= w - 1) & (ends[..., 1] >= 0) & (ends[..., 1] <= h - 1), axis=1)
+    valid = (z > 1e-6) & on_image & (np.minimum(inside, outside) >= min_run_px)
+    return LinePlacement(X, p, uv, n, valid, inside, outside)
+
+
+def sample_posteriors(table: np.ndarray, bins: np.ndarray, centres: np.ndarray, normals: np.ndarray, offsets: np.ndarray) -> np.ndarray:
+    """P(foreground) (N,L) at `offsets` (L,) pixels along each line (centres (N,2), normals (N,2)), bilinear in the
+    per-pixel posteriors (`table` over the `bins` image); positions are clipped to the image."""
+    h, w = bins.shape
+    q = centres[:, None, :] + offsets[None, :, None] * normals[:, None, :]
+    x = np.clip(q[..., 0], 0, w - 1.001)
+    y = np.clip(q[..., 1], 0, h - 1.001)
+    x0, y0 = x.astype(np.int64), y.astype(np.int64)
+    fx, fy = x - x0, y - y0
+    flat = bins.reshape(-1)
+    i = y0 * w + x0
+
+    def at(k: np.ndarray) -> np.ndarray:
+        return table[flat[k]]
+
+    return (1 - fy) * ((1 - fx) * at(i) + fx * at(i + 1)) + fy * ((1 - fx) * at(i + w) + fx * at(i + w + 1))
+
+
+@dataclass(frozen=True)
+class Distributions:
+    """Where each line's contour lies: log probabilities (N,D) over the D places, their mean (N,) and variance (N,)
+    in segments (0 at the line's centre)."""
+
+    log_p: np.ndarray
+    mean: np.ndarray
+    variance: np.ndarray
+
+
+def contour_distributions(pf: np.ndarray, scale: int, step: StepFunction, length: int) -> Distributions:
+    """From per-pixel P(foreground) (N, S·scale) along lines of S = F + D - 1 segments: each segment's probability
+    of being foreground (the product of its pixels' odds), then for each of the D places the window of F segments
+    around it scored against the step function (ICG's distribution and moments)."""
+    n = len(pf)
+    pf = np.clip(pf, EPS, 1 - EPS)
+    odds = (np.log(pf) - np.log1p(-pf)).reshape(n, -1, scale).sum(axis=2)  # (N,S) segment log odds
+    seg_f = 1 / (1 + np.exp(-odds))
+    f = step.foreground
+    windows = sliding_window_view(seg_f, len(f), axis=1)  # (N,D,F)
+    log_p = np.log(windows * f + (1 - windows) * (1 - f)).sum(axis=2)
+    log_p -= log_p.max(axis=1, keepdims=True)
+    log_p -= np.log(np.exp(log_p).sum(axis=1, keepdims=True))
+    p = np.exp(log_p)
+    places = np.arange(length, dtype=np.float64)
+    mean = p @ places
+    variance = np.maximum(np.einsum("nd,nd->n", p, (places[None] - mean[:, None]) ** 2), step.min_variance)
+    return Distributions(log_p, mean - (length - 1) / 2, variance)
+
+
+def line_jacobians(
+    K: np.ndarray, R: np.ndarray, t: np.ndarray, X: np.ndarray, normals: np.ndarray, scale: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """Projections (N,2) of model points X (N,3) at (R, t), and d(offset along each line, in segments)/d(ω, δ)
+    (N,6)."""
+    p = X @ R.T + t
+    q = p @ K.T
+    z = q[:, 2]
+    uv = q[:, :2] / z[:, None]
+    dproj = (K[None, :2, :] - uv[:, :, None] * K[None, 2:3, :]) / z[:, None, None]  # (N,2,3)
+    a = np.einsum("ni,nij->nj", normals, dproj) / scale  # d offset / d p
+    return uv, np.concatenate([np.cross(p - t, a), a], axis=1)
+
+
+@dataclass(frozen=True)
+class Lines:
+    """One object's valid lines at one pass, ready for Newton steps: model points, fixed centres and normals, the
+    segment length, each line's contour distribution and weight."""
+
+    model_points: np.ndarray
+    centres: np.ndarray
+    normals: np.ndarray
+    scale: float
+    dist: Distributions
+    weight: np.ndarray
+
+
+def gradient_hessian(
+    lines: Lines, K: np.ndarray, R: np.ndarray, t: np.ndarray, local: bool, learning_rate: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """The lines' log-likelihood gradient (6,) and Hessian (6,6) in (ω, δ) at (R, t): each line's contour offset
+    pulled towards its distribution's mean (Gaussian), or, `local`, along its distribution's slope where the
+    model's contour now lies (ICG's two modes)."""
+    uv, J = line_jacobians(K, R, t, lines.model_points, lines.normals, lines.scale)
+    offset = np.einsum("ni,ni->n", uv - lines.centres, lines.normals) / lines.scale
+    var = lines.dist.variance
+    w = lines.weight
+    if local:
+        length = lines.dist.log_p.shape[1]
+        upper = np.floor(offset + (length + 1) / 2).astype(np.int64)
+        inside = (upper > 0) & (upper < length)
+        up = np.clip(upper, 1, length - 1)
+        rows = np.arange(len(up))
+        slope = (lines.dist.log_p[rows, up] - lines.dist.log_p[rows, up - 1]) * learning_rate / var
+        dll = np.where(inside, slope, 0.0)
+        w = np.where(inside, w, 0.0)
+    else:
+        dll = (lines.dist.mean - offset) / var
+    g = np.einsum("n,ni->i", w * dll, J)
+    H = -np.einsum("n,ni,nj->ij", w / var, J, J)
+    return g, H
