@@ -31,6 +31,10 @@ from axispose_core.localiser.model import Localiser, LocaliserConfig, build_loca
 from axispose_core.localiser.verifier import DetectionVerifier
 from axispose_core.objects import ObjectSpec
 from axispose_core.precision import bf16_native
+from axispose_core.refine.config import RefineConfig
+from axispose_core.refine.meshes import Meshes, ObjectMeshes
+from axispose_core.refine.refiner import ContourRefiner
+from axispose_core.refine.refiner import Start as RefineStart
 from axispose_core.tbm.backproject import backproject_readings
 from axispose_core.tbm.dense import DenseFusion, fuse_pose
 from axispose_core.tbm.keypoints import AxisKeypoints
@@ -77,6 +81,9 @@ class EstimatorConfig:
     verifier: DetectionVerifier | None = None
     """Where the checkpoint carries one (`axispose fit-verifier`), `find` rescores the localiser's detections with
     their poses' variances and publishes its probability as the score."""
+    refine: RefineConfig | None = None
+    """Where the checkpoint carries its objects' meshes, how the contour refiner (`refine/`) moves each pose to the
+    image's own contour after the fusion."""
 
     def __post_init__(self) -> None:
         if len(self.head_offaxis) != 2 or not all(math.isfinite(c) for c in self.head_offaxis):
@@ -132,6 +139,8 @@ class EstimateOptions:
     max_boxes: int | None = None
     """Most boxes in one AGM batch (None: all at once); more are posed in successive batches of this many, so the
     memory a call takes and the batch shapes it runs stay within what a caller warmed up."""
+    refine: bool = True
+    """Refine the poses on the image's contours where the checkpoint carries a refiner (`EstimatorConfig.refine`)."""
 
     def __post_init__(self) -> None:
         if self.hypotheses < 1:
@@ -198,6 +207,17 @@ class PoseEstimate:
     head_depth: float = float("nan")
     """The encoder's depth for this crop (m, linear in λ_O); t already fuses it with the TBM's (head_depth_weight)
     and with the dense points (dense_fusion)."""
+    refined: bool = False
+    """The contour refiner moved this pose (R, t and covariance are its); False where it did not run or kept the
+    pose (`refine_kept`)."""
+    refine_kept: str = ""
+    """Why the refiner kept the unrefined pose (`refine.refiner.KEPT_REASONS`); empty where it refined or did not
+    run."""
+    contour_lines: float = float("nan")
+    """Fraction of the object's contour lines the refiner could use at the end (NaN where it did not run)."""
+    contour_agreement: float = float("nan")
+    """How well the refined contour separates the object's colours from its surroundings' (0.5: not at all, 1:
+    fully; NaN where the refiner did not refine): evidence for a detection verifier."""
 
 
 @dataclass(frozen=True)
@@ -223,7 +243,13 @@ class Estimator:
     """Holds the AGM and the keypoint reader; `estimate(image, K, boxes)` returns one pose per box."""
 
     def __init__(
-        self, config: EstimatorConfig, agm: AxisGenerator, reader: KeypointReader, device: str = "cpu", localiser: Localiser | None = None
+        self,
+        config: EstimatorConfig,
+        agm: AxisGenerator,
+        reader: KeypointReader,
+        device: str = "cpu",
+        localiser: Localiser | None = None,
+        meshes: Meshes | None = None,
     ) -> None:
         if len(config.objects) > agm.config.denoiser.encoder.objects:
             raise ValueError(f"{len(config.objects)} objects, but the AGM's encoder embeds {agm.config.denoiser.encoder.objects}")
@@ -235,6 +261,11 @@ class Estimator:
             raise ValueError("a verifier rescores the localiser's detections: this estimator has no localiser")
         if localiser is not None and not set(localiser.config.obj_ids) <= {o.obj_id for o in config.objects}:
             raise ValueError(f"the localiser finds objects {localiser.config.obj_ids}, not all known to the estimator")
+        if (meshes is None) != (config.refine is None):
+            raise ValueError("the refiner's meshes and config.refine must be given together")
+        if meshes is not None and set(meshes) != {o.obj_id for o in config.objects}:
+            known = [o.obj_id for o in config.objects]
+            raise ValueError(f"the refiner has meshes of objects {sorted(meshes)}, the estimator knows {known}")
         self.config = config
         self.device = torch.device(device)
         self.agm = agm.to(self.device).eval()
@@ -247,6 +278,9 @@ class Estimator:
         """Run the AGM (encoder and denoiser) under bfloat16 autocast; see `set_precision`."""
         self.sampler = sample
         """How axis images are drawn from an encoding (`agm/sampler.py`'s `sample`, with its signature)."""
+        self.meshes = meshes
+        self.refiner = ContourRefiner(config.refine, meshes) if meshes is not None and config.refine is not None else None
+        """The contour refiner (`refine/`) where the checkpoint carries one."""
 
     def set_precision(self, precision: str) -> str:
         """Set the AGM's arithmetic: float32, bfloat16, or auto (bfloat16 where the device computes it natively:
@@ -263,20 +297,27 @@ class Estimator:
     def save(self, path: str | Path, half: bool = False) -> None:
         """Write the checkpoint; `half`: weights in float16, as the shipped one (runs in float32 after loading)."""
         modules = {"agm": self.agm.denoiser, "reader": self.reader} | ({"localiser": self.localiser} if self.localiser else {})
+        modules |= {"refine": ObjectMeshes(self.meshes)} if self.meshes is not None else {}
         save_checkpoint(path, KIND, self.config, modules, half=half)
 
     def with_localiser(self, localiser: Localiser) -> Estimator:
         """This estimator carrying `localiser` (replacing any it had, and the verifier fitted to that one's scores), so
         one checkpoint serves the node."""
         config = replace(self.config, localiser=localiser.config, verifier=None)
-        return Estimator(config, self.agm, self.reader, str(self.device), localiser)
+        return Estimator(config, self.agm, self.reader, str(self.device), localiser, self.meshes)
 
     def with_verifier(self, verifier: DetectionVerifier | None, record: dict | None = None) -> Estimator:
         """This estimator with `verifier` (None: without one) rescoring what `find` finds; `record`, how it was fitted,
         joins the training record (`training["verifier"]`)."""
         training = self.config.training if record is None else {**self.config.training, "verifier": record}
         config = replace(self.config, verifier=verifier, training=training)
-        return Estimator(config, self.agm, self.reader, str(self.device), self.localiser)
+        return Estimator(config, self.agm, self.reader, str(self.device), self.localiser, self.meshes)
+
+    def with_refiner(self, meshes: Meshes | None, config: RefineConfig | None = None) -> Estimator:
+        """This estimator with a contour refiner of the objects' `meshes` (metres; `refine.meshes.models_meshes`)
+        and `config` (None: the defaults), or without one (meshes None)."""
+        config = None if meshes is None else (config or RefineConfig())
+        return Estimator(replace(self.config, refine=config), self.agm, self.reader, str(self.device), self.localiser, meshes)
 
     def detect(self, image_rgb: np.ndarray, threshold: float | None = None) -> list[Detection]:
         """Objects found in a full frame by the checkpoint's localiser (none found: an empty list)."""
@@ -334,7 +375,18 @@ class Estimator:
             load_state(localiser, states.get("localiser", {}), f"{path} (localiser)")
         elif "localiser" in states:
             raise CheckpointError(f"{path}: holds localiser weights but no localiser config")
-        return cls(config, agm, reader, device, localiser)
+        meshes = None
+        if config.refine is not None:
+            try:
+                meshes = ObjectMeshes.from_state(states.get("refine", {})).meshes()
+            except ValueError as err:
+                raise CheckpointError(f"{path}: {err}") from err
+        elif "refine" in states:
+            raise CheckpointError(f"{path}: holds refiner meshes but no refine config")
+        try:
+            return cls(config, agm, reader, device, localiser, meshes)
+        except ValueError as err:
+            raise CheckpointError(f"{path}: {err}") from err
 
     def estimate(
         self,
@@ -349,10 +401,11 @@ class Estimator:
         (or batches of `options.max_boxes`).
 
         The data flow's stages, each one method: crop, sample (the AGM), read (the reader), solve (the TBM and the
-        samples' consensus), fuse (the dense points). `options` holds the per-call settings (None: the checkpoint's
-        defaults); `cancelled()` is asked between DDIM steps, and True raises `Cancelled`. `priors` gives per box a
-        pose (R, t) it is likely near (None: none), e.g. a track's prediction: its samples start from that pose's axis
-        image, `warm_steps` steps from `warm_strength` of the schedule.
+        samples' consensus), fuse (the dense points), and over the whole frame's poses, refine (the contours).
+        `options` holds the per-call settings (None: the checkpoint's defaults); `cancelled()` is asked between DDIM
+        steps, and True raises `Cancelled`. `priors` gives per box a pose (R, t) it is likely near (None: none), e.g. a
+        track's prediction: its samples start from that pose's axis image, `warm_steps` steps from `warm_strength` of
+        the schedule.
         """
         options = options or EstimateOptions()
         if priors is not None and len(priors) != len(boxes):
@@ -362,7 +415,7 @@ class Estimator:
         for i in range(0, max(1, len(boxes)), size):  # no boxes: one call all the same, which checks K
             part = None if priors is None else priors[i : i + size]
             poses += self._estimate_batch(image_rgb, K, boxes[i : i + size], options, cancelled, part)
-        return poses
+        return self._refine(image_rgb, K, poses, options) if options.refine and self.refiner is not None else poses
 
     def _estimate_batch(
         self,
@@ -486,4 +539,18 @@ class Estimator:
                 R, t, cov, fit = fused.R, fused.t, fused.covariance + (c.scatter if many else 0.0), fused.covariance
             out.append(PoseEstimate(R=R, t=t, ok=True, reason="", axis_image=axis_image, covariance=cov, fit_covariance=fit, **pick,
                                     **spread))  # fmt: skip
+        return out
+
+    def _refine(self, image_rgb: np.ndarray, K: np.ndarray, poses: list[PoseEstimate], options: EstimateOptions) -> list[PoseEstimate]:
+        """The frame's poses moved to the image's contours together (each masks the lines of those behind it); a
+        pose the refiner keeps says why (`refine_kept`)."""
+        scales = options.scales or {}
+        posed = [k for k, p in enumerate(poses) if p.ok]
+        starts = [RefineStart(poses[k].obj_id, poses[k].R, poses[k].t, poses[k].covariance,
+                        scales.get(poses[k].obj_id, self.objects[poses[k].obj_id].scale) / self.objects[poses[k].obj_id].scale)
+                  for k in posed]  # fmt: skip
+        out = list(poses)
+        for k, r in zip(posed, self.refiner.refine(image_rgb, np.asarray(K, dtype=np.float64), starts), strict=True):
+            out[k] = replace(poses[k], R=r.R, t=r.t, covariance=r.covariance, refined=r.refined, refine_kept=r.reason,
+                             contour_lines=r.lines, contour_agreement=r.agreement)  # fmt: skip
         return out

@@ -35,18 +35,19 @@ class RefineConfig:
     histogram_rate: float = 0.2
     """Weight of the colours sampled at the current pose against those already learned, after each correspondence
     pass (the first pass learns them from scratch)."""
-    scales: tuple[float, ...] = (0.04, 0.02, 0.01, 0.0, 0.0)
+    scales: tuple[float, ...] = (0.04, 0.02, 0.01, 0.0, 0.0, 0.0, 0.0)
     """Per correspondence pass: the segment length as a fraction of the object's projected diameter (at least one
     pixel): coarse passes reach far, fine ones place the contour to the pixel."""
-    sigmas: tuple[float, ...] = (15.0, 5.0, 3.5, 1.5, 1.5)
+    sigmas: tuple[float, ...] = (15.0, 5.0, 3.5, 1.5, 1.5, 1.5, 1.5)
     """Per pass: the user-set standard deviation (px) that weighs the lines against the regularisation (ICG's)."""
     newton_steps: int = 2
-    """Newton steps per correspondence pass; the first uses each line's Gaussian fit, later ones its distribution's
-    local slope (ICG's global-then-local scheme)."""
-    learning_rate: float = 1.3
-    """Step factor on the distributions' local slopes."""
-    damping: tuple[float, float] = (1000.0, 30000.0)
-    """Tikhonov terms on each step's rotation (1/rad²) and translation (1/m²), ICG's, keeping steps stable."""
+    """Gauss-Newton steps per correspondence pass, each pulling every line's contour offset towards the mean of its
+    distribution (ICG's global step; its later steps along the distributions' local slopes overshoot on sharp
+    distributions when no prior holds the pose)."""
+    damping: tuple[float, float] = (1.0, 30.0)
+    """Tikhonov terms on each step's rotation (1/rad²) and translation (1/m²) that keep a step finite where the
+    lines and the prior leave a direction open. ICG's (1000, 30000) hold a tracker between frames; from a single
+    image they stop a small object's depth short of its contour."""
     prior: bool = True
     """Hold the pose to the estimate it starts from with that estimate's covariance (the dense fusion's, plus the
     samples' scatter), so evidence the contour does not give (depth of a flat silhouette, spin of a round one)
@@ -55,6 +56,9 @@ class RefineConfig:
     """Correspondence lines per object (at most the viewpoint model's points)."""
     min_lines: int = 20
     """Fewer valid lines than this at any pass keep the unrefined pose (the object hardly visible or off the image)."""
+    min_agreement: float = 0.52
+    """A refined contour that separates the learned colours no better than this (0.5: not at all, a uniform image)
+    keeps the unrefined pose: the image gave no evidence."""
     max_jump: float = 21.1
     """Most squared Mahalanobis length of the refined pose's change in rotation, or in translation, under the
     starting covariance (χ²(3) at 0.9999): a larger jump is a run-away, and the unrefined pose is kept."""

@@ -29,9 +29,10 @@ from axispose_core.refine.region import (
 )
 from axispose_core.refine.viewpoints import ViewpointModel, viewpoint_model
 
-KEPT_REASONS = ("invalid", "small", "few_lines", "run_away")
+KEPT_REASONS = ("invalid", "small", "few_lines", "no_contrast", "run_away")
 """Why a pose is kept unrefined: not a finite pose in front of the camera; smaller than `min_size`; fewer valid lines
-than `min_lines`; a jump its covariance does not allow (`max_jump`)."""
+than `min_lines`; a contour that separates no colours (`min_agreement`); a jump its covariance does not allow
+(`max_jump`)."""
 _ORDER = [3, 4, 5, 0, 1, 2]
 """(ω, δ) <-> (x, y, z, rx, ry, rz): the refiner's state and geometry_msgs' covariance order swap halves."""
 
@@ -39,12 +40,13 @@ _ORDER = [3, 4, 5, 0, 1, 2]
 @dataclass(frozen=True)
 class Start:
     """A pose to refine: object, rotation, translation (m) and its (6,6) covariance in geometry_msgs' order (None:
-    no prior)."""
+    no prior); `scale`, the object's size against its mesh's (a run-time λ_O over the checkpoint's)."""
 
     obj_id: int
     R: np.ndarray
     t: np.ndarray
     covariance: np.ndarray | None = None
+    scale: float = 1.0
 
 
 @dataclass(frozen=True)
@@ -76,6 +78,8 @@ class _State:
     histograms: ColourHistograms
     hessian: np.ndarray = field(default_factory=lambda: np.zeros((6, 6)))
     lines: Lines | None = None
+    occluded: np.ndarray | None = None
+    """The mask of the nearer objects at the last pass."""
     valid: float = 0.0
     reason: str = ""
 
@@ -137,7 +141,7 @@ class ContourRefiner:
                 raise ValueError(f"the refiner has no mesh of object {s.obj_id} (it has {sorted(self.meshes)})")
             if not _finite_pose(s):
                 kept[i] = "invalid"
-            elif K[0, 0] * self.diameters[s.obj_id] / s.t[2] < cfg.min_size:
+            elif K[0, 0] * self.diameters[s.obj_id] * s.scale / s.t[2] < cfg.min_size:
                 kept[i] = "small"
             states.append(None if i in kept else self._state(s))
         for scale_fraction, sigma in zip(cfg.scales, cfg.sigmas, strict=True):
@@ -153,7 +157,7 @@ class ContourRefiner:
 
     def _state(self, s: Start) -> _State:
         info = _information(s.covariance) if self.config.prior else None
-        return _State(s, self.model(s.obj_id), self.diameters[s.obj_id], np.asarray(s.R, float), np.asarray(s.t, float),
+        return _State(s, self.model(s.obj_id), self.diameters[s.obj_id] * s.scale, np.asarray(s.R, float), np.asarray(s.t, float),
                       np.zeros((6, 6)) if info is None else info, ColourHistograms.empty(self.config.histogram_bins))  # fmt: skip
 
     def _occluders(self, states: list[_State], K: np.ndarray, shape: tuple[int, int]) -> list[np.ndarray]:
@@ -165,7 +169,7 @@ class ContourRefiner:
             masks[i] = acc.copy()
             s = states[i]
             v = s.model.closest_view(s.R, s.t)
-            p = s.model.points[v][s.model.outline[v]] @ s.R.T + s.t
+            p = s.model.points[v][s.model.outline[v]] * s.start.scale @ s.R.T + s.t
             if len(p) >= 3 and np.all(p[:, 2] > 1e-6):
                 uv = p @ K.T
                 poly = np.round(uv[:, :2] / uv[:, 2:] * 4).astype(np.int32)
@@ -175,9 +179,10 @@ class ContourRefiner:
     def _pass(self, s: _State, bins: np.ndarray, K: np.ndarray, scale: int, sigma: float, occluded: np.ndarray) -> None:
         """One correspondence pass: lines at the current pose, histograms learned there, distributions, Newton steps."""
         cfg = self.config
+        s.occluded = occluded
         n_seg = cfg.function_length + cfg.distribution_length - 1
         reach = n_seg * scale / 2
-        placed = place_lines(s.model, s.R, s.t, K, cfg.lines, reach, cfg.min_continuous * scale, bins.shape)
+        placed = place_lines(s.model, s.R, s.t, K, cfg.lines, reach, cfg.min_continuous * scale, bins.shape, s.start.scale)
         c = np.round(placed.centres).astype(np.int64)
         inside_image = (c[:, 0] >= 0) & (c[:, 0] < bins.shape[1]) & (c[:, 1] >= 0) & (c[:, 1] < bins.shape[0])
         valid = placed.valid & inside_image
@@ -195,14 +200,20 @@ class ContourRefiner:
         s.lines = Lines(placed.model_points[valid], centres, normals, float(scale), dist, weight)
         damping = np.repeat(np.asarray(cfg.damping, dtype=float), 3)
         for k in range(cfg.newton_steps):
-            g, H = gradient_hessian(s.lines, K, s.R, s.t, local=k > 0, learning_rate=cfg.learning_rate)
+            g, H = gradient_hessian(s.lines, K, s.R, s.t)
             if k == 0:
                 s.hessian = H
             e = np.concatenate([_rotvec(s.R @ s.start.R.T), s.t - s.start.t])
             A = -H + s.precision + np.diag(damping)
             step = np.linalg.solve(A, g - s.precision @ e)
+            if not np.all(np.isfinite(step)):
+                s.reason = "run_away"
+                return
             s.R = cv2.Rodrigues(step[:3])[0] @ s.R
             s.t = s.t + step[3:]
+            if s.t[2] <= 0:
+                s.reason = "run_away"
+                return
 
     def _learn(self, s: _State, bins: np.ndarray, centres: np.ndarray, normals: np.ndarray, inside: np.ndarray, outside: np.ndarray,
                occluded: np.ndarray) -> None:  # fmt: skip
@@ -231,24 +242,32 @@ class ContourRefiner:
         cfg = self.config
         H = -s.hessian + s.precision
         jump = (_rotvec(s.R @ s.start.R.T), s.t - s.start.t)
-        if start.covariance is not None and cfg.max_jump > 0:
+        if _information(start.covariance) is not None and cfg.max_jump > 0:
             C = np.asarray(start.covariance, dtype=float)
             d2 = (float(jump[1] @ np.linalg.solve(C[:3, :3], jump[1])), float(jump[0] @ np.linalg.solve(C[3:, 3:], jump[0])))
             if max(d2) > cfg.max_jump:
                 return Refinement(start.R, start.t, start.covariance, False, "run_away", s.valid)
+        agreement = self._agreement(s, bins, K)
+        if agreement < cfg.min_agreement:
+            return Refinement(start.R, start.t, start.covariance, False, "no_contrast", s.valid, agreement)
         try:
             cov = np.linalg.inv(H + np.eye(6) * 1e-9)[np.ix_(_ORDER, _ORDER)]
             d = np.sqrt(np.repeat(cfg.covariance_scale, 3))
             cov = (cov + cov.T) / 2 * np.outer(d, d)
         except np.linalg.LinAlgError:
             cov = start.covariance
-        return Refinement(s.R, s.t, cov, True, "", s.valid, self._agreement(s, bins))
+        return Refinement(s.R, s.t, cov, True, "", s.valid, agreement)
 
-    def _agreement(self, s: _State, bins: np.ndarray) -> float:
-        """Mean over the last pass's lines of P(foreground) a few pixels inside the contour and P(background) as
-        far outside, under the learned colours."""
-        lines = s.lines
+    def _agreement(self, s: _State, bins: np.ndarray, K: np.ndarray) -> float:
+        """Mean over the object's unoccluded lines at its final pose of P(foreground) in the four pixels inside the
+        contour and P(background) in the four outside it, under the learned colours (0.5: no contrast)."""
         offsets = np.arange(-3.5, 4.0, 1.0)
-        pf = sample_posteriors(s.histograms.posterior(), bins, lines.centres, lines.normals, offsets)
+        placed = place_lines(s.model, s.R, s.t, K, self.config.lines, 4.0, 4.0, bins.shape, s.start.scale)
+        c = np.round(placed.centres).astype(np.int64)
+        valid = placed.valid
+        valid[valid] &= s.occluded[c[valid, 1], c[valid, 0]] == 0
+        if not valid.any():
+            return 0.5
+        pf = sample_posteriors(s.histograms.posterior(), bins, placed.centres[valid], placed.normals[valid], offsets)
         inner, outer = pf[:, offsets < 0].mean(axis=1), 1 - pf[:, offsets > 0].mean(axis=1)
         return float(np.mean((inner + outer) / 2))

@@ -62,13 +62,14 @@ def place_lines(
     reach_px: float,
     min_run_px: float,
     shape: tuple[int, int],
+    scale: float = 1.0,
 ) -> LinePlacement:
     """The contour points of the view nearest the pose, projected: `count` of them, each valid where it lies in
     front of the camera, its whole line (`reach_px` each side) inside the image, and the silhouette's runs inwards
-    and outwards at least `min_run_px`."""
+    and outwards at least `min_run_px`. `scale` sizes the model (an object of another size than its mesh)."""
     v = model.closest_view(R, t)
     pick = np.linspace(0, model.points.shape[1], count, endpoint=False).astype(int)
-    X = model.points[v, pick]
+    X = model.points[v, pick] * scale
     p = X @ R.T + t
     z = p[:, 2]
     safe = np.where(z > 1e-6, z, 1.0)
@@ -79,7 +80,7 @@ def place_lines(
     du = K[0, 0] * n3[:, 0] + K[0, 1] * n3[:, 1] - (uv[:, 0] - K[0, 2]) * n3[:, 2]
     n = np.stack([du, K[1, 1] * n3[:, 1] - (uv[:, 1] - K[1, 2]) * n3[:, 2]], axis=1)
     n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-12)
-    px_per_m = K[0, 0] / safe
+    px_per_m = K[0, 0] * scale / safe
     inside, outside = model.inside[v, pick] * px_per_m, model.outside[v, pick] * px_per_m
     h, w = shape
     ends = uv[:, None, :] + np.array([-reach_px, reach_px])[None, :, None] * n[:, None, :]
@@ -163,27 +164,12 @@ class Lines:
     weight: np.ndarray
 
 
-def gradient_hessian(
-    lines: Lines, K: np.ndarray, R: np.ndarray, t: np.ndarray, local: bool, learning_rate: float
-) -> tuple[np.ndarray, np.ndarray]:
-    """The lines' log-likelihood gradient (6,) and Hessian (6,6) in (ω, δ) at (R, t): each line's contour offset
-    pulled towards its distribution's mean (Gaussian), or, `local`, along its distribution's slope where the
-    model's contour now lies (ICG's two modes)."""
+def gradient_hessian(lines: Lines, K: np.ndarray, R: np.ndarray, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The lines' log-likelihood gradient (6,) and Gauss-Newton Hessian (6,6) in (ω, δ) at (R, t): each line's
+    contour offset, where the model's contour now lies, pulled towards its distribution's mean with its variance."""
     uv, J = line_jacobians(K, R, t, lines.model_points, lines.normals, lines.scale)
     offset = np.einsum("ni,ni->n", uv - lines.centres, lines.normals) / lines.scale
     var = lines.dist.variance
-    w = lines.weight
-    if local:
-        length = lines.dist.log_p.shape[1]
-        upper = np.floor(offset + (length + 1) / 2).astype(np.int64)
-        inside = (upper > 0) & (upper < length)
-        up = np.clip(upper, 1, length - 1)
-        rows = np.arange(len(up))
-        slope = (lines.dist.log_p[rows, up] - lines.dist.log_p[rows, up - 1]) * learning_rate / var
-        dll = np.where(inside, slope, 0.0)
-        w = np.where(inside, w, 0.0)
-    else:
-        dll = (lines.dist.mean - offset) / var
-    g = np.einsum("n,ni->i", w * dll, J)
-    H = -np.einsum("n,ni,nj->ij", w / var, J, J)
+    g = np.einsum("n,ni->i", lines.weight * (lines.dist.mean - offset) / var, J)
+    H = -np.einsum("n,ni,nj->ij", lines.weight / var, J, J)
     return g, H

@@ -115,11 +115,11 @@ def view_rotation(direction: np.ndarray) -> np.ndarray:
 
 @dataclass(frozen=True)
 class _Edges:
-    """A mesh's unique edges: their vertices (E,2), the corners of the two faces they join (E,2,3) and whether they
-    have only one face (E,), where the second face repeats the first."""
+    """A mesh's unique edges: their vertices (E,2), the two faces they join (E,2; an edge of one face names it
+    twice) and whether they have only one face (E,)."""
 
     vertices: np.ndarray
-    corners: np.ndarray
+    faces: np.ndarray
     single: np.ndarray
 
     @classmethod
@@ -133,7 +133,7 @@ class _Edges:
         count = np.bincount(inverse, minlength=len(uniq))
         first = owner[order[starts]]
         second = np.where(count >= 2, owner[order[np.minimum(starts + 1, len(order) - 1)]], first)
-        return cls(uniq, faces[np.stack([first, second], axis=1)], count < 2)
+        return cls(uniq, np.stack([first, second], axis=1), count < 2)
 
 
 def build_viewpoint_model(vertices: np.ndarray, faces: np.ndarray, settings: ViewpointSettings) -> ViewpointModel:
@@ -150,11 +150,13 @@ def build_viewpoint_model(vertices: np.ndarray, faces: np.ndarray, settings: Vie
     K = np.array([[f, 0, (size - 1) / 2], [0, f, (size - 1) / 2], [0, 0, 1.0]])
     edges = _Edges.of(faces)
     directions = geodesic_directions(settings.divides)
-    views = [_view(vertices, edges, view_rotation(d), K, settings) for d in directions]
+    views = [_view(vertices, faces, edges, view_rotation(d), K, settings) for d in directions]
     return ViewpointModel(directions, *(np.stack([v[k] for v in views]) for k in range(5)))
 
 
-def _view(vertices: np.ndarray, edges: _Edges, R: np.ndarray, K: np.ndarray, settings: ViewpointSettings) -> tuple[np.ndarray, ...]:
+def _view(
+    vertices: np.ndarray, faces: np.ndarray, edges: _Edges, R: np.ndarray, K: np.ndarray, settings: ViewpointSettings
+) -> tuple[np.ndarray, ...]:
     """One view's points, normals, inside and outside distances and outline flags (model frame)."""
     size, n = settings.image_size, settings.points
     t = np.array([0.0, 0.0, settings.distance])
@@ -163,8 +165,8 @@ def _view(vertices: np.ndarray, edges: _Edges, R: np.ndarray, K: np.ndarray, set
     # The outline of a closed mesh's image is made of its silhouette edges (an edge between a face turned to the
     # camera and one turned away, or on an open border): drawn, with the outside flooded from the image's corner,
     # they leave the silhouette.
-    u, v = uv[edges.corners, 0], uv[edges.corners, 1]  # (E,2,3): each edge's two faces' corners
-    facing = (u[..., 1] - u[..., 0]) * (v[..., 2] - v[..., 0]) - (v[..., 1] - v[..., 0]) * (u[..., 2] - u[..., 0]) < 0
+    u, v = uv[faces, 0], uv[faces, 1]
+    facing = ((u[:, 1] - u[:, 0]) * (v[:, 2] - v[:, 0]) - (v[:, 1] - v[:, 0]) * (u[:, 2] - u[:, 0]) < 0)[edges.faces]
     rim = edges.vertices[edges.single | (facing[:, 0] != facing[:, 1])]
     shift = 4
     mask = np.zeros((size + 2, size + 2), dtype=np.uint8)
@@ -189,9 +191,14 @@ def _view(vertices: np.ndarray, edges: _Edges, R: np.ndarray, K: np.ndarray, set
     normal /= np.maximum(np.linalg.norm(normal, axis=1, keepdims=True), 1e-12)
     probe = np.clip(np.round(pix + 2.5 * normal).astype(int), 0, size - 1)
     normal[mask[probe[:, 1], probe[:, 0]] > 0] *= -1
-    # Snap each place onto the nearest silhouette edge: the nearest of points every half pixel along them, then
-    # the foot of the perpendicular on that point's edge.
+    # Snap each place onto the nearest silhouette edge on the outline (edges of folds inside it are left out): the
+    # nearest of points every half pixel along them, then the foot of the perpendicular on that point's edge.
+    near = np.zeros_like(mask)
+    cv2.drawContours(near, contours, -1, 1, thickness=5)
     p0, p1 = uv[rim[:, 0]], uv[rim[:, 1]]
+    mid = np.clip(np.round((p0 + p1) / 2).astype(int), 0, size - 1)
+    on_outline = near[mid[:, 1], mid[:, 0]] > 0
+    rim, p0, p1 = rim[on_outline], p0[on_outline], p1[on_outline]
     seg = p1 - p0
     steps = np.maximum(1, np.ceil(np.linalg.norm(seg, axis=1) * 2).astype(int))
     edge_of = np.repeat(np.arange(len(rim)), steps + 1)
