@@ -300,7 +300,8 @@ def _eval(args: argparse.Namespace) -> int:
     precision = est.set_precision(args.precision)
     objects = [o for o in est.config.objects if not args.objects or o.obj_id in args.objects]
 
-    options = EstimateOptions(steps=args.steps, guidance_scale=args.guidance, hypotheses=args.hypotheses, mode_sample=args.mode_sample)
+    options = EstimateOptions(steps=args.steps, guidance_scale=args.guidance, hypotheses=args.hypotheses, mode_sample=args.mode_sample,
+                              refine=args.refine == "on")  # fmt: skip
     predict, detector = estimator_runs(est, options)
     if args.crops == "detect" and est.localiser is None:
         print(f"axispose eval: {args.checkpoint} has no localiser (attach one with `axispose train-localiser --attach`)", file=sys.stderr)
@@ -313,7 +314,7 @@ def _eval(args: argparse.Namespace) -> int:
               "guidance": est.config.guidance_scale if args.guidance is None else args.guidance, "crops": args.crops,
               "hypotheses": args.hypotheses, "precision": precision, "visib": list(args.visib), "perturb": args.perturb,
               "mode_sample": est.config.mode_sample if args.mode_sample is None else args.mode_sample, "targets": targets_path,
-              **notes}  # fmt: skip
+              "refine": args.refine == "on" and est.refiner is not None, **notes}  # fmt: skip
     return _report(args, records, objects, config, counts, bop)
 
 
@@ -330,6 +331,7 @@ def _validate(args: argparse.Namespace) -> int:
         print(f"axispose validate: no BOP scenes at {args.data}", file=sys.stderr)
         return 2
     given = {k: getattr(args, k) for k in ("steps", "hypotheses", "precision", "score_threshold") if getattr(args, k) is not None}
+    given["refine"] = args.refine == "on"
     settings = ValidationSettings(**given)
     try:
         report = validate(args.checkpoint or SHIPPED_ESTIMATOR, args.data, args.models, settings, plots=Path(args.out) / "plots")
@@ -559,6 +561,8 @@ def build_parser(commands: Callable[[AddParser], None] | None = None) -> argpars
     ev.add_argument("--bop-results", default=None, metavar="CSV", help="also write the poses as a BOP19 results file "
                     "(name it METHOD_DATASET-SPLIT.csv, e.g. axispose_lmo-test.csv, for bop_toolkit's scripts)")  # fmt: skip
     ev.add_argument("--targets", default=None, help=f"BOP targets file (default: {TARGETS_FILE} in --data or the folder above, if any)")
+    ev.add_argument("--refine", choices=["on", "off"], default="on", help="contour refinement where the checkpoint carries a "
+                    "refiner (the report also scores the poses before it)")  # fmt: skip
     ev.add_argument("--threads", type=int, default=2)
     ev.add_argument("--precision", choices=["auto", "float32", "bfloat16"], default="float32",
                     help="the AGM's arithmetic (auto: bfloat16 where the device has it natively, as the node does)")  # fmt: skip
@@ -575,6 +579,8 @@ def build_parser(commands: Callable[[AddParser], None] | None = None) -> argpars
     va.add_argument("--hypotheses", type=int, help="AGM samples per instance (default: the node's, 1)")
     va.add_argument("--score-threshold", type=float, help="least localiser score (default: the node's, 0.3)")
     va.add_argument("--precision", choices=["float32", "bfloat16", "auto"], help="the AGM's arithmetic (default: float32)")
+    va.add_argument("--refine", choices=["on", "off"], default="on", help="contour refinement where the checkpoint carries a "
+                    "refiner (the report also gives the poses before it)")  # fmt: skip
     va.add_argument("--threads", type=int, default=2)
     va.set_defaults(func=_validate)
 

@@ -218,6 +218,9 @@ class PoseEstimate:
     contour_agreement: float = float("nan")
     """How well the refined contour separates the object's colours from its surroundings' (0.5: not at all, 1:
     fully; NaN where the refiner did not refine): evidence for a detection verifier."""
+    unrefined: tuple[np.ndarray, np.ndarray] | None = None
+    """(R, t) as the fusion gave it, where the refiner saw this pose: what `axispose eval` scores the refinement
+    against."""
 
 
 @dataclass(frozen=True)
@@ -552,5 +555,5 @@ class Estimator:
         out = list(poses)
         for k, r in zip(posed, self.refiner.refine(image_rgb, np.asarray(K, dtype=np.float64), starts), strict=True):
             out[k] = replace(poses[k], R=r.R, t=r.t, covariance=r.covariance, refined=r.refined, refine_kept=r.reason,
-                             contour_lines=r.lines, contour_agreement=r.agreement)  # fmt: skip
+                             contour_lines=r.lines, contour_agreement=r.agreement, unrefined=(poses[k].R, poses[k].t))  # fmt: skip
         return out

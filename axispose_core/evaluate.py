@@ -12,9 +12,11 @@ each frame before detection and estimation (low light, motion blur; see stress.p
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import time
 import zlib
+from collections import Counter
 from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -51,6 +53,10 @@ class Prediction:
     """Rotation spread of the estimator's samples (multi-hypothesis), NaN for a single sample."""
     covariance: np.ndarray | None = None
     """(6, 6) pose covariance the estimator reports (x, y, z, rotation about X, Y, Z; camera frame), if any."""
+    unrefined: tuple[np.ndarray, np.ndarray] | None = None
+    """The pose before contour refinement, where the refiner saw this one."""
+    refine_kept: str = ""
+    """Why the refiner kept the unrefined pose, if it did."""
 
 
 ObjectBox = tuple[int, tuple[float, float, float, float]]
@@ -77,6 +83,10 @@ class Record:
     spread_deg: float = float("nan")
     visib_fract: float = float("nan")
     covariance: np.ndarray | None = None
+    unrefined: tuple[np.ndarray, np.ndarray] | None = None
+    """The pose before contour refinement, where the refiner saw it, and its scores."""
+    unrefined_scores: dict[str, float] | None = None
+    refine_kept: str = ""
 
     @property
     def sigma_deg(self) -> float:
@@ -114,7 +124,7 @@ def estimator_runs(est: Estimator, options: EstimateOptions, threshold: float | 
     takes them."""
 
     def predictions(poses: list) -> list[Prediction]:
-        return [Prediction(p.R, p.t, p.ok, p.spread_deg, p.covariance) for p in poses]
+        return [Prediction(p.R, p.t, p.ok, p.spread_deg, p.covariance, p.unrefined, p.refine_kept) for p in poses]
 
     def predict(image: np.ndarray, K: np.ndarray, boxes: list[ObjectBox]) -> list[Prediction]:
         return predictions(est.estimate(image, K, boxes, options))
@@ -262,10 +272,13 @@ class _Evaluator:
         """A Record per instance that counts, with its prediction and its share of the frame's time."""
         for (g, info), p in zip(frame.insts, preds, strict=True):
             pose = (p.R, p.t) if p.ok else None
-            scores = instance_scores(self.specs[g.obj_id], self.points[g.obj_id], K, g.R, g.t, pose, self.syms.get(g.obj_id, ()))
+            args = (self.specs[g.obj_id], self.points[g.obj_id], K, g.R, g.t)
+            scores = instance_scores(*args, pose, self.syms.get(g.obj_id, ()))
+            unrefined = None if p.unrefined is None else instance_scores(*args, p.unrefined, self.syms.get(g.obj_id, ()))
             self.records.append(
                 Record(g.obj_id, frame.scene.root.name, frame.im_id, scores, seconds, g.R, g.t, p.R, p.t, p.ok, K,
-                       frame.scene.rgb_path(frame.im_id), info.bbox_obj, p.spread_deg, info.visib_fract, p.covariance)
+                       frame.scene.rgb_path(frame.im_id), info.bbox_obj, p.spread_deg, info.visib_fract, p.covariance, p.unrefined,
+                       unrefined, p.refine_kept)
             )  # fmt: skip
 
 
@@ -330,6 +343,8 @@ def summarize(
         entry["rot_err_median_deg"] = float(np.median([r.scores["rot_err_deg"] for r in rs]))
         entry["trans_err_median_mm"] = float(np.median([r.scores["trans_err_mm"] for r in rs]))
         entry |= depth_errors(rs)
+        if (refine := refinement_summary(rs)) is not None:
+            entry["refine"] = refine
         if detection_counts is not None:
             c = detection_counts.get(o.obj_id, {"tp": 0, "fp": 0, "n": 0})
             entry["det_recall"] = c["tp"] / c["n"] if c["n"] else float("nan")
@@ -339,6 +354,11 @@ def summarize(
         ["det_recall", "det_precision"] if detection_counts is not None else []
     )
     mean = {k: _mean_of_defined([e[k] for e in per.values()]) for k in keys} if per else {}
+    refined = [e["refine"] for e in per.values() if "refine" in e]
+    if refined:
+        mean["refine"] = {"unrefined": {k: _mean_of_defined([r["unrefined"][k] for r in refined]) for k in refined[0]["unrefined"]},
+                          "refined": sum(r["refined"] for r in refined),
+                          "kept": dict(sum((Counter(r["kept"]) for r in refined), Counter()))}  # fmt: skip
     ms = np.array([1000 * r.seconds for r in records]) if records else np.zeros(1)
     report = {
         "objects": per,
@@ -360,6 +380,24 @@ def _mean_of_defined(values: list[float]) -> float:
     """The mean over the objects where a measure is defined (an object never posed has no depth error), NaN if none."""
     defined = [v for v in values if not np.isnan(v)]
     return float(np.mean(defined)) if defined else float("nan")
+
+
+REFINE_KEYS = ("add_0.1d", "reproj_15px")
+
+
+def refinement_summary(records: list[Record]) -> dict | None:
+    """What contour refinement changed in one object's records: how many poses it refined and kept (by reason), and
+    the scores the poses had before it (`unrefined`: ADD(-S)@0.1d, Reproj@15px, median rotation error, depth), to
+    set beside the report's own. None where the refiner saw none of them."""
+    before = [dataclasses.replace(r, R=r.unrefined[0], t=r.unrefined[1], scores=r.unrefined_scores) for r in records
+              if r.unrefined is not None and r.unrefined_scores is not None]  # fmt: skip
+    if not before:
+        return None
+    unrefined = {k: float(np.mean([r.scores[k] for r in before])) for k in REFINE_KEYS}
+    unrefined["rot_err_median_deg"] = float(np.median([r.scores["rot_err_deg"] for r in before]))
+    unrefined |= depth_errors(before)
+    kept = Counter(r.refine_kept for r in before if r.refine_kept)
+    return {"n": len(before), "refined": len(before) - sum(kept.values()), "kept": dict(kept), "unrefined": unrefined}
 
 
 DEPTH_KEYS = ("depth_log_abs_mean", "depth_ratio_median")
@@ -464,13 +502,23 @@ def plot_uncertainty(records: list[Record], out_dir: str | Path, key: str) -> Pa
 def format_table(report: dict) -> str:
     """The report's per-object rows and their mean, as a fixed-width table."""
     keys = ("add_0.1d", "add_0.2d", "reproj_5px", "reproj_15px")
-    lines = [f"{'object':<12} {'n':>4} {'ADD0.1d':>8} {'ADD0.2d':>8} {'Rep5px':>8} {'Rep15px':>8} {'rot med':>8} {'t med mm':>9}"]
+    refined = "refine" in report["mean"]
+    head = f"{'object':<12} {'n':>4} {'ADD0.1d':>8} {'ADD0.2d':>8} {'Rep5px':>8} {'Rep15px':>8} {'rot med':>8} {'t med mm':>9}"
+    lines = [head + (f" | unrefined: {'ADD0.1d':>8} {'Rep15px':>8} {'rot med':>8}" if refined else "")]
     rows = [(e["name"], str(e["n"]), e) for e in report["objects"].values()]
     if report["mean"]:
         rows.append(("mean", "", report["mean"]))
     for name, n, e in rows:
         cells = " ".join(f"{e[k]:8.3f}" for k in keys)
-        lines.append(f"{name:<12} {n:>4} {cells} {e['rot_err_median_deg']:8.1f} {e['trans_err_median_mm']:9.1f}")
+        line = f"{name:<12} {n:>4} {cells} {e['rot_err_median_deg']:8.1f} {e['trans_err_median_mm']:9.1f}"
+        if refined and "refine" in e:
+            u = e["refine"]["unrefined"]
+            line += f" | {'':10} {u['add_0.1d']:8.3f} {u['reproj_15px']:8.3f} {u['rot_err_median_deg']:8.1f}"
+        lines.append(line)
+    if refined:
+        r = report["mean"]["refine"]
+        kept = ", ".join(f"{k} {v}" for k, v in sorted(r["kept"].items())) or "none"
+        lines.append(f"contour refinement: {r['refined']} poses refined, kept: {kept}; unrefined: the same poses before it")
     return "\n".join(lines)
 
 

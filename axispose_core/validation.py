@@ -31,6 +31,8 @@ class ValidationSettings:
     score_threshold: float = 0.3
     """Least published score: the verifier's probability where the checkpoint carries one, else the localiser's."""
     visib: tuple[float, float] = (MIN_VISIB, 1.0)
+    refine: bool = True
+    """Contour refinement where the checkpoint carries a refiner (the report gives the poses before it too)."""
 
 
 def run_crops(
@@ -39,7 +41,8 @@ def run_crops(
     """One pass over `data` with GT crops or the localiser's; the records and the summary report."""
     objects = list(est.config.objects)
 
-    predict, find = estimator_runs(est, EstimateOptions(steps=settings.steps, hypotheses=settings.hypotheses), settings.score_threshold)
+    options = EstimateOptions(steps=settings.steps, hypotheses=settings.hypotheses, refine=settings.refine)
+    predict, find = estimator_runs(est, options, settings.score_threshold)
     detector = find if crops == "detect" else None
     run = evaluate(predict, data, models, objects, EvalOptions(progress=progress, detector=detector, visib=settings.visib, bop=True))
     return run.records, summarize(run.records, objects, {"crops": crops, **run.notes}, run.detection_counts, run.bop)
@@ -74,24 +77,30 @@ def format_cell(value: float | None, fmt: str) -> str:
 
 
 def report_value(report: dict, crops: str, field: str, obj: str = "mean") -> float | None:
-    """`field` of one pass (`crops`) of a validation report, for object key `obj` or the mean; None where absent."""
+    """`field` of one pass (`crops`) of a validation report, for object key `obj` or the mean; None where absent. A
+    field "a/b/c" is a nested one (the refinement's "refine/unrefined/add_0.1d")."""
     part = report.get(crops)
     entry = None if part is None else (part["mean"] if obj == "mean" else part["objects"].get(obj))
-    return None if entry is None else entry.get(field)
+    for key in field.split("/"):
+        entry = entry.get(key) if isinstance(entry, dict) else None
+    return entry
 
 
 COLUMNS = (
     ("det R", "detect", "det_recall", ".2f"),
     ("det P", "detect", "det_precision", ".2f"),
     ("node ADD", "detect", "add_0.1d", ".3f"),
+    ("unrefined", "detect", "refine/unrefined/add_0.1d", ".3f"),
     ("node Rp15", "detect", "reproj_15px", ".3f"),
     ("ADD.1d", "gt", "add_0.1d", ".3f"),
+    ("unrefined", "gt", "refine/unrefined/add_0.1d", ".3f"),
     ("Rp15", "gt", "reproj_15px", ".3f"),
     ("rot med", "gt", "rot_err_median_deg", ".1f"),
     ("z|log|%", "gt", "depth_log_abs_mean", ".2%"),
     ("z ratio", "gt", "depth_ratio_median", ".3f"),
 )
-"""The table's columns: header, which pass, report key, format. `node` is the localiser's path; the rest GT crops."""
+"""The table's columns: header, which pass, report key, format. `node` is the localiser's path; the rest GT crops;
+`unrefined`: the ADD(-S) of the same poses before contour refinement (where the checkpoint has a refiner)."""
 
 
 def format_validation(report: dict) -> str:
@@ -114,6 +123,12 @@ def format_validation(report: dict) -> str:
             line += (f"; covariance median d² translation {cal['translation_median_d2']:.1f}, rotation "
                      f"{cal['rotation_median_d2']:.1f} (right: 2.37)")  # fmt: skip
         lines.append(line)
+        if (refine := report[crops]["mean"].get("refine")) is not None:
+            before = refine["unrefined"]
+            kept = ", ".join(f"{k} {v}" for k, v in sorted(refine["kept"].items())) or "none"
+            lines.append(f"{crops} crops, contour refinement: {refine['refined']} refined, kept: {kept}; before it Reproj@15px "
+                         f"{before['reproj_15px']:.3f}, rotation {before['rot_err_median_deg']:.1f}°, depth |log| "
+                         f"{before['depth_log_abs_mean']:.2%}")  # fmt: skip
     c = report["config"]
     scored = " (the verifier's)" if c.get("verifier") else ""
     lines.append(f"{c['steps']} DDIM steps, {c['hypotheses']} hypothesis/es, {c['precision']}, score threshold {c['score_threshold']}"

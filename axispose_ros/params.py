@@ -78,6 +78,7 @@ SPECS = (
         at_start=True,
     ),
     Spec("roi_timeout", 1.0, "age in s after which an ROI is ignored", floats=(0.0, 3600.0)),
+    Spec("refine", True, "refine each pose on the image's contours where the checkpoint carries a contour refiner"),
     Spec("score_threshold", 0.3, "least published score (the checkpoint's verifier's, else the localiser's)", floats=(0.0, 1.0)),
     Spec("marker_lifetime", 1.0, "lifetime of ~/markers in s (0: until replaced)", floats=(0.0, 3600.0)),
     Spec(
@@ -127,6 +128,7 @@ class NodeSettings:
     warmup_boxes: int
     batch_boxes: int
     roi_timeout: float
+    refine: bool
     score_threshold: float
     marker_lifetime: float
     tracking: bool

@@ -31,7 +31,8 @@ class Posed:
 
 class FramePoser:
     """The estimator's side of the node's frame: which boxes, posed how, and the tracker across frames. What it
-    counts (`verifier_dropped`, `tracking_<event>`, `pose_refused` of tracked crops) goes to `count(key, n)`."""
+    counts (`verifier_dropped`, `tracking_<event>`, `pose_refused` of tracked crops, `refine_refined` and
+    `refine_kept_<reason>` of every pose the contour refiner saw) goes to `count(key, n)`."""
 
     def __init__(self, estimator: Estimator, published: dict[int, str], count: Callable[[str, int], None]) -> None:
         self.estimator, self.published, self.count = estimator, published, count
@@ -44,16 +45,17 @@ class FramePoser:
         """ROIs where fresh ones came; else the localiser's boxes, each posed on its own or through the tracker."""
         options = EstimateOptions(steps=s.ddim_steps, guidance_scale=s.guidance_scale, scales=s.scales(self.published),
                                   hypotheses=s.hypotheses, warm_steps=s.warm_steps, warm_strength=max(s.warm_strength, 1e-3),
-                                  max_boxes=s.batch_boxes)  # fmt: skip
+                                  max_boxes=s.batch_boxes, refine=s.refine)  # fmt: skip
 
         def estimate(boxes: list[tuple[int, Box]], priors: list | None = None) -> list[PoseEstimate]:
-            return self.estimator.estimate(rgb, K, boxes, options=options, cancelled=cancelled, priors=priors)
+            return self._count_refined(self.estimator.estimate(rgb, K, boxes, options=options, cancelled=cancelled, priors=priors))
 
         if rois or self.estimator.localiser is None:
             return _each(list(rois), [1.0] * len(rois), estimate)
 
         def find() -> Found:
             found = self.estimator.find(rgb, K, s.score_threshold, options, cancelled, objects=self.published)
+            self._count_refined(found.poses)
             if found.dropped:
                 self.count("verifier_dropped", found.dropped)
             return found
@@ -94,6 +96,15 @@ class FramePoser:
             self.count(f"tracking_{key}", n)
         estimates = [dataclasses.replace(tp.measurement, R=tp.R, t=tp.t, covariance=tp.covariance) for tp in tracked]
         return Posed(estimates, [tp.score for tp in tracked], [tp.box for tp in tracked], [tp.track_id for tp in tracked])
+
+    def _count_refined(self, estimates: list[PoseEstimate]) -> list[PoseEstimate]:
+        """Count what the contour refiner did with each pose it saw (`refine_refined`, `refine_kept_<reason>`)."""
+        for e in estimates:
+            if e.refined:
+                self.count("refine_refined", 1)
+            elif e.refine_kept:
+                self.count(f"refine_kept_{e.refine_kept}", 1)
+        return estimates
 
     def _new_counts(self) -> dict[str, int]:
         """The tracker's counts (`tracks_started`, `reset_stamps_backwards`, ...) added since the last call."""

@@ -472,7 +472,7 @@ def _report(node: AxisPoseNode, truth: _Truth, poses: dict, latency: dict[int, f
     settings = node.settings()
     used = {"ddim_steps": settings.ddim_steps, "hypotheses": settings.hypotheses, "precision": node.precision,
             "tracking": settings.tracking, "redetect_period": settings.redetect_period,
-            "measure_every": settings.measure_every}  # fmt: skip
+            "measure_every": settings.measure_every, "refine": settings.refine and node.estimator.refiner is not None}  # fmt: skip
     report = summarize(records, objects, config | used)
     report["tracking"] = {"on": settings.tracking, **_jitter(records, syms)}
     lat = np.array(list(latency.values())) if latency else np.zeros(1)

@@ -19,7 +19,11 @@ BOX = (280.0, 200.0, 80.0, 90.0)
 
 def warm_up(estimator: Estimator, ids: Sequence[int], count: int, hypotheses: int, cancelled: Callable[[], bool]) -> bool:
     """One pass over a blank frame per box count 1..`count` (1 DDIM step, `hypotheses` samples, objects `ids` in
-    turn), and one of the localiser if there is one. False when nothing was done: `count` 0, or `cancelled`."""
+    turn), and one of the localiser if there is one; the contour refiner's viewpoint models of `ids` built (or read
+    from their cache) first, whatever `count`, so that no frame waits for them. False when no pass ran: `count` 0,
+    or `cancelled`."""
+    if estimator.refiner is not None:
+        estimator.refiner.prepare(ids)
     if count == 0:
         return False
     rgb = np.full(BLANK, 127, np.uint8)

@@ -126,6 +126,30 @@ def test_failed_poses_count_as_wrong(scenes, lmo_dir):
     assert all(np.isinf(r.scores["trans_err_mm"]) for r in records)
 
 
+def test_a_refined_pose_is_scored_beside_the_pose_before_it(scenes, lmo_dir):
+    """A predictor whose poses were refined from ones 0.2 m off (and one kept): the report gives per object the
+    refined poses' scores, the unrefined ones' under `refine`, and what the refiner kept and why."""
+    objects = objects_from_models(scenes)
+    inner, seen = _gt_predictor(scenes / "000000"), []
+
+    def predict(image, K, boxes):
+        out = []
+        for p in inner(image, K, boxes):
+            kept = not seen
+            seen.append(p)
+            off = (p.R, p.t + 0.2)
+            out.append(dataclasses.replace(p, R=off[0], t=off[1], unrefined=off, refine_kept="run_away") if kept
+                       else dataclasses.replace(p, unrefined=off))  # fmt: skip
+        return out
+
+    report = summarize(evaluate(predict, scenes, lmo_dir / "models_eval", objects, QUIET).records, objects, {})
+    refine = report["mean"]["refine"]
+    assert refine["refined"] == len(seen) - 1 and refine["kept"] == {"run_away": 1}
+    assert refine["unrefined"]["add_0.1d"] == 0.0 and refine["unrefined"]["depth_log_abs_mean"] > 0.1
+    assert 0.5 < report["mean"]["add_0.1d"] < 1.0  # all right but the kept one
+    assert all(e["refine"]["unrefined"]["reproj_15px"] == 0.0 for e in report["objects"].values())
+
+
 def test_low_visibility_instances_are_skipped(scenes, lmo_dir):
     objects = objects_from_models(scenes)
     scene = BopScene(scenes / "000000")

@@ -422,6 +422,31 @@ def test_shutdown_mid_frame_is_prompt_even_with_1000_ddim_steps(checkpoint):
     assert not any(k.startswith("dropped_") for k in h.node.counters()) and not h.node.counters().get("frames_processed")
 
 
+def test_with_a_refiner_every_pose_is_counted_and_bad_input_is_answered_as_before(tmp_path, lmo_dir):
+    """A checkpoint with a contour refiner: each posed instance ends in `refine_refined` or one `refine_kept_<why>`;
+    bad frames are still dropped under their reason; `refine` off at run time stops the refiner on the next frame."""
+    h = Harness(save_tiny_estimator(tmp_path / "refine.safetensors", lmo_dir / "models"))
+    try:
+        assert h.node.estimator.refiner is not None
+        h.spin_until(lambda: h.pub_roi.get_subscription_count() > 0, 5.0)
+        h.roi()
+        assert h.spin_until(lambda: h.node.rois.latest(1) is not None, 5.0)
+        h.frame(sec=1)
+        assert h.spin_until(lambda: h.node.counts["frames_processed"] >= 1)
+        refined = {k: v for k, v in h.node.counters().items() if k.startswith("refine_")}
+        assert sum(refined.values()) + h.node.counts["pose_refused"] == 1, refined
+        h.frame(sec=2, K=np.full((3, 3), np.nan))
+        assert h.spin_until(lambda: h.node.counts["dropped_camera_info_k"] >= 1)
+        assert h.node.set_parameters([Parameter("refine", value=False)])[0].successful
+        h.roi()
+        h.frame(sec=3)
+        assert h.spin_until(lambda: h.node.counts["frames_processed"] >= 2)
+        assert {k: v for k, v in h.node.counters().items() if k.startswith("refine_")} == refined
+        assert "dropped_error" not in h.node.counters()
+    finally:
+        h.close()
+
+
 @pytest.fixture(scope="module")
 def localised_checkpoint(tmp_path_factory):
     """The tiny estimator with an untrained localiser of ape and can: at threshold 0 it finds both, twice each."""

@@ -226,3 +226,24 @@ def test_config_refuses_what_cannot_run():
                 {"damping": (0.0, 1.0)}):  # fmt: skip
         with pytest.raises(ValueError):
             RefineConfig(**bad)
+
+
+def test_the_estimator_refines_its_poses_unless_told_not_to(tmp_path, lmo_dir):
+    """Through a checkpoint: the refiner comes back with its meshes, every pose it sees says what it did and
+    keeps the fused pose as `unrefined`; `refine=False` leaves the fused poses as they are."""
+    from conftest import save_tiny_estimator
+
+    from axispose_core.estimator import EstimateOptions, Estimator
+
+    est = Estimator.load(save_tiny_estimator(tmp_path / "tiny.safetensors", lmo_dir / "models"))
+    assert est.refiner is not None and sorted(est.meshes) == [1, 5] and est.config.refine == RefineConfig()
+    R, t = Rotation.random(random_state=5).as_matrix(), np.array([0.0, 0.0, 0.6])
+    image = scene(lmo_dir, 5, R, t)
+    boxes = [(5, (250.0, 170.0, 140.0, 140.0)), (1, (100.0, 100.0, 60.0, 60.0))]
+    on = est.estimate(image, K, boxes, EstimateOptions(steps=1))
+    off = est.estimate(image, K, boxes, EstimateOptions(steps=1, refine=False))
+    for a, b in zip(on, off, strict=True):
+        assert not b.refined and not b.refine_kept and b.unrefined is None
+        if a.ok:
+            assert a.refined != bool(a.refine_kept) and np.array_equal(a.unrefined[1], b.t)
+            assert a.refined or np.array_equal(a.t, b.t)
