@@ -363,6 +363,7 @@ def summarize(
     report = {
         "objects": per,
         "mean": mean,
+        "instances": pooled(records) | ({"unrefined": pooled(unrefined_records(records))} if refined else {}),
         "ms_per_object": {"median": float(np.median(ms)), "p90": float(np.percentile(ms, 90))},
         "config": config,
     }
@@ -385,19 +386,36 @@ def _mean_of_defined(values: list[float]) -> float:
 REFINE_KEYS = ("add_0.1d", "reproj_15px")
 
 
+def unrefined_records(records: list[Record]) -> list[Record]:
+    """The records with each pose the refiner saw as it was before refinement."""
+    return [dataclasses.replace(r, R=r.unrefined[0], t=r.unrefined[1], scores=r.unrefined_scores)
+            if r.unrefined is not None and r.unrefined_scores is not None else r for r in records]  # fmt: skip
+
+
+def pooled(records: list[Record]) -> dict[str, float]:
+    """Over all instances at once rather than per object: the median rotation error and the mean |log| depth error
+    of the posed ones (what one bad object's median hides), and ADD(-S)@0.1d and Reproj@15px."""
+    posed = [r for r in records if r.ok]
+    z = [abs(np.log(r.t[2] / r.t_gt[2])) for r in posed if r.t[2] > 0 and r.t_gt[2] > 0]
+    return {"n": len(records), "rot_err_median_deg": float(np.median([r.scores["rot_err_deg"] for r in records])) if records else np.nan,
+            "depth_log_abs_mean": float(np.mean(z)) if z else float("nan"),
+            **{k: float(np.mean([r.scores[k] for r in records])) if records else float("nan") for k in REFINE_KEYS}}  # fmt: skip
+
+
 def refinement_summary(records: list[Record]) -> dict | None:
     """What contour refinement changed in one object's records: how many poses it refined and kept (by reason), and
-    the scores the poses had before it (`unrefined`: ADD(-S)@0.1d, Reproj@15px, median rotation error, depth), to
-    set beside the report's own. None where the refiner saw none of them."""
-    before = [dataclasses.replace(r, R=r.unrefined[0], t=r.unrefined[1], scores=r.unrefined_scores) for r in records
-              if r.unrefined is not None and r.unrefined_scores is not None]  # fmt: skip
-    if not before:
+    the scores of all its records with each pose as it was before refinement (`unrefined`: ADD(-S)@0.1d,
+    Reproj@15px, median rotation error, depth; the instances it did not see, unposed ones among them, as they are),
+    to set beside the report's own. None where the refiner saw none of them."""
+    seen = [r for r in records if r.unrefined is not None and r.unrefined_scores is not None]
+    if not seen:
         return None
+    before = unrefined_records(records)
     unrefined = {k: float(np.mean([r.scores[k] for r in before])) for k in REFINE_KEYS}
     unrefined["rot_err_median_deg"] = float(np.median([r.scores["rot_err_deg"] for r in before]))
     unrefined |= depth_errors(before)
-    kept = Counter(r.refine_kept for r in before if r.refine_kept)
-    return {"n": len(before), "refined": len(before) - sum(kept.values()), "kept": dict(kept), "unrefined": unrefined}
+    kept = Counter(r.refine_kept for r in seen if r.refine_kept)
+    return {"n": len(seen), "refined": len(seen) - sum(kept.values()), "kept": dict(kept), "unrefined": unrefined}
 
 
 DEPTH_KEYS = ("depth_log_abs_mean", "depth_ratio_median")

@@ -103,6 +103,10 @@ COLUMNS = (
 `unrefined`: the ADD(-S) of the same poses before contour refinement (where the checkpoint has a refiner)."""
 
 
+def _before(pool: dict | None) -> str:
+    return "" if pool is None else f"; before refinement {pool['rot_err_median_deg']:.1f}°, {pool['depth_log_abs_mean']:.2%}"
+
+
 def format_validation(report: dict) -> str:
     """Per object and mean: the localiser, the node's path and the GT-crop pose errors; AR and calibration below."""
     gt = report["gt"]
@@ -123,12 +127,15 @@ def format_validation(report: dict) -> str:
             line += (f"; covariance median d² translation {cal['translation_median_d2']:.1f}, rotation "
                      f"{cal['rotation_median_d2']:.1f} (right: 2.37)")  # fmt: skip
         lines.append(line)
+        pool = report[crops].get("instances", {})
+        if pool:
+            lines.append(f"{crops} crops, all instances: rotation median {pool['rot_err_median_deg']:.1f}°, depth mean |log| "
+                         f"{pool['depth_log_abs_mean']:.2%} (posed ones)" + _before(pool.get("unrefined")))  # fmt: skip
         if (refine := report[crops]["mean"].get("refine")) is not None:
             before = refine["unrefined"]
             kept = ", ".join(f"{k} {v}" for k, v in sorted(refine["kept"].items())) or "none"
-            lines.append(f"{crops} crops, contour refinement: {refine['refined']} refined, kept: {kept}; before it Reproj@15px "
-                         f"{before['reproj_15px']:.3f}, rotation {before['rot_err_median_deg']:.1f}°, depth |log| "
-                         f"{before['depth_log_abs_mean']:.2%}")  # fmt: skip
+            lines.append(f"{crops} crops, contour refinement: {refine['refined']} refined, kept: {kept}; means over objects before "
+                         f"it: ADD(-S)@0.1d {before['add_0.1d']:.3f}, Reproj@15px {before['reproj_15px']:.3f}")  # fmt: skip
     c = report["config"]
     scored = " (the verifier's)" if c.get("verifier") else ""
     lines.append(f"{c['steps']} DDIM steps, {c['hypotheses']} hypothesis/es, {c['precision']}, score threshold {c['score_threshold']}"

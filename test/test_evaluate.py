@@ -64,7 +64,8 @@ def test_ground_truth_predictor_scores_perfectly(scenes, lmo_dir, tmp_path):
     report = summarize(records, objects, {"note": "gt"})
     write_report(report, tmp_path / "r.json")
     again = json.loads((tmp_path / "r.json").read_text())
-    assert set(again) == {"objects", "mean", "ms_per_object", "config"}
+    assert set(again) == {"objects", "mean", "instances", "ms_per_object", "config"}
+    assert again["instances"]["add_0.1d"] == 1.0 and again["instances"]["rot_err_median_deg"] == pytest.approx(0.0, abs=1e-6)
     for entry in again["objects"].values():
         assert set(entry) == KEYS
         assert entry["add_0.1d"] == entry["reproj_5px"] == 1.0

@@ -124,6 +124,7 @@ def test_a_short_recipe_builds_resumes_and_records_itself(lmo_dir, tmp_path):
         (lambda r: r["stages"][1].update(schedule=[{"steps": 6}, {"steps": 3}]), "every segment but the last stops"),
         (lambda r: r["estimator"].update(localiser="agm"), "localiser must name a localiser stage"),
         (lambda r: r["estimator"]["config"].update(ddim_stpes=2), "ddim_stpes"),
+        (lambda r: r["estimator"]["config"].update(refine={"line": 100}), "line"),
         (lambda r: r["data"]["frames"].update(randomization={"light": {"ambiant": [0.2, 1.0]}}), "ambiant"),
         (lambda r: r["data"]["frames"].update(scene={"lookalike": 0.5}), "lookalike"),
         (lambda r: r["estimator"].update(verifier={"data": ["elsewhere"]}), "verifier needs data from the recipe's data"),
@@ -171,6 +172,24 @@ def test_the_verifier_is_fitted_on_the_assembled_checkpoint_and_an_adopted_one_i
     assert calls == [(None, ["frames"], 0.25)]  # fitted on the assembled checkpoint, not the adopted one's verifier
     assert est.config.verifier == DetectionVerifier((0.5, 1.0, 0.0, -1.0), 0.25) and est.config.training["verifier"] == {"hits": 3}
     assert est.config.training["recipe"]["estimator"]["verifier"] == {"data": ["frames"], "min_score": 0.25}
+
+
+def test_the_estimators_refine_settings_attach_the_models_meshes(lmo_dir, tmp_path):
+    """`estimator.config.refine` gives the checkpoint a contour refiner with those settings and the meshes of the
+    recipe's models (its objects', from BOP's decimated models_eval beside them)."""
+    from axispose_core.localiser.model import Localiser, LocaliserConfig
+    from axispose_core.trunks import ResidualBNConfig
+
+    tiny = Estimator.load(save_tiny_estimator(tmp_path / "tiny.safetensors"))
+    localiser = Localiser(LocaliserConfig(obj_ids=(1, 5), input_size=(160, 128), trunk=ResidualBNConfig(widths=(8, 16, 24, 32))))
+    tiny.with_localiser(localiser).save(tmp_path / "loc.safetensors")
+    located = str(tmp_path / "loc.safetensors")
+    adopt = {"reader": str(SHIPPED_READER), "agm_more": located, "localiser": located}
+    recipe = _recipe(lmo_dir / "models")
+    recipe["estimator"]["config"]["refine"] = {"lines": 100}
+    est = Estimator.load(RecipeRunner(load_recipe(_write(tmp_path, recipe)), tmp_path / "run", RunOptions(progress=False), adopt).run_all())
+    assert est.config.refine.lines == 100 and sorted(est.meshes) == [1, 5] and est.refiner is not None
+    assert len(est.meshes[1][1]) == 5646  # the ape's models_eval mesh
 
 
 def test_a_fresh_trunk_stage_starts_from_its_inits_denoiser_with_a_new_trunk(tmp_path):

@@ -76,6 +76,8 @@ class _State:
     precision: np.ndarray
     """The prior's (6,6) information in (ω, δ), zero without one."""
     histograms: ColourHistograms
+    table: np.ndarray | None = None
+    """The histograms' P(foreground | colour), as last learned."""
     hessian: np.ndarray = field(default_factory=lambda: np.zeros((6, 6)))
     lines: Lines | None = None
     occluded: np.ndarray | None = None
@@ -192,7 +194,7 @@ class ContourRefiner:
             s.reason = "few_lines"
             return
         self._learn(s, bins, placed.centres[valid], placed.normals[valid], placed.inside_px[valid], placed.outside_px[valid], occluded)
-        table = s.histograms.posterior()
+        s.table = table = s.histograms.posterior()
         centres, normals = placed.centres[valid], placed.normals[valid]
         offsets = (np.arange(n_seg * scale) + 0.5) - n_seg * scale / 2
         dist = contour_distributions(sample_posteriors(table, bins, centres, normals, offsets), scale, self.step, cfg.distribution_length)
@@ -268,6 +270,6 @@ class ContourRefiner:
         valid[valid] &= s.occluded[c[valid, 1], c[valid, 0]] == 0
         if not valid.any():
             return 0.5
-        pf = sample_posteriors(s.histograms.posterior(), bins, placed.centres[valid], placed.normals[valid], offsets)
+        pf = sample_posteriors(s.table, bins, placed.centres[valid], placed.normals[valid], offsets)
         inner, outer = pf[:, offsets < 0].mean(axis=1), 1 - pf[:, offsets > 0].mean(axis=1)
         return float(np.mean((inner + outer) / 2))

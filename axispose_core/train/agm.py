@@ -35,6 +35,7 @@ from axispose_core.data.synth.stream import CropStream, stream_loader
 from axispose_core.estimator import Estimator, EstimatorConfig
 from axispose_core.metrics import Symmetry, nearest_truth, re
 from axispose_core.objects import ObjectSpec
+from axispose_core.refine.meshes import models_meshes
 from axispose_core.tbm.backproject import backproject_readings
 from axispose_core.tbm.dense import translation_from_points
 from axispose_core.tbm.reader import SHIPPED_READER, KeypointReader, load_reader
@@ -292,6 +293,8 @@ def train_agm(
     if init and not run.resume:
         start_from(model, Estimator.load(init).agm, init)
     scales = torch.tensor([o.scale for o in objects], dtype=torch.float64)
+    folder = sources.models_folder()
+    meshes = models_meshes(folder, [o.obj_id for o in objects]) if folder is not None and rank == 0 else None
     validate_ema = held_out_validation(cfg, sources, objects, scales, reader, dev) if rank == 0 else None
 
     def loss(net: torch.nn.Module, batch: dict[str, torch.Tensor], gen: torch.Generator) -> torch.Tensor:
@@ -300,7 +303,8 @@ def train_agm(
     def save(ema: torch.nn.Module, step: int, seconds: float, started_from: str | None) -> None:
         record = training_record(sources.describe(), step, optim.batch * size, seconds, dev, started_from)
         est_cfg = EstimatorConfig(agm=cfg.agm, reader=reader.config, objects=tuple(objects), training=record)
-        Estimator(est_cfg, ema, reader, "cpu" if dev.type == "cpu" else str(dev)).save(out)
+        est = Estimator(est_cfg, ema, reader, "cpu" if dev.type == "cpu" else str(dev))
+        (est.with_refiner(meshes) if meshes is not None else est).save(out)  # the contour refiner of the models' meshes
 
     job = TrainJob(
         cfg, model, batches, loss, out, save, validation=Validation(VAL_COLUMNS, validate_ema), device=dev, desc="train agm",

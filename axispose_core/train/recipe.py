@@ -10,8 +10,9 @@ A recipe (YAML; the shipped model's: config/recipes/axispose_lmo.yaml) holds
   from (`init`; an AGM stage's with its trunk anew, drawn with the seed `fresh_trunk`); the data a localiser
   stage trains and validates on; and its `schedule` where the cosine's length changes part-way (segments of
   `steps`, each but the last stopping at `until`);
-- `estimator`: the stages that make the checkpoint, the estimator settings it ships with, and the detection
-  verifier fitted on the assembled checkpoint (`verifier`: the data it is fitted on and its `VerifierFitConfig`).
+- `estimator`: the stages that make the checkpoint, the estimator settings it ships with (`config.refine`: the
+  contour refiner's, which attaches the meshes of `models`), and the detection verifier fitted on the assembled
+  checkpoint (`verifier`: the data it is fitted on and its `VerifierFitConfig`).
 
 The runner builds, in the recipe's order, the stages the checkpoint needs. A stage with OUT/NAME.done.json is done
 and must have been built from the same config; one with a resume state goes on from it; others start. An existing
@@ -44,6 +45,8 @@ from axispose_core.data.synth.generate import generate
 from axispose_core.estimator import Estimator, EstimatorConfig
 from axispose_core.localiser.weights import load_localiser
 from axispose_core.objects import dataset_objects
+from axispose_core.refine.config import RefineConfig
+from axispose_core.refine.meshes import models_meshes
 from axispose_core.tbm.reader import load_reader
 from axispose_core.train.agm import TrainConfig, train_agm
 from axispose_core.train.localiser import LocaliserTrainConfig, train_localiser
@@ -256,10 +259,20 @@ def load_recipe(path: str | Path) -> Recipe:
         if not any(st.name == est.get(part) and st.trainer == part for st in stages):
             raise RecipeError(f"estimator: {part} must name a {part} stage, got {est.get(part)!r}")
     _unknown("estimator: config", set(est.get("config") or {}), ESTIMATOR_SETTINGS)
+    if "refine" in (est.get("config") or {}):
+        _refine_config(est["config"]["refine"])
     if "verifier" in est:
         _verifier_spec(dict(est["verifier"] or {}), data)
     est = {"config": {}, "half": False} | est
     return Recipe(str(raw.get("models", "")), data, tuple(stages), est)
+
+
+def _refine_config(spec: Any) -> RefineConfig:
+    """The estimator's `config.refine`: the contour refiner's settings (a mapping; {} for the defaults)."""
+    try:
+        return config_from_dict(RefineConfig, spec or {}, "estimator: config.refine")
+    except (ConfigError, TypeError, ValueError) as err:
+        raise RecipeError(str(err)) from err
 
 
 def _verifier_spec(spec: dict[str, Any], data: dict[str, dict[str, Any]]) -> tuple[tuple[str, ...], VerifierFitConfig]:
@@ -452,10 +465,15 @@ class RecipeRunner:
 
         stages = [done[s.name] for s in self.recipe.needed(chain_ends)]  # the whole chain
         training = {"recipe": self.recipe.as_dict(), "recipe_sha256": self.recipe.sha256, "stages": stages}
-        config = dataclasses.replace(agm.config, reader=reader.config, localiser=localiser.config, verifier=None, training=training,
-                                     **est["config"])  # fmt: skip
+        settings = dict(est["config"])
+        refine = _refine_config(settings.pop("refine")) if "refine" in settings else None
+        config = dataclasses.replace(agm.config, reader=reader.config, localiser=localiser.config, verifier=None, refine=None,
+                                     training=training, **settings)  # fmt: skip
         path = self.checkpoint(self.name)
-        Estimator(config, agm.agm, reader, "cpu", localiser).save(path, half=bool(est["half"]))
+        estimator = Estimator(config, agm.agm, reader, "cpu", localiser)
+        if refine is not None:  # the objects' meshes from the recipe's models (BOP's decimated models_eval beside them)
+            estimator = estimator.with_refiner(models_meshes(self.recipe.models, [o.obj_id for o in config.objects]), refine)
+        estimator.save(path, half=bool(est["half"]))
         if "verifier" in est:  # fitted on the checkpoint as it runs: its stored weights, in float32
             names, fit_config = _verifier_spec(dict(est["verifier"]), self.recipe.data)
             assembled = Estimator.load(path)

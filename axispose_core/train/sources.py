@@ -32,6 +32,13 @@ class CropSources:
     models: str | Path | None = None
     """The BOP models folder the crop stream renders."""
 
+    def models_folder(self) -> Path | None:
+        """The BOP models folder with the objects' meshes: the stream's, else a data folder's `models/` (as `axispose
+        synth` writes for imported meshes); None where the data names none."""
+        if self.models is not None:
+            return Path(self.models)
+        return next((Path(d) / "models" for d in self.data if (Path(d) / "models" / "models_info.json").is_file()), None)
+
     def describe(self) -> list[str]:
         """The run's data, as its training record names it."""
         return [str(d) for d in self.data] or [f"crop stream of {self.models}"]
