@@ -355,8 +355,9 @@ def summarize(
     )
     mean = {k: _mean_of_defined([e[k] for e in per.values()]) for k in keys} if per else {}
     refined = [e["refine"] for e in per.values() if "refine" in e]
-    if refined:
-        mean["refine"] = {"unrefined": {k: _mean_of_defined([r["unrefined"][k] for r in refined]) for k in refined[0]["unrefined"]},
+    if refined:  # an object the refiner never saw counts as it is
+        before = [e["refine"]["unrefined"] if "refine" in e else e for e in per.values()]
+        mean["refine"] = {"unrefined": {k: _mean_of_defined([b[k] for b in before]) for k in refined[0]["unrefined"]},
                           "refined": sum(r["refined"] for r in refined),
                           "kept": dict(sum((Counter(r["kept"]) for r in refined), Counter()))}  # fmt: skip
     ms = np.array([1000 * r.seconds for r in records]) if records else np.zeros(1)

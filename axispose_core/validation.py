@@ -103,6 +103,14 @@ COLUMNS = (
 `unrefined`: the ADD(-S) of the same poses before contour refinement (where the checkpoint has a refiner)."""
 
 
+def _value(report: dict, crops: str, field: str, obj: str) -> float | None:
+    """A column's value; an object the refiner never saw (none of it posed) reads as it is in the `unrefined` ones."""
+    value = report_value(report, crops, field, obj)
+    if value is None and field.startswith("refine/unrefined/") and crops in report and report[crops]["mean"].get("refine"):
+        value = report_value(report, crops, field.rsplit("/", 1)[1], obj)
+    return value
+
+
 def _before(pool: dict | None) -> str:
     return "" if pool is None else f"; before refinement {pool['rot_err_median_deg']:.1f}°, {pool['depth_log_abs_mean']:.2%}"
 
@@ -114,7 +122,7 @@ def format_validation(report: dict) -> str:
     head = f"{'object':<12} {'n':>4} " + " ".join(f"{c[0]:>9}" for c in COLUMNS) + f" {'AR gt':>6}"
     lines = [head]
     for key, name in [*names.items(), ("mean", "mean")]:
-        cells = [f"{format_cell(report_value(report, crops, field, key), fmt):>9}" for _, crops, field, fmt in COLUMNS]
+        cells = [f"{format_cell(_value(report, crops, field, key), fmt):>9}" for _, crops, field, fmt in COLUMNS]
         ar = gt["bop19"]["ar"] if key == "mean" else gt["bop19"]["objects"].get(key, {}).get("ar")
         n = "" if key == "mean" else str(gt["objects"][key]["n"])
         lines.append(f"{name:<12} {n:>4} " + " ".join(cells) + f" {format_cell(ar, '.3f'):>6}")

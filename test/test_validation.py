@@ -14,7 +14,9 @@ from axispose_core.evaluate import Record, depth_errors
 from axispose_core.lmo import REAL_SLICE
 from axispose_core.localiser.model import Localiser, LocaliserConfig
 from axispose_core.objects import lmo_objects
+from axispose_core.refine.meshes import models_meshes
 from axispose_core.tbm.reader import SHIPPED_READER, load_reader
+from axispose_core.validation import format_validation
 from axispose_core.trunks import ResidualBNConfig
 
 
@@ -54,7 +56,8 @@ def test_validate_scores_gt_crops_and_the_localisers_and_prints_one_table(two_re
     cfg = EstimatorConfig(agm=TINY_AGM, reader=reader.config, objects=tuple(lmo_objects()[:2]), ddim_steps=1)
     localiser = Localiser(LocaliserConfig(obj_ids=(1, 5), input_size=(160, 128), trunk=ResidualBNConfig(widths=(8, 16, 24, 32))))
     ckpt = tmp_path / "tiny.safetensors"
-    Estimator(cfg, AxisGenerator(cfg.agm), reader).with_localiser(localiser).save(ckpt)
+    meshes = models_meshes(lmo_dir / "models", [1, 5])
+    Estimator(cfg, AxisGenerator(cfg.agm), reader).with_localiser(localiser).with_refiner(meshes).save(ckpt)
     out = tmp_path / "val"
     argv = ["validate", "--checkpoint", str(ckpt), "--data", str(two_real_frames), "--models", str(lmo_dir / "models_eval"),
             "--out", str(out), "--steps", "1", "--threads", "1"]  # fmt: skip
@@ -67,8 +70,31 @@ def test_validate_scores_gt_crops_and_the_localisers_and_prints_one_table(two_re
         assert {"depth_log_abs_mean", "depth_ratio_median", "reproj_15px"} <= set(report[crops]["objects"]["1"])
         assert (out / "plots" / crops / "error_cdfs.png").exists()
     assert "det_recall" in report["detect"]["objects"]["5"]
+    assert report["config"]["refine"] is True and "rot_err_median_deg" in report["gt"]["instances"]
     table = capsys.readouterr().out
-    assert "ape" in table and "can" in table and "mean" in table and "detect crops: AR" in table
+    assert "ape" in table and "can" in table and "mean" in table and "detect crops: AR" in table and "all instances" in table
+    assert main([*argv, "--refine", "off"]) == 0
+    report = json.loads((out / "validation.json").read_text())
+    assert report["config"]["refine"] is False and "refine" not in report["gt"]["mean"]
+
+
+def test_the_table_sets_each_objects_refined_poses_beside_the_unrefined(two_real_frames, lmo_dir):
+    """A report of poses the refiner moved: the `unrefined` columns read each object's scores before it (an object it
+    never saw, as it is) and a line says what it refined and kept, with the pooled rotation and depth before it."""
+    entry = {"n": 2, "name": "ape", "add_0.1d": 0.5, "reproj_15px": 1.0, "rot_err_median_deg": 3.0, "depth_log_abs_mean": 0.01,
+             "depth_ratio_median": 1.0}  # fmt: skip
+    unrefined = {"add_0.1d": 0.25, "reproj_15px": 0.75, "rot_err_median_deg": 9.0, "depth_log_abs_mean": 0.04}
+    gt = {"objects": {"1": entry | {"refine": {"n": 2, "refined": 1, "kept": {"run_away": 1}, "unrefined": unrefined}},
+                      "5": entry | {"name": "can", "add_0.1d": 0.125}},
+          "mean": entry | {"refine": {"refined": 1, "kept": {"run_away": 1}, "unrefined": unrefined}},
+          "instances": {"rot_err_median_deg": 3.0, "depth_log_abs_mean": 0.01, "unrefined": {"rot_err_median_deg": 9.0,
+                                                                                             "depth_log_abs_mean": 0.04}},
+          "bop19": {"ar": 0.5, "objects": {}}}  # fmt: skip
+    config = {"steps": 1, "hypotheses": 1, "precision": "float32", "score_threshold": 0.3, "visib": [0.1, 1.0]}
+    table = format_validation({"config": config, "gt": gt})
+    rows = {line.split()[0]: line.split() for line in table.splitlines()}
+    assert rows["ape"][7:9] == ["0.500", "0.250"] and rows["can"][7:9] == ["0.125", "0.125"]
+    assert "1 refined, kept: run_away 1" in table and "before refinement 9.0°, 4.00%" in table
 
 
 def test_validate_refuses_a_missing_folder_in_one_line(tmp_path, capsys):
