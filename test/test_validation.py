@@ -16,8 +16,8 @@ from axispose_core.localiser.model import Localiser, LocaliserConfig
 from axispose_core.objects import lmo_objects
 from axispose_core.refine.meshes import models_meshes
 from axispose_core.tbm.reader import SHIPPED_READER, load_reader
-from axispose_core.validation import format_validation
 from axispose_core.trunks import ResidualBNConfig
+from axispose_core.validation import format_validation
 
 
 def _record(t, t_gt, ok=True):
