@@ -24,6 +24,7 @@ from axispose_core.refine.region import (
     StepFunction,
     contour_distributions,
     gradient_hessian,
+    log_odds,
     place_lines,
     sample_posteriors,
 )
@@ -197,7 +198,9 @@ class ContourRefiner:
         s.table = table = s.histograms.posterior()
         centres, normals = placed.centres[valid], placed.normals[valid]
         offsets = (np.arange(n_seg * scale) + 0.5) - n_seg * scale / 2
-        dist = contour_distributions(sample_posteriors(table, bins, centres, normals, offsets), scale, self.step, cfg.distribution_length)
+        # Sub-pixel (bilinear) where a segment is a pixel; at coarser scales the nearest pixel, a quarter of the work.
+        odds = sample_posteriors(log_odds(table), bins, centres, normals, offsets, bilinear=scale == 1)
+        dist = contour_distributions(odds, scale, self.step, cfg.distribution_length)
         weight = np.full(len(centres), self.step.min_variance * scale**2 / sigma**2)
         s.lines = Lines(placed.model_points[valid], centres, normals, float(scale), dist, weight)
         damping = np.repeat(np.asarray(cfg.damping, dtype=float), 3)

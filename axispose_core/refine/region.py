@@ -18,7 +18,7 @@ from axispose_core.refine.config import RefineConfig
 from axispose_core.refine.viewpoints import ViewpointModel
 
 EPS = 1e-4
-"""Per-pixel posteriors are held inside [EPS, 1 - EPS]: one pixel's colour never settles a segment alone."""
+"""Per-colour posteriors are held inside [EPS, 1 - EPS]: one pixel's colour never settles a segment alone."""
 
 
 @dataclass(frozen=True)
@@ -89,22 +89,35 @@ def place_lines(
     return LinePlacement(X, p, uv, n, valid, inside, outside)
 
 
-def sample_posteriors(table: np.ndarray, bins: np.ndarray, centres: np.ndarray, normals: np.ndarray, offsets: np.ndarray) -> np.ndarray:
-    """P(foreground) (N,L) at `offsets` (L,) pixels along each line (centres (N,2), normals (N,2)), bilinear in the
-    per-pixel posteriors (`table` over the `bins` image); positions are clipped to the image."""
+def sample_posteriors(
+    table: np.ndarray, bins: np.ndarray, centres: np.ndarray, normals: np.ndarray, offsets: np.ndarray, bilinear: bool = True
+) -> np.ndarray:
+    """A per-colour `table` (P(foreground), or its log odds) looked up (N,L) at `offsets` (L,) pixels along each line
+    (centres (N,2), normals (N,2)) in the `bins` image: bilinear in the pixels' values, or at the nearest pixel
+    (positions clipped to the image)."""
     h, w = bins.shape
     q = centres[:, None, :] + offsets[None, :, None] * normals[:, None, :]
+    flat = bins.reshape(-1)
+    if not bilinear:
+        x = np.clip(np.rint(q[..., 0]), 0, w - 1).astype(np.int64)
+        y = np.clip(np.rint(q[..., 1]), 0, h - 1).astype(np.int64)
+        return table[flat[y * w + x]]
     x = np.clip(q[..., 0], 0, w - 1.001)
     y = np.clip(q[..., 1], 0, h - 1.001)
     x0, y0 = x.astype(np.int64), y.astype(np.int64)
     fx, fy = x - x0, y - y0
-    flat = bins.reshape(-1)
     i = y0 * w + x0
 
     def at(k: np.ndarray) -> np.ndarray:
         return table[flat[k]]
 
     return (1 - fy) * ((1 - fx) * at(i) + fx * at(i + 1)) + fy * ((1 - fx) * at(i + w) + fx * at(i + w + 1))
+
+
+def log_odds(posterior: np.ndarray) -> np.ndarray:
+    """log(p / (1 - p)) of P(foreground) per colour, p held inside [EPS, 1 - EPS]."""
+    p = np.clip(posterior, EPS, 1 - EPS)
+    return np.log(p) - np.log1p(-p)
 
 
 @dataclass(frozen=True)
@@ -117,13 +130,12 @@ class Distributions:
     variance: np.ndarray
 
 
-def contour_distributions(pf: np.ndarray, scale: int, step: StepFunction, length: int) -> Distributions:
-    """From per-pixel P(foreground) (N, S·scale) along lines of S = F + D - 1 segments: each segment's probability
-    of being foreground (the product of its pixels' odds), then for each of the D places the window of F segments
-    around it scored against the step function (ICG's distribution and moments)."""
-    n = len(pf)
-    pf = np.clip(pf, EPS, 1 - EPS)
-    odds = (np.log(pf) - np.log1p(-pf)).reshape(n, -1, scale).sum(axis=2)  # (N,S) segment log odds
+def contour_distributions(odds: np.ndarray, scale: int, step: StepFunction, length: int) -> Distributions:
+    """From the pixels' log odds of foreground (N, S·scale) along lines of S = F + D - 1 segments: each segment's
+    probability of being foreground (the product of its pixels' odds), then for each of the D places the window of
+    F segments around it scored against the step function (ICG's distribution and moments)."""
+    n = len(odds)
+    odds = odds.reshape(n, -1, scale).sum(axis=2)  # (N,S) segment log odds
     seg_f = 1 / (1 + np.exp(-odds))
     f = step.foreground
     windows = sliding_window_view(seg_f, len(f), axis=1)  # (N,D,F)
