@@ -317,7 +317,7 @@ class Estimator:
         return Estimator(config, self.agm, self.reader, str(self.device), self.localiser, self.meshes)
 
     def with_refiner(self, meshes: Meshes | None, config: RefineConfig | None = None) -> Estimator:
-        """This estimator with a contour refiner of the objects' `meshes` (metres; `refine.meshes.models_meshes`)
+        """This estimator with a contour refiner of the objects' `meshes` (metres; `data.meshes.refiner_meshes`)
         and `config` (None: the defaults), or without one (meshes None)."""
         config = None if meshes is None else (config or RefineConfig())
         return Estimator(replace(self.config, refine=config), self.agm, self.reader, str(self.device), self.localiser, meshes)

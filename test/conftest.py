@@ -59,16 +59,16 @@ def save_tiny_estimator(path: Path, refine_models: Path | None = None) -> Path:
     """An estimator checkpoint of TINY_AGM, the shipped reader and LM-O's ape (1) and can (5): the node's plumbing;
     with a contour refiner of their meshes from `refine_models` (a BOP models folder) where given."""
     from axispose_core.agm.model import AxisGenerator
+    from axispose_core.data.meshes import refiner_meshes
     from axispose_core.estimator import Estimator, EstimatorConfig
     from axispose_core.objects import lmo_objects
-    from axispose_core.refine.meshes import models_meshes
     from axispose_core.tbm.reader import SHIPPED_READER, load_reader
 
     reader = load_reader(SHIPPED_READER)
     cfg = EstimatorConfig(agm=TINY_AGM, reader=reader.config, objects=tuple(lmo_objects()[:2]), ddim_steps=1)
     est = Estimator(cfg, AxisGenerator(cfg.agm), reader)
     if refine_models is not None:
-        est = est.with_refiner(models_meshes(refine_models, [1, 5]))
+        est = est.with_refiner(refiner_meshes(refine_models, [1, 5]))
     est.save(path)
     return path
 

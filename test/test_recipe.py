@@ -174,7 +174,7 @@ def test_the_verifier_is_fitted_on_the_assembled_checkpoint_and_an_adopted_one_i
     assert est.config.training["recipe"]["estimator"]["verifier"] == {"data": ["frames"], "min_score": 0.25}
 
 
-def test_the_estimators_refine_settings_attach_the_models_meshes(lmo_dir, tmp_path):
+def test_the_estimators_refine_settings_attach_the_refiner_meshes(lmo_dir, tmp_path):
     """`estimator.config.refine` gives the checkpoint a contour refiner with those settings and the meshes of the
     recipe's models (its objects', from BOP's decimated models_eval beside them)."""
     from axispose_core.localiser.model import Localiser, LocaliserConfig

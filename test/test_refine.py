@@ -8,13 +8,13 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from axispose_core.camera import Camera
-from axispose_core.data.meshes import load_render_mesh
+from axispose_core.data.meshes import load_render_mesh, refiner_meshes
 from axispose_core.data.synth.raster import Light, render, render_depth
 from axispose_core.lmo import LMO_K
 from axispose_core.metrics import proj, re
 from axispose_core.refine.config import RefineConfig
 from axispose_core.refine.histograms import ColourHistograms, colour_bins
-from axispose_core.refine.meshes import ObjectMeshes, models_meshes
+from axispose_core.refine.meshes import ObjectMeshes
 from axispose_core.refine.refiner import KEPT_REASONS, ContourRefiner, Start
 from axispose_core.refine.viewpoints import ViewpointSettings, build_viewpoint_model, geodesic_directions
 
@@ -25,7 +25,7 @@ OBJECTS = (1, 5, 8, 10)  # ape (small, round), can, driller, eggbox
 
 @pytest.fixture(scope="module")
 def meshes(lmo_dir):
-    return models_meshes(lmo_dir / "models", OBJECTS)
+    return refiner_meshes(lmo_dir / "models", OBJECTS)
 
 
 @pytest.fixture(scope="module")

@@ -9,12 +9,12 @@ from conftest import TINY_AGM
 
 from axispose_core.agm.model import AxisGenerator
 from axispose_core.cli import main
+from axispose_core.data.meshes import refiner_meshes
 from axispose_core.estimator import Estimator, EstimatorConfig
 from axispose_core.evaluate import Record, depth_errors
 from axispose_core.lmo import REAL_SLICE
 from axispose_core.localiser.model import Localiser, LocaliserConfig
 from axispose_core.objects import lmo_objects
-from axispose_core.refine.meshes import models_meshes
 from axispose_core.tbm.reader import SHIPPED_READER, load_reader
 from axispose_core.trunks import ResidualBNConfig
 from axispose_core.validation import format_validation
@@ -56,7 +56,7 @@ def test_validate_scores_gt_crops_and_the_localisers_and_prints_one_table(two_re
     cfg = EstimatorConfig(agm=TINY_AGM, reader=reader.config, objects=tuple(lmo_objects()[:2]), ddim_steps=1)
     localiser = Localiser(LocaliserConfig(obj_ids=(1, 5), input_size=(160, 128), trunk=ResidualBNConfig(widths=(8, 16, 24, 32))))
     ckpt = tmp_path / "tiny.safetensors"
-    meshes = models_meshes(lmo_dir / "models", [1, 5])
+    meshes = refiner_meshes(lmo_dir / "models", [1, 5])
     Estimator(cfg, AxisGenerator(cfg.agm), reader).with_localiser(localiser).with_refiner(meshes).save(ckpt)
     out = tmp_path / "val"
     argv = ["validate", "--checkpoint", str(ckpt), "--data", str(two_real_frames), "--models", str(lmo_dir / "models_eval"),

@@ -124,14 +124,18 @@ def test_a_verifier_poses_down_to_its_min_score_and_publishes_its_probability(lo
 
 
 def test_the_verifier_reads_the_fusions_own_covariance_alike_at_any_number_of_samples(frames):
-    """With one sample the pose's covariance is the dense fusion's; with several it adds their scatter, which the
-    verifier leaves out: the variances it was fitted on (one sample) keep their meaning."""
+    """With one sample the unrefined pose's covariance is the dense fusion's; with several it adds their scatter, and
+    refined it is the contour refiner's, both of which the verifier leaves out: the variances it was fitted on (one
+    sample, the fusion's) keep their meaning."""
     est = Estimator.load(SHIPPED_ESTIMATOR)
     scene, im_id = bop_frames([frames])[0]
     boxes = [(g.obj_id, info.bbox_obj) for g, info in scene.instances(im_id) if info.visib_fract > 0.5]
-    one = [p for p in est.estimate(scene.rgb(im_id), scene.cameras[im_id], boxes, EstimateOptions(steps=1)) if p.ok]
+    one = [p for p in est.estimate(scene.rgb(im_id), scene.cameras[im_id], boxes, EstimateOptions(steps=1, refine=False)) if p.ok]
     assert one and all(np.array_equal(p.covariance, p.fit_covariance) for p in one)
-    options = EstimateOptions(steps=1, hypotheses=3)
+    refined = [p for p in est.estimate(scene.rgb(im_id), scene.cameras[im_id], boxes, EstimateOptions(steps=1)) if p.ok]
+    assert any(p.refined for p in refined)
+    assert all(np.array_equal(a.fit_covariance, b.fit_covariance) for a, b in zip(one, refined, strict=True))
+    options = EstimateOptions(steps=1, hypotheses=3, refine=False)
     many = [p for p in est.estimate(scene.rgb(im_id), scene.cameras[im_id], boxes, options) if p.ok and p.samples_ok > 1]
     assert many and all(p.fit_covariance is not None for p in many)
     for p in many:  # the total covariance is the fusion's plus a positive semi-definite scatter

@@ -4,7 +4,7 @@ renderer's mesh. Lengths become metres here, as `data/bop.py` does for BOP's oth
 from __future__ import annotations
 
 import logging
-from collections.abc import Iterator
+from collections.abc import Iterable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -12,7 +12,7 @@ import numpy as np
 import plyfile
 
 from axispose_core.data.bop import MM, BopFormatError, model_path
-from axispose_core.data.synth.raster import RenderMesh, vertex_normals
+from axispose_core.data.synth.raster import RenderMesh, decimate, vertex_normals
 
 log = logging.getLogger(__name__)
 
@@ -313,3 +313,32 @@ def load_render_mesh(models_dir: str | Path, obj_id: int, cache_dir: str | Path 
         np.savez(tmp, vertices=rm.vertices, faces=rm.faces, colors=rm.colors, normals=rm.normals, stamp=stamp)
         tmp.replace(cache)
     return rm
+
+
+REFINER_FACES = 25_000
+"""Most faces a mesh the contour refiner carries keeps: a silhouette within a fraction of a pixel, and eight objects
+add about 1.5 MB to a checkpoint."""
+
+
+def refiner_meshes(models_dir: str | Path, obj_ids: Iterable[int]) -> dict[int, tuple[np.ndarray, np.ndarray]]:
+    """The objects' meshes for the refiner from a BOP models folder: BOP's decimated `models_eval` beside it where
+    there is one, else the models themselves; a mesh with more than REFINER_FACES faces is decimated (vertex
+    clustering, finer cells until it fits)."""
+    models_dir = Path(models_dir)
+    eval_dir = models_dir.parent / "models_eval"
+    out = {}
+    for obj_id in obj_ids:
+        src = model_path(eval_dir, obj_id) if model_path(eval_dir, obj_id).exists() else model_path(models_dir, obj_id)
+        mesh = load_ply(src)
+        v, f = mesh.vertices, mesh.faces
+        if len(f) > REFINER_FACES:
+            extent = float(np.ptp(v, axis=0).max())
+            cell = extent / 400
+            render = RenderMesh(v, f, np.zeros_like(v), np.zeros_like(v))
+            while len(f) > REFINER_FACES:
+                small = decimate(render, cell)
+                v, f = small.vertices, small.faces
+                cell *= 1.5
+            log.info("object %d: %s decimated to %d faces for the refiner", obj_id, src, len(f))
+        out[obj_id] = (v, f)
+    return out

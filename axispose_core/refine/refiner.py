@@ -185,10 +185,10 @@ class ContourRefiner:
         s.occluded = occluded
         n_seg = cfg.function_length + cfg.distribution_length - 1
         reach = n_seg * scale / 2
-        placed = place_lines(s.model, s.R, s.t, K, cfg.lines, reach, cfg.min_continuous * scale, bins.shape, s.start.scale)
+        placed = place_lines(s.model, s.R, s.t, K, cfg.lines, s.start.scale)
         c = np.round(placed.centres).astype(np.int64)
         inside_image = (c[:, 0] >= 0) & (c[:, 0] < bins.shape[1]) & (c[:, 1] >= 0) & (c[:, 1] < bins.shape[0])
-        valid = placed.valid & inside_image
+        valid = placed.usable(reach, cfg.min_continuous * scale, bins.shape) & inside_image
         valid[valid] &= occluded[c[valid, 1], c[valid, 0]] == 0
         s.valid = float(valid.mean())
         if valid.sum() < cfg.min_lines:
@@ -267,9 +267,9 @@ class ContourRefiner:
         """Mean over the object's unoccluded lines at its final pose of P(foreground) in the four pixels inside the
         contour and P(background) in the four outside it, under the learned colours (0.5: no contrast)."""
         offsets = np.arange(-3.5, 4.0, 1.0)
-        placed = place_lines(s.model, s.R, s.t, K, self.config.lines, 4.0, 4.0, bins.shape, s.start.scale)
+        placed = place_lines(s.model, s.R, s.t, K, self.config.lines, s.start.scale)
         c = np.round(placed.centres).astype(np.int64)
-        valid = placed.valid
+        valid = placed.usable(4.0, 4.0, bins.shape)
         valid[valid] &= s.occluded[c[valid, 1], c[valid, 0]] == 0
         if not valid.any():
             return 0.5

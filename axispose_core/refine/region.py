@@ -41,38 +41,33 @@ class StepFunction:
 
 @dataclass(frozen=True)
 class LinePlacement:
-    """One object's lines at one pass: model points (N,3), their camera-frame points (N,3), centres (N,2, px),
-    unit outward normals (N,2) and which are usable (N,) bool."""
+    """One object's lines at one pose: model points (N,3), their camera-frame points (N,3), centres (N,2, px), unit
+    outward normals (N,2), and how far the silhouette runs inwards and outwards from each (N,; px)."""
 
     model_points: np.ndarray
     camera_points: np.ndarray
     centres: np.ndarray
     normals: np.ndarray
-    valid: np.ndarray
     inside_px: np.ndarray
     outside_px: np.ndarray
 
+    def usable(self, reach_px: float, min_run_px: float, shape: tuple[int, int]) -> np.ndarray:
+        """(N,) bool: in front of the camera, the whole line (`reach_px` each side) inside an image of `shape`,
+        and the silhouette's runs inwards and outwards at least `min_run_px` (a shorter one sees the far side)."""
+        h, w = shape
+        ends = self.centres[:, None, :] + np.array([-reach_px, reach_px])[None, :, None] * self.normals[:, None, :]
+        on_image = np.all((ends[..., 0] >= 0) & (ends[..., 0] <= w - 1) & (ends[..., 1] >= 0) & (ends[..., 1] <= h - 1), axis=1)
+        return (self.camera_points[:, 2] > 1e-6) & on_image & (np.minimum(self.inside_px, self.outside_px) >= min_run_px)
 
-def place_lines(
-    model: ViewpointModel,
-    R: np.ndarray,
-    t: np.ndarray,
-    K: np.ndarray,
-    count: int,
-    reach_px: float,
-    min_run_px: float,
-    shape: tuple[int, int],
-    scale: float = 1.0,
-) -> LinePlacement:
-    """The contour points of the view nearest the pose, projected: `count` of them, each valid where it lies in
-    front of the camera, its whole line (`reach_px` each side) inside the image, and the silhouette's runs inwards
-    and outwards at least `min_run_px`. `scale` sizes the model (an object of another size than its mesh)."""
+
+def place_lines(model: ViewpointModel, R: np.ndarray, t: np.ndarray, K: np.ndarray, count: int, scale: float = 1.0) -> LinePlacement:
+    """`count` contour points of the view nearest the pose (R, t), projected through K, with their normals' image
+    directions; `scale` sizes the model (an object of another size than its mesh)."""
     v = model.closest_view(R, t)
     pick = np.linspace(0, model.points.shape[1], count, endpoint=False).astype(int)
     X = model.points[v, pick] * scale
     p = X @ R.T + t
-    z = p[:, 2]
-    safe = np.where(z > 1e-6, z, 1.0)
+    safe = np.where(p[:, 2] > 1e-6, p[:, 2], 1.0)
     q = p @ K.T
     uv = q[:, :2] / np.where(q[:, 2:] > 1e-9, q[:, 2:], 1.0)
     n3 = model.normals[v, pick] @ R.T
@@ -81,12 +76,7 @@ def place_lines(
     n = np.stack([du, K[1, 1] * n3[:, 1] - (uv[:, 1] - K[1, 2]) * n3[:, 2]], axis=1)
     n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-12)
     px_per_m = K[0, 0] * scale / safe
-    inside, outside = model.inside[v, pick] * px_per_m, model.outside[v, pick] * px_per_m
-    h, w = shape
-    ends = uv[:, None, :] + np.array([-reach_px, reach_px])[None, :, None] * n[:, None, :]
-    on_image = np.all((ends[..., 0] >= 0) & (ends[..., 0] <= w - 1) & (ends[..., 1] >= 0) & (ends[..., 1] <= h - 1), axis=1)
-    valid = (z > 1e-6) & on_image & (np.minimum(inside, outside) >= min_run_px)
-    return LinePlacement(X, p, uv, n, valid, inside, outside)
+    return LinePlacement(X, p, uv, n, model.inside[v, pick] * px_per_m, model.outside[v, pick] * px_per_m)
 
 
 def sample_posteriors(

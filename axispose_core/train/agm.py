@@ -30,12 +30,12 @@ from axispose_core.agm.correspondences import dense_correspondences
 from axispose_core.agm.model import AGMConfig, AxisGenerator, depth_from_log, grow_into, transplant
 from axispose_core.agm.sampler import Start, sample
 from axispose_core.axis_image import axis_keypoints
+from axispose_core.data.meshes import refiner_meshes
 from axispose_core.data.synth.config import StreamConfig
 from axispose_core.data.synth.stream import CropStream, stream_loader
 from axispose_core.estimator import Estimator, EstimatorConfig
 from axispose_core.metrics import Symmetry, nearest_truth, re
 from axispose_core.objects import ObjectSpec
-from axispose_core.refine.meshes import models_meshes
 from axispose_core.tbm.backproject import backproject_readings
 from axispose_core.tbm.dense import translation_from_points
 from axispose_core.tbm.reader import SHIPPED_READER, KeypointReader, load_reader
@@ -294,7 +294,7 @@ def train_agm(
         start_from(model, Estimator.load(init).agm, init)
     scales = torch.tensor([o.scale for o in objects], dtype=torch.float64)
     folder = sources.models_folder()
-    meshes = models_meshes(folder, [o.obj_id for o in objects]) if folder is not None and rank == 0 else None
+    meshes = refiner_meshes(folder, [o.obj_id for o in objects]) if folder is not None and rank == 0 else None
     validate_ema = held_out_validation(cfg, sources, objects, scales, reader, dev) if rank == 0 else None
 
     def loss(net: torch.nn.Module, batch: dict[str, torch.Tensor], gen: torch.Generator) -> torch.Tensor:

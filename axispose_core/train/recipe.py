@@ -39,6 +39,7 @@ import yaml
 from axispose_core.agm.model import fresh_trunk
 from axispose_core.checkpoint import ESTIMATOR, read_metadata
 from axispose_core.config import ConfigError, config_from_dict
+from axispose_core.data.meshes import refiner_meshes
 from axispose_core.data.synth.config import RandomizationConfig, SceneConfig, SynthConfig
 from axispose_core.data.synth.config import recipe as synth_recipe
 from axispose_core.data.synth.generate import generate
@@ -46,7 +47,6 @@ from axispose_core.estimator import Estimator, EstimatorConfig
 from axispose_core.localiser.weights import load_localiser
 from axispose_core.objects import dataset_objects
 from axispose_core.refine.config import RefineConfig
-from axispose_core.refine.meshes import models_meshes
 from axispose_core.tbm.reader import load_reader
 from axispose_core.train.agm import TrainConfig, train_agm
 from axispose_core.train.localiser import LocaliserTrainConfig, train_localiser
@@ -472,7 +472,7 @@ class RecipeRunner:
         path = self.checkpoint(self.name)
         estimator = Estimator(config, agm.agm, reader, "cpu", localiser)
         if refine is not None:  # the objects' meshes from the recipe's models (BOP's decimated models_eval beside them)
-            estimator = estimator.with_refiner(models_meshes(self.recipe.models, [o.obj_id for o in config.objects]), refine)
+            estimator = estimator.with_refiner(refiner_meshes(self.recipe.models, [o.obj_id for o in config.objects]), refine)
         estimator.save(path, half=bool(est["half"]))
         if "verifier" in est:  # fitted on the checkpoint as it runs: its stored weights, in float32
             names, fit_config = _verifier_spec(dict(est["verifier"]), self.recipe.data)
