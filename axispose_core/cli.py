@@ -50,6 +50,18 @@ def _yaml_mapping(text: str) -> dict:
     return data
 
 
+def _camera_path(text: str | None, config: type) -> object | None:
+    """`--camera-path`: the orbit in degrees per image, or a mapping of CameraPathConfig's fields."""
+    if text is None:
+        return None
+    try:
+        return config(orbit_deg=float(text))
+    except ValueError:
+        from axispose_core.config import config_from_dict
+
+        return config_from_dict(config, _yaml_mapping(text), "--camera-path")
+
+
 def _synth(args: argparse.Namespace) -> int:
     from axispose_core.config import ConfigError, config_from_dict
     from axispose_core.data.bop import BopFormatError, load_camera
@@ -63,6 +75,7 @@ def _synth(args: argparse.Namespace) -> int:
             randomization = config_from_dict(RandomizationConfig, _yaml_mapping(args.randomization), "--randomization", randomization)
         if args.scene:
             scene = config_from_dict(SceneConfig, _yaml_mapping(args.scene), "--scene", scene)
+        path = _camera_path(args.camera_path, CameraPathConfig)
     except (ConfigError, TypeError, ValueError) as err:
         print(f"axispose synth: {err}", file=sys.stderr)
         return 2
@@ -84,7 +97,7 @@ def _synth(args: argparse.Namespace) -> int:
         scene=scene,
         randomization=randomization,
         depth=args.depth,
-        camera_path=None if args.camera_path is None else CameraPathConfig(orbit_deg=args.camera_path),
+        camera_path=path,
     )
     models = Path(args.models[0])
     if len(args.models) > 1 or not models.is_dir():
@@ -499,8 +512,9 @@ def build_parser(commands: Callable[[AddParser], None] | None = None) -> argpars
     sy.add_argument("--camera", help="BOP camera.json (fx, fy, cx, cy, width, height); default: the LM-O camera")
     sy.add_argument("--workers", type=int, default=1, help="worker processes")
     sy.add_argument("--depth", action="store_true", help="also write depth images (BOP depth/, for the VSD error of `axispose eval`)")
-    sy.add_argument("--camera-path", type=float, default=None, metavar="DEG", help="film each scene along a camera path: "
-                    "one world, the camera orbiting it by DEG per image and shaking as a hand-held one (tracking's video)")  # fmt: skip
+    sy.add_argument("--camera-path", default=None, metavar="DEG|MAPPING", help="film each scene along a camera path: one "
+                    "world, the camera orbiting it by DEG per image and shaking as a hand-held one (tracking's video); or a "
+                    "mapping of CameraPathConfig's fields, e.g. '{orbit_deg: 1.5, sweep_deg: 25, shutter: 0.5, passers: 2}'")  # fmt: skip
     sy.set_defaults(func=_synth)
 
     tn = sub.add_parser("train", help="train the AGM (axis generation) on the crop stream, or on BOP folders")

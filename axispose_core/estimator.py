@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import json
 import math
-from collections.abc import Callable, Container, Mapping
+from collections.abc import Callable, Container, Mapping, Sequence
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
@@ -32,6 +32,7 @@ from axispose_core.localiser.verifier import DetectionVerifier
 from axispose_core.objects import ObjectSpec
 from axispose_core.precision import bf16_native
 from axispose_core.refine.config import RefineConfig
+from axispose_core.refine.histograms import ColourHistograms
 from axispose_core.refine.meshes import Meshes, ObjectMeshes
 from axispose_core.refine.refiner import ContourRefiner
 from axispose_core.refine.refiner import Start as RefineStart
@@ -221,6 +222,9 @@ class PoseEstimate:
     unrefined: tuple[np.ndarray, np.ndarray] | None = None
     """(R, t) as the fusion gave it, where the refiner saw this pose: what `axispose eval` scores the refinement
     against."""
+    colours: ColourHistograms | None = None
+    """The object's and its surroundings' colours the refiner learned here: what a tracker carries to the next
+    frame (`follow`)."""
 
 
 @dataclass(frozen=True)
@@ -555,5 +559,25 @@ class Estimator:
         out = list(poses)
         for k, r in zip(posed, self.refiner.refine(image_rgb, np.asarray(K, dtype=np.float64), starts), strict=True):
             out[k] = replace(poses[k], R=r.R, t=r.t, covariance=r.covariance, refined=r.refined, refine_kept=r.reason,
-                             contour_lines=r.lines, contour_agreement=r.agreement, unrefined=(poses[k].R, poses[k].t))  # fmt: skip
+                             contour_lines=r.lines, contour_agreement=r.agreement, unrefined=(poses[k].R, poses[k].t),
+                             colours=r.colours)  # fmt: skip
+        return out
+
+    def follow(self, image_rgb: np.ndarray, K: np.ndarray, last: Sequence[PoseEstimate], predicted: Sequence[tuple[np.ndarray, ...]],
+               options: EstimateOptions | None = None) -> list[PoseEstimate]:  # fmt: skip
+        """Tracked objects followed to this frame by their contours alone, no AGM: each from its `predicted` (R, t,
+        covariance) with the colours its `last` pose learned (`colours`; without them the whole schedule). Each
+        result is its last pose moved: `refined` where the contour took it, else `ok` False (the object is lost
+        to the contour: `refine_kept` says why)."""
+        if self.refiner is None:
+            raise ValueError("this checkpoint has no contour refiner to follow objects with")
+        K = validate_intrinsics(K)
+        scales = (options or EstimateOptions()).scales or {}
+        starts = [RefineStart(p.obj_id, R, t, cov, scales.get(p.obj_id, self.objects[p.obj_id].scale) / self.objects[p.obj_id].scale)
+                  for p, (R, t, cov) in zip(last, predicted, strict=True)]  # fmt: skip
+        out = []
+        for p, r in zip(last, self.refiner.refine(image_rgb, K, starts, [p.colours for p in last]), strict=True):
+            out.append(replace(p, R=r.R, t=r.t, covariance=r.covariance, ok=r.refined, reason="" if r.refined else f"contour: {r.reason}",
+                               refined=r.refined, refine_kept=r.reason, contour_lines=r.lines, contour_agreement=r.agreement,
+                               unrefined=None, colours=r.colours or p.colours))  # fmt: skip
         return out

@@ -79,11 +79,17 @@ class FramePoser:
         self.tracker.config = TrackingConfig(
             redetect_period=s.redetect_period, measure_every=s.measure_every, track_timeout=s.track_timeout
         )
-        return self._tracked(stamp, K, dets, estimate, s.warm_strength > 0)
+        follow = None
+        if self.estimator.refiner is not None and s.refine:  # every track followed by its contour, the AGM as needed
 
-    def _tracked(self, stamp: float, K: np.ndarray, detect, estimate, warm: bool) -> Posed:
-        """The tracked objects' filtered poses on this frame, warm-started from their predictions where `warm`;
-        crops the estimator refused are counted."""
+            def follow(last: list, predicted: list) -> list[PoseEstimate]:
+                return self._count_refined(self.estimator.follow(rgb, K, last, predicted, options))
+
+        return self._tracked(stamp, K, dets, estimate, s.warm_strength > 0, follow)
+
+    def _tracked(self, stamp: float, K: np.ndarray, detect, estimate, warm: bool, follow) -> Posed:
+        """The tracked objects' filtered poses on this frame (followed by their contours where `follow` is given),
+        warm-started from their predictions where `warm`; crops the estimator refused are counted."""
 
         def measure(crops: list[Crop]) -> list[PoseEstimate]:
             out = estimate([(c.obj_id, c.box) for c in crops], [c.prior for c in crops] if warm else None)
@@ -91,7 +97,7 @@ class FramePoser:
                 self.count("pose_refused", refused)
             return out
 
-        tracked = self.tracker.step(stamp, K, detect, measure)
+        tracked = self.tracker.step(stamp, K, detect, measure, follow)
         for key, n in self._new_counts().items():
             self.count(f"tracking_{key}", n)
         estimates = [dataclasses.replace(tp.measurement, R=tp.R, t=tp.t, covariance=tp.covariance) for tp in tracked]

@@ -2,8 +2,10 @@
 
 Each setting runs every scene (a BOP folder from `axispose synth --camera-path`, frames in order at `--fps`),
 either single-frame (the localiser's boxes, each posed on its own: `{"tracking": false}`) or through a `Tracker`
-whose `TrackingConfig` fields and `filter` (a `FilterConfig`) the setting gives; `"warm": true` starts tracked
-samples from their predictions (`--warm-strength`, one step). Each GT instance is matched to the nearest pose of
+whose `TrackingConfig` fields and `filter` (a `FilterConfig`) the setting gives; `"follow": true` follows the
+tracks by their contours (`Estimator.follow`), the AGM posing only new and lost objects; `"refine": false` poses
+without contour refinement; `"warm": true` starts tracked samples from their predictions (`--warm-strength`, one
+step). Each GT instance is matched to the nearest pose of
 its object in its frame. Prints, per setting, ADD(-S)@0.1d and Reproj@15px (mean over scenes), and jitter
 (`tracking/jitter.py`) and the median frame time per scene, as one JSON line; `--out` writes them all.
 
@@ -14,6 +16,7 @@ its object in its frame. Prints, per setting, ADD(-S)@0.1d and Reproj@15px (mean
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import time
 from pathlib import Path
@@ -44,10 +47,11 @@ class Bench:
         """One setting on one scene: its scores, jitter, frame time and the tracker's counts."""
         tracker = self._tracker(setting) if setting.get("tracking", True) else None
         add, rp, pairs, times = [], [], [], []
+        options = dataclasses.replace(self.options, refine=setting.get("refine", True))
         for k, im in enumerate(scene.image_ids):
             rgb, K = scene.rgb(im), scene.cameras[im]
             start = time.perf_counter()
-            poses = self._frame(rgb, K, k / self.fps, tracker, setting.get("warm", False))
+            poses = self._frame(rgb, K, k / self.fps, tracker, setting, options)
             times.append(time.perf_counter() - start)
             for g in scene.gt[im]:
                 if g.obj_id not in self.specs:
@@ -65,20 +69,24 @@ class Bench:
         fields = {k: v for k, v in setting.items() if k in TrackingConfig.__dataclass_fields__ and k != "filter"}
         return Tracker(TrackingConfig(**fields, filter=FilterConfig(**setting.get("filter", {}))))
 
-    def _frame(self, rgb: np.ndarray, K: np.ndarray, stamp: float, tracker: Tracker | None, warm: bool) -> list[Pose]:
+    def _frame(self, rgb: np.ndarray, K: np.ndarray, stamp: float, tracker: Tracker | None, setting: dict, options) -> list[Pose]:
         def detect() -> list:
             return self.est.detect(rgb, self.threshold)
 
         if tracker is None:
             found = detect()
-            estimates = self.est.estimate(rgb, K, [(d.obj_id, d.box) for d in found], options=self.options)
+            estimates = self.est.estimate(rgb, K, [(d.obj_id, d.box) for d in found], options=options)
             return [(d.obj_id, e.R, e.t) for d, e in zip(found, estimates, strict=True) if e.ok]
 
         def measure(crops: list) -> list:
-            priors = [c.prior for c in crops] if warm else None
-            return self.est.estimate(rgb, K, [(c.obj_id, c.box) for c in crops], options=self.options, priors=priors)
+            priors = [c.prior for c in crops] if setting.get("warm", False) else None
+            return self.est.estimate(rgb, K, [(c.obj_id, c.box) for c in crops], options=options, priors=priors)
 
-        return [(p.obj_id, p.R, p.t) for p in tracker.step(stamp, K, detect, measure)]
+        def follow(last: list, predicted: list) -> list:
+            return self.est.follow(rgb, K, last, predicted, options)
+
+        tracked = tracker.step(stamp, K, detect, measure, follow if setting.get("follow", False) else None)
+        return [(p.obj_id, p.R, p.t) for p in tracked]
 
 
 def _nearest(poses: list[Pose], obj_id: int, t_gt: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:

@@ -3,6 +3,8 @@ determinism, its guard and its answers to degenerate input, and its meshes throu
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
@@ -247,3 +249,36 @@ def test_the_estimator_refines_its_poses_unless_told_not_to(tmp_path, lmo_dir):
         if a.ok:
             assert a.refined != bool(a.refine_kept) and np.array_equal(a.unrefined[1], b.t)
             assert a.refined or np.array_equal(a.t, b.t)
+
+
+def test_a_tracked_object_is_followed_with_the_colours_it_learned(lmo_dir, meshes, refiner):
+    """Frame 1 refined in full hands its colours on; on frame 2 the object has turned 2° and moved 5 px, and the short
+    schedule from frame 1's pose with those colours follows it within 0.5°, 0.5 % and 0.5 px."""
+    R1, t1 = Rotation.random(random_state=11).as_matrix(), np.array([0.02, 0.0, 0.65])
+    first = refiner.refine(scene(lmo_dir, 8, R1, t1), K, [Start(8, *moved(R1, t1, 11, 3, 0.02, 3))])[0]
+    assert first.refined and first.colours is not None
+    R2, t2 = moved(R1, t1, 12, 2.0, 0.0, 5.0)
+    image = scene(lmo_dir, 8, R2, t2)
+    out = refiner.refine(image, K, [Start(8, first.R, first.t, PRIOR)], colours=[first.colours])[0]
+    rot, depth, px = errors(out.R, out.t, R2, t2, meshes[8][0])
+    assert out.refined and rot < 0.5 and depth < 0.5 and px < 0.5, (rot, depth, px)
+    assert not np.array_equal(out.colours.foreground, first.colours.foreground)  # this frame's colours blended in
+    with pytest.raises(ValueError, match="colour histograms for"):
+        refiner.refine(image, K, [Start(8, first.R, first.t)], colours=[])
+
+
+def test_the_estimator_follows_its_poses_by_their_contours(tmp_path, lmo_dir):
+    """`Estimator.follow`: each last pose moved to this frame by its contour alone, `ok` False where it was lost."""
+    from conftest import save_tiny_estimator
+
+    from axispose_core.estimator import EstimateOptions, Estimator
+
+    est = Estimator.load(save_tiny_estimator(tmp_path / "tiny.safetensors", lmo_dir / "models"))
+    R, t = Rotation.random(random_state=6).as_matrix(), np.array([0.0, 0.0, 0.6])
+    image = scene(lmo_dir, 5, R, t)
+    last = est.estimate(image, K, [(5, (250.0, 170.0, 140.0, 140.0))], EstimateOptions(steps=1))[0]
+    last = dataclasses.replace(last, R=R, t=t * 1.01, ok=True, colours=None)
+    out = est.follow(image, K, [last], [(R, t * 1.01, PRIOR)])[0]
+    assert out.ok and out.refined and out.colours is not None and abs(out.t[2] / t[2] - 1) < 0.005
+    lost = est.follow(np.full_like(image, 90), K, [out], [(R, t, PRIOR)])[0]
+    assert not lost.ok and lost.refine_kept and lost.reason.startswith("contour")

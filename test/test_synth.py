@@ -214,6 +214,33 @@ def test_a_camera_path_films_one_world(meshes):
     assert np.array_equal(render_image(cfg, meshes, diameters, 0, 2).rgb, frames[2].rgb)
 
 
+def test_a_camera_stream_sweeps_smears_passes_occluders_and_keeps_its_cameras_settings(meshes):
+    """A stream as a hand-held camera films one: the view sweeps (the world turns far more than the orbit), frames
+    are smeared along their motion and their exposure walks, an occluder crosses the view once (an unannotated
+    mesh that hides the objects for a while), and the camera's own settings (white balance, tone) stay put."""
+    from axispose_core.data.synth.config import CameraPathConfig
+    from axispose_core.data.synth.generate import passers, sample_world
+
+    path = CameraPathConfig(orbit_deg=0.5, shake_deg=0.0, shake_m=0.0, sweep_deg=20.0, sweep_frames=40, shutter=0.5, gain_walk=0.1,
+                            passers=1, pass_frames=6)  # fmt: skip
+    cfg = dataclasses.replace(CFG, images_per_scene=20, camera_path=path)
+    diameters = {i: 2 * float(np.linalg.norm(m.vertices, axis=1).max()) for i, m in meshes.items()}
+    world = sample_world(cfg, meshes, diameters, np.random.default_rng([cfg.seed, 0, 0]))
+    crossing = passers(cfg, world, np.random.default_rng([cfg.seed, 0, 0, 3]))[0]
+    k = crossing.start
+    frames = {j: render_image(cfg, meshes, diameters, 0, j) for j in (0, k - 1, k + 2, k + 3)}
+    first, later = frames[0].gt[0], frames[k + 3].gt[0]
+    turned = np.degrees(np.arccos(np.clip((np.trace(later.R @ first.R.T) - 1) / 2, -1, 1)))
+    assert turned > 0.5 * (k + 3) + 2.0  # the sweep on top of the orbit
+    K = np.asarray(cfg.K).reshape(3, 3)
+    assert crossing.pose(k - 1, 6, K, cfg.width) is None and crossing.pose(k + 2, 6, K, cfg.width) is not None
+    visible = [sum(i.px_count_visib for i in frames[j].info) for j in (k - 1, k + 2)]
+    assert len(frames[k + 2].gt) == len(frames[k - 1].gt) and visible[1] != visible[0]
+    assert np.array_equal(render_image(cfg, meshes, diameters, 0, k + 2).rgb, frames[k + 2].rgb)  # repeatable
+    balance = [frames[j].rgb.reshape(-1, 3).mean(axis=0) for j in (0, k - 1)]
+    np.testing.assert_allclose(balance[0] / balance[0][1], balance[1] / balance[1][1], rtol=0.05)  # one white balance
+
+
 def test_the_cli_changes_the_recipes_look_and_scenes_where_told_and_refuses_a_bad_change(lmo_dir, tmp_path, capsys):
     from axispose_core.cli import main
     from axispose_core.data.synth.config import recipe

@@ -415,3 +415,50 @@ def test_the_cameras_motion_between_frames_is_the_one_most_objects_agree_on():
     np.testing.assert_allclose(motion[:3, 3], pivot - turn @ pivot, atol=1e-9)
     assert off[2] == pytest.approx(0.05) and max(off[:2] + off[3:]) < 1e-9
     assert camera_motion(before, [], tol=0.02) is None
+
+
+@dataclass
+class Followed(Pose):
+    contour_agreement: float = 0.9
+
+
+def test_followed_tracks_are_measured_by_their_contours_and_the_agm_poses_only_the_lost():
+    """With a follower every track's pose on every frame is its contour's, the localiser runs every period and poses
+    nothing it already follows; a contour that loses its object (low agreement) gets the AGM's pose on the same
+    frame, which starts its track again; a track lost to both ends after `max_misses` frames."""
+    scene = _scene()
+    tracker = Tracker(TrackingConfig(redetect_period=4, max_misses=2))
+    asked, agreement = [], {1: 0.9, 5: 0.9}
+
+    def follow(last: list, predicted: list) -> list[Followed]:
+        asked.append(len(last))
+        assert len(predicted) == len(last)
+        out = []
+        for m in last:
+            obj = next(o for o, (_, tg) in scene.poses.items() if np.linalg.norm(tg - m.t) < 0.05)
+            R_true, t_true = scene.poses[obj]
+            out.append(Followed(True, R_true, t_true + 0.001, COV, agreement[obj]))
+        return out
+
+    def step(k: int) -> list:
+        return tracker.step(k / 30, K, scene.detect, scene.estimate, follow)
+
+    first = step(0)  # nothing to follow yet: the localiser, and the AGM poses both
+    assert len(first) == 2 and asked == [] and len(scene.crops) == 1
+    for k in range(1, 4):
+        poses = step(k)
+        assert len(poses) == 2 and all(p.accepted for p in poses)
+    assert asked == [2, 2, 2] and len(scene.crops) == 1  # followed: no AGM
+    assert scene.detect_calls == 1 and tracker.counts["followed"] == 6
+    poses = step(4)  # the localiser's period: it finds the followed objects again and poses nothing
+    assert scene.detect_calls == 2 and len(scene.crops) == 1 and len(poses) == 2
+    agreement[5] = 0.3  # object 5's contour is lost: the AGM poses it on the same frame and its track starts again
+    poses = step(5)
+    assert [c.obj_id for c in scene.crops[-1]] == [5] and tracker.counts["contour_lost"] == 1
+    assert tracker.counts["tracks_reinitialised"] == 1 and {p.obj_id for p in poses} == {1, 5}
+    scene.refuse = {5}  # lost to its contour and to the AGM: the track ends after max_misses frames
+    ids = {p.track_id for p in poses}
+    for k in range(6, 9):
+        poses = step(k)
+    assert {p.obj_id for p in poses} == {1} and tracker.counts["ended_misses"] == 1
+    assert {p.track_id for p in poses} < ids  # object 1 kept its track throughout

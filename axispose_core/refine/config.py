@@ -40,6 +40,11 @@ class RefineConfig:
     pixel): coarse passes reach far, fine ones place the contour to the pixel."""
     sigmas: tuple[float, ...] = (15.0, 5.0, 3.5, 1.5, 1.5, 1.5, 1.5)
     """Per pass: the user-set standard deviation (px) that weighs the lines against the regularisation (ICG's)."""
+    track_scales: tuple[float, ...] = (0.01, 0.0, 0.0)
+    """`scales` when following a tracked object from its predicted pose, with the colours it learned on the frames
+    before (`ContourRefiner.refine(..., colours=...)`): a frame apart, the pose is near."""
+    track_sigmas: tuple[float, ...] = (3.5, 1.5, 1.5)
+    """`sigmas` when following."""
     newton_steps: int = 2
     """Gauss-Newton steps per correspondence pass, each pulling every line's contour offset towards the mean of its
     distribution (ICG's global step; its later steps along the distributions' local slopes overshoot on sharp
@@ -75,8 +80,9 @@ class RefineConfig:
             raise ValueError("refine: function_length and distribution_length must be even and at least 2")
         if self.histogram_bins not in (2, 4, 8, 16, 32, 64):
             raise ValueError(f"refine.histogram_bins must be 2, 4, 8, 16, 32 or 64, got {self.histogram_bins}")
-        if not self.scales or len(self.sigmas) != len(self.scales) or min(self.sigmas) <= 0 or min(self.scales) < 0:
-            raise ValueError("refine: scales and sigmas need one non-negative scale and one positive sigma per pass")
+        for scales, sigmas in ((self.scales, self.sigmas), (self.track_scales, self.track_sigmas)):
+            if not scales or len(sigmas) != len(scales) or min(sigmas) <= 0 or min(scales) < 0:
+                raise ValueError("refine: scales and sigmas need one non-negative scale and one positive sigma per pass")
         if not 0 < self.histogram_rate <= 1 or not 0 < self.function_amplitude < 0.5 or self.function_slope < 0:
             raise ValueError("refine: histogram_rate in (0, 1], function_amplitude in (0, 0.5) and function_slope >= 0")
         if self.lines < 8 or self.lines > self.viewpoints.points or self.newton_steps < 1 or self.min_lines < 1:

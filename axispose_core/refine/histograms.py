@@ -27,6 +27,9 @@ class ColourHistograms:
         uniform = np.full(bins**3, 1.0 / bins**3)
         return cls(uniform.copy(), uniform.copy())
 
+    def copy(self) -> ColourHistograms:
+        return ColourHistograms(self.foreground.copy(), self.background.copy())
+
     def learn(self, foreground_bins: np.ndarray, background_bins: np.ndarray, rate: float) -> None:
         """Blend in the colours seen now (bin indices of foreground and background samples) with weight `rate`
         (1: forget what was learned); a side with no samples keeps what it had."""

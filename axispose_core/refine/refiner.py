@@ -63,6 +63,9 @@ class Refinement:
     reason: str = ""
     lines: float = 0.0
     agreement: float = float("nan")
+    colours: ColourHistograms | None = None
+    """The object's and its surroundings' colours as learned here (None where no pass ran): what a tracker carries
+    to the next frame."""
 
 
 @dataclass
@@ -77,6 +80,10 @@ class _State:
     precision: np.ndarray
     """The prior's (6,6) information in (ω, δ), zero without one."""
     histograms: ColourHistograms
+    schedule: tuple[tuple[float, ...], tuple[float, ...]]
+    """Its passes' scales and sigmas."""
+    carried: bool = False
+    """The histograms came from earlier frames: blend this frame's colours in from the first pass."""
     table: np.ndarray | None = None
     """The histograms' P(foreground | colour), as last learned."""
     hessian: np.ndarray = field(default_factory=lambda: np.zeros((6, 6)))
@@ -131,9 +138,17 @@ class ContourRefiner:
         for obj_id in self.meshes if obj_ids is None else obj_ids:
             self.model(obj_id)
 
-    def refine(self, image_rgb: np.ndarray, K: np.ndarray, starts: Sequence[Start]) -> list[Refinement]:
-        """Each start refined on the image (H,W,3 uint8 RGB) seen through K; one Refinement per start, in order."""
+    def refine(
+        self, image_rgb: np.ndarray, K: np.ndarray, starts: Sequence[Start], colours: Sequence[ColourHistograms | None] | None = None
+    ) -> list[Refinement]:
+        """Each start refined on the image (H,W,3 uint8 RGB) seen through K; one Refinement per start, in order.
+        `colours`, per start, what it learned on earlier frames (a track's, `Refinement.colours`): such a start is
+        followed (`track_scales`, a short schedule from a near pose) and its colours blended with this frame's; the
+        others take the whole schedule (`scales`)."""
         cfg = self.config
+        colours = list(colours) if colours is not None else [None] * len(starts)
+        if len(colours) != len(starts):
+            raise ValueError(f"{len(colours)} colour histograms for {len(starts)} starts")
         K = np.asarray(K, dtype=np.float64)
         shape = image_rgb.shape[:2]
         bins = colour_bins(image_rgb, cfg.histogram_bins)
@@ -146,22 +161,25 @@ class ContourRefiner:
                 kept[i] = "invalid"
             elif K[0, 0] * self.diameters[s.obj_id] * s.scale / s.t[2] < cfg.min_size:
                 kept[i] = "small"
-            states.append(None if i in kept else self._state(s))
-        for scale_fraction, sigma in zip(cfg.scales, cfg.sigmas, strict=True):
-            live = [s for s in states if s is not None and not s.reason]
+            states.append(None if i in kept else self._state(s, colours[i]))
+        for k in range(max(len(cfg.scales), len(cfg.track_scales))):
+            live = [s for s in states if s is not None and not s.reason and k < len(s.schedule[0])]
             masks = self._occluders(live, K, shape)
             for s, occluded in zip(live, masks, strict=True):
-                scale = max(1, round(scale_fraction * K[0, 0] * s.diameter / s.t[2]))
-                self._pass(s, bins, K, scale, sigma, occluded)
+                scale = max(1, round(s.schedule[0][k] * K[0, 0] * s.diameter / s.t[2]))
+                self._pass(s, bins, K, scale, s.schedule[1][k], occluded)
         out = []
         for i, (start, s) in enumerate(zip(starts, states, strict=True)):
             out.append(self._finish(start, s, bins, K, kept.get(i, "")))
         return out
 
-    def _state(self, s: Start) -> _State:
+    def _state(self, s: Start, colours: ColourHistograms | None) -> _State:
         info = _information(s.covariance) if self.config.prior else None
+        cfg = self.config
+        learned = colours.copy() if colours is not None else ColourHistograms.empty(cfg.histogram_bins)
+        schedule = (cfg.track_scales, cfg.track_sigmas) if colours is not None else (cfg.scales, cfg.sigmas)
         return _State(s, self.model(s.obj_id), self.diameters[s.obj_id] * s.scale, np.asarray(s.R, float), np.asarray(s.t, float),
-                      np.zeros((6, 6)) if info is None else info, ColourHistograms.empty(self.config.histogram_bins))  # fmt: skip
+                      np.zeros((6, 6)) if info is None else info, learned, schedule, carried=colours is not None)  # fmt: skip
 
     def _occluders(self, states: list[_State], K: np.ndarray, shape: tuple[int, int]) -> list[np.ndarray]:
         """Per object, the mask of the frame's objects nearer the camera than it (their outline polygons)."""
@@ -236,14 +254,14 @@ class ContourRefiner:
             x, y = q[..., 0][ok], q[..., 1][ok]
             keep = occluded[y, x] == 0
             sides.append(bins[y[keep], x[keep]])
-        first = s.lines is None
-        s.histograms.learn(sides[0], sides[1], 1.0 if first else cfg.histogram_rate)
+        fresh = s.lines is None and not s.carried
+        s.histograms.learn(sides[0], sides[1], 1.0 if fresh else cfg.histogram_rate)
 
     def _finish(self, start: Start, s: _State | None, bins: np.ndarray, K: np.ndarray, reason: str) -> Refinement:
         """The refined pose with its covariance and agreement, or the start kept with the reason."""
         if s is None or s.reason or s.lines is None:
             return Refinement(start.R, start.t, start.covariance, False, reason or (s.reason if s else "") or "few_lines",
-                              s.valid if s else 0.0)  # fmt: skip
+                              s.valid if s else 0.0, colours=s.histograms if s and s.lines is not None else None)  # fmt: skip
         cfg = self.config
         H = -s.hessian + s.precision
         jump = (_rotvec(s.R @ s.start.R.T), s.t - s.start.t)
@@ -251,17 +269,17 @@ class ContourRefiner:
             C = np.asarray(start.covariance, dtype=float)
             d2 = (float(jump[1] @ np.linalg.solve(C[:3, :3], jump[1])), float(jump[0] @ np.linalg.solve(C[3:, 3:], jump[0])))
             if max(d2) > cfg.max_jump:
-                return Refinement(start.R, start.t, start.covariance, False, "run_away", s.valid)
+                return Refinement(start.R, start.t, start.covariance, False, "run_away", s.valid, colours=s.histograms)
         agreement = self._agreement(s, bins, K)
         if agreement < cfg.min_agreement:
-            return Refinement(start.R, start.t, start.covariance, False, "no_contrast", s.valid, agreement)
+            return Refinement(start.R, start.t, start.covariance, False, "no_contrast", s.valid, agreement, s.histograms)
         try:
             cov = np.linalg.inv(H + np.eye(6) * 1e-9)[np.ix_(_ORDER, _ORDER)]
             d = np.sqrt(np.repeat(cfg.covariance_scale, 3))
             cov = (cov + cov.T) / 2 * np.outer(d, d)
         except np.linalg.LinAlgError:
             cov = start.covariance
-        return Refinement(s.R, s.t, cov, True, "", s.valid, agreement)
+        return Refinement(s.R, s.t, cov, True, "", s.valid, agreement, s.histograms)
 
     def _agreement(self, s: _State, bins: np.ndarray, K: np.ndarray) -> float:
         """Mean over the object's unoccluded lines at its final pose of P(foreground) in the four pixels inside the

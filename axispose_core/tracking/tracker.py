@@ -1,5 +1,10 @@
 """Tracks across a camera stream: each object instance keeps an id, a filtered pose and the box it is cropped from.
 
+Where the estimator can follow objects by their contours (`follow`: its contour refiner, from each track's predicted
+pose with the colours the track learned), every track is followed on every frame and the AGM poses only new
+detections and the tracks whose contour was lost (agreement below `lost_agreement`): its pose re-initialises them.
+Otherwise (below) every tracked object is posed by the estimator:
+
 A tracked object's crop comes from its predicted pose (the box it had, moved with the pose's projection and scaled
 with its depth), so the localiser runs only every `redetect_period` frames, while nothing is tracked, or after a
 track missed a frame or ended (but not when the localiser itself stopped finding it); its detections then refresh
@@ -59,6 +64,9 @@ class TrackingConfig:
     fallback_std: tuple[float, float] = (0.05, 0.35)
     """Measurement noise where the estimator gives no covariance: translation as a fraction of the depth, and
     rotation (rad)."""
+    lost_agreement: float = 0.6
+    """With contour following: a followed contour that separates the object's colours from its surroundings' less
+    than this (0.5: not at all), or that the refiner kept, has lost its object; the AGM poses it on the same frame."""
     filter: FilterConfig = field(default_factory=FilterConfig)
 
 
@@ -126,6 +134,8 @@ class Track:
     """This frame gave a pose (accepted or refused at the gate)."""
     last: Measurement | None = None
     """The latest pose the estimator gave for it."""
+    lost: bool = False
+    """Its contour was lost on this frame: the AGM's pose re-initialises it."""
 
 
 @dataclass(frozen=True)
@@ -146,6 +156,11 @@ class TrackedPose:
     """The box the object was cropped from."""
     measured: bool = True
     """The track was posed on this frame (False: not its turn, `measure_every`; `measurement` is its latest)."""
+
+
+Follower = Callable[[list[Measurement], list[tuple[np.ndarray, np.ndarray, np.ndarray]]], Sequence[Measurement]]
+"""(each track's last measurement, its predicted (R, t, covariance)) -> each track's pose on this frame by its contour
+(`Estimator.follow`): `ok` False where the contour was lost; its `contour_agreement` is read where it has one."""
 
 
 def _project(K: np.ndarray, t: np.ndarray) -> np.ndarray:
@@ -199,22 +214,49 @@ class Tracker:
         self._frame = 0
 
     def step(
-        self, stamp: float, K: np.ndarray, detect: Callable[[], Sequence[Detected]], estimate: Callable[[list[Crop]], Sequence[Measurement]]
+        self,
+        stamp: float,
+        K: np.ndarray,
+        detect: Callable[[], Sequence[Detected]],
+        estimate: Callable[[list[Crop]], Sequence[Measurement]],
+        follow: Follower | None = None,
     ) -> list[TrackedPose]:
-        """One frame: resets and timeouts, prediction, the localiser where due, one estimator batch (of the crops
-        without a pose), the updates."""
+        """One frame: resets and timeouts, prediction, the tracks followed by their contours (with `follow`), the
+        localiser where due, one estimator batch (of the crops without a pose), the updates."""
         self._start_frame(stamp, K)
+        out = self._follow(follow, K, stamp) if follow is not None else []
+        followed = {pose.track_id for pose in out}
         detecting = self._detection_due()
-        crops = self._track_crops(K, every=detecting)
+        crops = self._track_crops(K, every=detecting, skip=followed)
         if detecting:
-            crops = self._with_detections(crops, detect())
+            crops = self._with_detections(crops, detect(), [tr for tr in self.tracks if tr.id in followed], K)
             self._count("localiser_runs")
         measurements = _measurements(crops, estimate)
-        out = [self._measure(crop, m, K, stamp) for crop, m in zip(crops, measurements, strict=True)]
-        cropped = {c.track for c in crops}
+        self._count("frames_followed" if follow is not None and not crops else "frames_estimated")
+        out += [self._measure(crop, m, K, stamp) for crop, m in zip(crops, measurements, strict=True)]
+        cropped = {c.track for c in crops} | followed
         out += [self._predicted(tr, K) for tr in self.tracks if tr.id not in cropped and not tr.measured and tr.last is not None]
         self._end_tracks()
         self._frame += 1
+        return [pose for pose in out if pose is not None]
+
+    def _follow(self, follow: Follower, K: np.ndarray, stamp: float) -> list[TrackedPose]:
+        """Every track followed by its contour from its prediction: a pose whose contour held is the track's
+        measurement; a track whose contour was lost gets a crop for the AGM on this frame."""
+        tracks = [tr for tr in self.tracks if tr.last is not None]
+        if not tracks:
+            return []
+        results = follow([tr.last for tr in tracks], [(tr.filter.R, tr.filter.t, tr.filter.covariance) for tr in tracks])
+        if len(results) != len(tracks):
+            raise ValueError(f"the follower gave {len(results)} poses for {len(tracks)} tracks")
+        out = []
+        for tr, m in zip(tracks, results, strict=True):
+            if m.ok and getattr(m, "contour_agreement", 1.0) >= self.config.lost_agreement:
+                out.append(self._measure(Crop(tr.obj_id, self._predicted_box(tr, K), tr.score, tr.id), m, K, stamp))
+                self._count("followed")
+            else:
+                tr.lost = True
+                self._count("contour_lost")
         return [pose for pose in out if pose is not None]
 
     def _start_frame(self, stamp: float, K: np.ndarray) -> None:
@@ -226,7 +268,7 @@ class Tracker:
         self._end("timeout", lambda tr: stamp - tr.updated > self.config.track_timeout)
         for tr in self.tracks:
             tr.filter.predict(stamp - tr.stamp)
-            tr.stamp, tr.measured = stamp, False
+            tr.stamp, tr.measured, tr.lost = stamp, False, False
         self._end("behind", lambda tr: tr.filter.t[2] <= MIN_DEPTH)  # a filter run off behind the camera
 
     def _predicted_box(self, tr: Track, K: np.ndarray) -> Box:
@@ -236,10 +278,11 @@ class Tracker:
         w, h = tr.box[2] * scale, tr.box[3] * scale
         return (cx - w / 2, cy - h / 2, w, h)
 
-    def _track_crops(self, K: np.ndarray, every: bool) -> list[Crop]:
-        """The crops of the tracks whose turn it is (`measure_every`), or of `every` track."""
+    def _track_crops(self, K: np.ndarray, every: bool, skip: set[int]) -> list[Crop]:
+        """The crops of the tracks whose turn it is (`measure_every`), or of `every` track, but those followed
+        (`skip`): a track its contour lost, every time."""
         n = max(1, self.config.measure_every)
-        due = [tr for tr in self.tracks if every or (self._frame + tr.id) % n == 0]  # a refused crop sets `every`
+        due = [tr for tr in self.tracks if tr.id not in skip and (every or tr.lost or (self._frame + tr.id) % n == 0)]
         return [Crop(tr.obj_id, self._predicted_box(tr, K), tr.score, tr.id, (tr.filter.R, tr.filter.t)) for tr in due]
 
     def _predicted(self, tr: Track, K: np.ndarray) -> TrackedPose:
@@ -254,9 +297,17 @@ class Tracker:
         self._lost = False
         return due
 
-    def _with_detections(self, crops: list[Crop], detections: Sequence[Detected]) -> list[Crop]:
-        """Each detection refreshes the box of the nearest track of its object (`match_iou`, `match_distance`) or
-        becomes a new crop; a track no detection refreshed is unseen once more (`max_unseen`)."""
+    def _with_detections(self, crops: list[Crop], detections: Sequence[Detected], followed: list[Track], K: np.ndarray) -> list[Crop]:
+        """A detection near a track its contour followed on this frame is that track's (nothing to pose); each
+        other refreshes the box of the nearest track of its object (`match_iou`, `match_distance`) or becomes a new
+        crop; a track no detection found is unseen once more (`max_unseen`)."""
+        detections = list(detections)
+        for tr in followed:
+            box = self._predicted_box(tr, K)
+            near = [(d, j) for j, det in enumerate(detections) if det.obj_id == tr.obj_id and (d := self._match(box, det.box)) is not None]
+            tr.unseen = 0 if near else tr.unseen + 1
+            if near:
+                detections.pop(min(near)[1])
         crops = list(crops)
         pairs = sorted((d, i, j) for i, c in enumerate(crops) for j, det in enumerate(detections)
                        if c.obj_id == det.obj_id and (d := self._match(c.box, det.box)) is not None)  # fmt: skip
@@ -296,6 +347,15 @@ class Tracker:
         tr = tr or self._nearby_track(crop.obj_id, m.t)
         if tr is None:
             tr = self._start_track(crop, m, cov, stamp)
+            return self._output(tr, m, True, K, crop.box)
+        if tr.lost:  # its contour lost it: the AGM's pose starts it again, if that one holds
+            tr.lost = False
+            if getattr(m, "contour_agreement", 1.0) < self.config.lost_agreement:
+                tr.misses += 1
+                return None
+            tr.filter = PoseFilter.start(self.config.filter, m.R, m.t, cov)
+            tr.misses, tr.measured, tr.score, tr.last, tr.updated = 0, True, crop.score, m, stamp
+            self._count("tracks_reinitialised")
             return self._output(tr, m, True, K, crop.box)
         tr.misses, tr.measured, tr.score, tr.last = 0, True, crop.score, m
         accepted, _ = tr.filter.update(m.R, m.t, cov)

@@ -212,8 +212,9 @@ class RandomizationConfig:
 @dataclass(frozen=True)
 class CameraPathConfig:
     """A scene filmed as a sequence: the camera orbits the objects' centre (about the table's normal; without a
-    table, about the camera's vertical) and shakes as a hand-held one does, so consecutive images share one
-    world, seen a little differently. Lighting stays with the camera; the background photograph is far away."""
+    table, about the camera's vertical), sweeps its view to and fro, and shakes as a hand-held one does, so
+    consecutive images share one world, seen a little differently; objects leave the view and come back, occluders
+    cross it. Lighting stays with the camera; the background photograph is far away."""
 
     orbit_deg: float = 1.0
     """Orbit per image (degrees)."""
@@ -221,6 +222,20 @@ class CameraPathConfig:
     """Standard deviation per image of the random walk of the camera's orientation (degrees)."""
     shake_m: float = 0.002
     """Standard deviation per image of the random walk of the camera's position (m)."""
+    sweep_deg: float = 0.0
+    """Amplitude of a pan (and half as much tilt) of the camera about its own centre (degrees): objects leave the
+    view and come back."""
+    sweep_frames: float = 150.0
+    """Images per sweep cycle (the tilt's is 1.6 times as long)."""
+    shutter: float = 0.0
+    """Fraction of the interval between images the shutter is open: each image is smeared along the motion of the
+    objects' centre in it since the one before (0: no motion blur)."""
+    gain_walk: float = 0.0
+    """Standard deviation per image of the random walk of the exposure's log gain (held within ±0.4)."""
+    passers: int = 0
+    """Occluders that cross the view once each, between the camera and the objects, at a random time."""
+    pass_frames: int = 60
+    """Images an occluder takes to cross the view."""
 
 
 @dataclass(frozen=True)

@@ -35,7 +35,7 @@ from axispose_core.data.bop import (
 from axispose_core.data.meshes import load_render_mesh
 from axispose_core.data.synth.clutter import distractor_mesh, lookalike
 from axispose_core.data.synth.config import TABLE_TEXTURE, CameraPathConfig, SynthConfig
-from axispose_core.data.synth.randomize import background, camera_effects, cutouts, light, object_tint
+from axispose_core.data.synth.randomize import background, camera_effects, cutouts, light, motion_blur, object_tint
 from axispose_core.data.synth.raster import Light, RenderMesh, render
 from axispose_core.data.synth.scene import Placement, primitive, sample_scene
 from axispose_core.data.synth.table import Table, light_from_above, rest_on, shade_table, table_pixels
@@ -118,10 +118,12 @@ def moved(world: World, R: np.ndarray, t: np.ndarray) -> World:
 
 def camera_motion(path: CameraPathConfig, world: World, count: int, rng: np.random.Generator) -> list[tuple[np.ndarray, np.ndarray]]:
     """The first camera's points in each of `count` cameras along the path, (R, t) per image (identity first):
-    an orbit about the target objects' centre, composed with a random walk of the camera's pose."""
+    an orbit about the target objects' centre, composed with a random walk of the camera's pose and a sweep of
+    its view about its own centre."""
     targets = [p.t for p in world.placements if p.obj_id] or [p.t for p in world.placements]
     centre = np.mean(targets, axis=0)
     axis = world.table.normal if world.table is not None else np.array([0.0, -1.0, 0.0])
+    phase = rng.uniform(0, 2 * np.pi, 2) if path.sweep_deg > 0 else np.zeros(2)
     shake_R, shake_t = np.eye(3), np.zeros(3)
     out = []
     for k in range(count):
@@ -130,12 +132,70 @@ def camera_motion(path: CameraPathConfig, world: World, count: int, rng: np.rand
             shake_t = shake_t + rng.normal(0.0, path.shake_m, 3)
         orbit = Rotation.from_rotvec(-np.radians(path.orbit_deg * k) * axis).as_matrix()
         R = shake_R @ orbit
-        out.append((R, shake_R @ (centre - orbit @ centre) + shake_t))
+        t = shake_R @ (centre - orbit @ centre) + shake_t
+        if path.sweep_deg > 0:  # pan about the camera's y, tilt about its x, both starting at zero
+            w = 2 * np.pi * k / path.sweep_frames
+            pan = path.sweep_deg * (np.sin(w + phase[0]) - np.sin(phase[0]))
+            tilt = 0.5 * path.sweep_deg * (np.sin(w / 1.6 + phase[1]) - np.sin(phase[1]))
+            sweep = Rotation.from_euler("yx", [pan, tilt], degrees=True).as_matrix()
+            R, t = sweep @ R, sweep @ t
+        out.append((R, t))
     return out
 
 
-def render_world(cfg: SynthConfig, world: World, meshes: dict[int, RenderMesh], rng: np.random.Generator) -> SynthImage:
-    """The camera's image of `world`: render, table, cut-outs, lens and sensor (from `rng`), and the annotations."""
+@dataclass(frozen=True)
+class Passer:
+    """An occluder crossing the view: its mesh, rotation, the image it enters at, its height and depth in the
+    camera's frame (m) and the side it comes from (±1)."""
+
+    mesh: RenderMesh
+    R: np.ndarray
+    start: int
+    y: float
+    z: float
+    side: float
+
+    def pose(self, k: int, frames: int, K: np.ndarray, width: int) -> tuple[np.ndarray, np.ndarray] | None:
+        """Its camera-frame pose at image k, None outside its crossing (from beyond one edge to beyond the other)."""
+        if not self.start <= k < self.start + frames:
+            return None
+        reach = self.z * (0.5 * width / K[0, 0]) + float(np.linalg.norm(self.mesh.vertices, axis=1).max())
+        x = self.side * reach * (2 * (k - self.start) / max(1, frames - 1) - 1)
+        return self.R, np.array([x + self.z * (K[0, 2] - 0.5 * width) / K[0, 0], self.y, self.z])
+
+
+def passers(cfg: SynthConfig, world: World, rng: np.random.Generator) -> list[Passer]:
+    """The scene's occluders that cross the view (`CameraPathConfig.passers`): library meshes 4-8 cm across at 40-80 %
+    of the objects' depth."""
+    path = cfg.camera_path
+    if path is None or path.passers <= 0:
+        return []
+    depth = float(np.median([p.t[2] for p in world.placements if p.obj_id] or [0.8]))
+    out = []
+    for _ in range(path.passers):
+        mesh = distractor_mesh(rng, rng.uniform(0.04, 0.08), cfg.scene.distractor_split, cfg.randomization.background)
+        start = int(rng.integers(0, max(1, cfg.images_per_scene - path.pass_frames)))
+        z = depth * rng.uniform(0.4, 0.8)
+        y = z * rng.uniform(-0.25, 0.25) * cfg.height / (np.asarray(cfg.K).reshape(3, 3)[1, 1])
+        out.append(Passer(mesh, Rotation.random(random_state=int(rng.integers(2**31))).as_matrix(), start, y, z, rng.choice([-1.0, 1.0])))
+    return out
+
+
+@dataclass(frozen=True)
+class Exposure:
+    """A frame of a camera path: the camera's settings (lens, white balance, tone; drawn from `sensor`, the scene's
+    generator, so every frame shares them), the frame's smear (length in px, angle in degrees) and gain."""
+
+    sensor: np.random.Generator
+    smear: tuple[float, float] = (0.0, 0.0)
+    gain: float = 1.0
+
+
+def render_world(cfg: SynthConfig, world: World, meshes: dict[int, RenderMesh], rng: np.random.Generator,
+                 exposure: Exposure | None = None) -> SynthImage:  # fmt: skip
+    """The camera's image of `world`: render, table, cut-outs, lens and sensor (from `rng`), and the annotations;
+    a camera path's frame (`exposure`) without cut-outs (its occluders move through the world), with its smear,
+    gain and the camera's settings."""
     K = np.asarray(cfg.K, dtype=np.float64).reshape(3, 3)
     w, h = cfg.width, cfg.height
     rcfg, table, placements = cfg.randomization, world.table, world.placements
@@ -145,8 +205,14 @@ def render_world(cfg: SynthConfig, world: World, meshes: dict[int, RenderMesh], 
         points, table_depth = table_pixels(table, K, w, h)
         bg = np.where(np.isfinite(table_depth)[..., None], shade_table(table, points, table_depth, world.light, res.shadows), bg)
     image = np.where(res.instance[..., None] >= 0, res.rgb.astype(np.float32), bg)
-    occluded = cutouts(rng, rcfg, image)
-    image = camera_effects(rng, rcfg.sensor, image)
+    if exposure is None:
+        occluded = cutouts(rng, rcfg, image)
+        image = camera_effects(rng, rcfg.sensor, image)
+    else:
+        occluded = np.zeros(image.shape[:2], dtype=bool)
+        if exposure.smear[0] >= 0.5:
+            image = motion_blur(image, *exposure.smear)
+        image = camera_effects(exposure.sensor, rcfg.sensor, np.clip(image * np.float32(exposure.gain), 0, 1), noise=rng)
     quality = int(rng.integers(rcfg.sensor.jpeg_quality[0], rcfg.sensor.jpeg_quality[1] + 1))
     gt, info, masks, masks_visib = [], [], [], []
     for i, p in enumerate(placements):
@@ -180,9 +246,39 @@ def render_image(cfg: SynthConfig, meshes: dict[int, RenderMesh], diameters: dic
         return render_world(cfg, sample_world(cfg, meshes, diameters, rng), meshes, rng)
     rng = np.random.default_rng([cfg.seed, scene_id, 0])
     world = sample_world(cfg, meshes, diameters, rng)
-    path_rng = np.random.default_rng([cfg.seed, scene_id, 0, 1])
-    R, t = camera_motion(cfg.camera_path, world, im_id + 1, path_rng)[im_id]
-    return render_world(cfg, moved(world, R, t), meshes, np.random.default_rng([cfg.seed, scene_id, im_id, 2]))
+    path = cfg.camera_path
+    cameras = camera_motion(path, world, im_id + 1, np.random.default_rng([cfg.seed, scene_id, 0, 1]))
+    R, t = cameras[im_id]
+    seen = moved(world, R, t)
+    K = np.asarray(cfg.K, dtype=np.float64).reshape(3, 3)
+    for passer in passers(cfg, world, np.random.default_rng([cfg.seed, scene_id, 0, 3])):
+        if (pose := passer.pose(im_id, path.pass_frames, K, cfg.width)) is not None:
+            radius = float(np.linalg.norm(passer.mesh.vertices, axis=1).max())
+            seen.placements.append(Placement(0, *pose, radius))
+            seen.posed.append((passer.mesh, *pose))
+    scene_rngs = (np.random.default_rng([cfg.seed, scene_id, 0, 4]), np.random.default_rng([cfg.seed, scene_id, 0, 5]))
+    return render_world(cfg, seen, meshes, np.random.default_rng([cfg.seed, scene_id, im_id, 2]), _exposure(path, world, cameras, K,
+                        *scene_rngs))  # fmt: skip
+
+
+def _exposure(path: CameraPathConfig, world: World, cameras: list[tuple[np.ndarray, np.ndarray]], K: np.ndarray,
+              gains: np.random.Generator, sensor: np.random.Generator) -> Exposure:  # fmt: skip
+    """The last camera's smear (the objects' centre's image motion since the camera before, times the shutter) and
+    gain (a random walk along the path, drawn from `gains`, the scene's: each image draws the same steps before its
+    own), with the scene's `sensor` generator for the camera's settings."""
+    smear = (0.0, 0.0)
+    if path.shutter > 0 and len(cameras) > 1:
+        centre = np.mean([p.t for p in world.placements if p.obj_id] or [p.t for p in world.placements], axis=0)
+        (R0, t0), (R1, t1) = cameras[-2], cameras[-1]
+        a, b = K @ (R0 @ centre + t0), K @ (R1 @ centre + t1)
+        d = b[:2] / b[2] - a[:2] / a[2]
+        smear = (path.shutter * float(np.hypot(*d)), float(np.degrees(np.arctan2(d[1], d[0]))))
+    gain = 1.0
+    if path.gain_walk > 0:
+        steps = gains.normal(0.0, path.gain_walk, len(cameras))
+        steps[0] = 0.0
+        gain = float(np.exp(np.clip(np.cumsum(steps)[-1], -0.4, 0.4)))
+    return Exposure(sensor, smear, gain)
 
 
 def generate_scene(cfg: SynthConfig, meshes: dict[int, RenderMesh], diameters: dict[int, float], out: Path, scene_id: int) -> int:

@@ -213,13 +213,15 @@ def camera_effects(
     scale: float = 1.0,
     origin: tuple[float, float] = (0.0, 0.0),
     frame: tuple[int, int] | None = None,
+    noise: np.random.Generator | None = None,
 ) -> np.ndarray:
     """The camera between scene and pixels: optical blur, lateral chromatic aberration and vignetting, motion blur,
     white balance, contrast and saturation, gamma, a low dynamic range, sensor noise (more of it in the dark where
     `noise_shot` says so); JPEG artefacts come from saving (`jpeg` for in-memory images). `scale`: image pixels per
     frame pixel, for lengths given in frame pixels; `origin`: the frame coordinates of the image's top-left
     corner and `frame` the frame's (width, height) (None: the image is the frame), for the effects that grow
-    away from the frame's centre."""
+    away from the frame's centre. `noise`: where the sensor noise's pattern is drawn from (None: `rng`), so that the
+    frames of a video share the camera's settings and not its noise."""
     if rng.uniform() < cfg.blur_prob:
         image = cv2.GaussianBlur(image, (0, 0), max(0.05, scale * rng.uniform(*cfg.blur_sigma)))
     if cfg.chromatic > 0 or cfg.vignetting[1] > 0:
@@ -250,7 +252,7 @@ def camera_effects(
     std = rng.uniform(*cfg.noise_std)
     if std > 0:
         # OpenCV's generator, seeded from ours, is several times faster than NumPy's for a full frame.
-        cv2.setRNGSeed(int(rng.integers(2**31)))
+        cv2.setRNGSeed(int((rng if noise is None else noise).integers(2**31)))
         noise = np.empty(image.shape, np.float32)
         cv2.randn(noise, 0.0, float(std))
         if cfg.noise_shot > 0:  # read noise plus a term that grows as the signal falls (gain in the dark)
