@@ -355,6 +355,16 @@ class Estimator:
         keep = [k for k, s in enumerate(scores) if s >= least]
         return Found([replace(dets[k], score=float(scores[k])) for k in keep], [poses[k] for k in keep], len(dets) - len(keep))
 
+    def verified(self, scores: Sequence[float], poses: list[PoseEstimate], threshold: float | None = None) -> list[PoseEstimate]:
+        """Detections' poses (their localiser `scores`) with those the checkpoint's verifier scores below `threshold`
+        (None: the localiser's) refused (`ok` False, reason "verifier"); all of them as they are without one."""
+        verifier = self.config.verifier
+        if verifier is None or not poses:
+            return poses
+        least = self.localiser.config.threshold if threshold is None else threshold
+        probability = verifier.rescore(scores, [p.fit_covariance if p.ok else None for p in poses])
+        return [p if q >= least or not p.ok else replace(p, ok=False, reason="verifier") for p, q in zip(poses, probability, strict=True)]
+
     def head_depth(self, log_depth: float, K_patch: np.ndarray, scale: float) -> float:
         """The encoder's depth (m) for a crop with intrinsics K_patch, its off-axis bias (`head_offaxis`) taken off."""
         c0, c1 = self.config.head_offaxis

@@ -66,11 +66,15 @@ class FramePoser:
             found = find()
             return Posed(found.poses, [d.score for d in found.detections], [d.box for d in found.detections], [0] * len(found.poses))
 
+        following = self.estimator.refiner is not None and s.refine
+        verifier = self.estimator.config.verifier
+
         def dets() -> list:
-            """The tracker's detections: with a verifier, posed already to score them (the tracker takes those poses);
-            without one, boxes it poses itself."""
-            if self.estimator.config.verifier is None:
-                return [d for d in self.estimator.detect(rgb, s.score_threshold) if d.obj_id in self.published]
+            """The tracker's detections: boxes it poses itself (following, or without a verifier: down to the
+            verifier's least score, the new ones verified once posed); else posed already to score them."""
+            if verifier is None or following:
+                least = s.score_threshold if verifier is None else verifier.min_score
+                return [d for d in self.estimator.detect(rgb, least) if d.obj_id in self.published]
             found = find()
             if refused := sum(not p.ok for p in found.poses):
                 self.count("pose_refused", refused)
@@ -80,20 +84,28 @@ class FramePoser:
             redetect_period=s.redetect_period, measure_every=s.measure_every, track_timeout=s.track_timeout
         )
         follow = None
-        if self.estimator.refiner is not None and s.refine:  # every track followed by its contour, the AGM as needed
+        if following:  # every track followed by its contour; the AGM poses new detections (verified) and lost tracks
 
             def follow(last: list, predicted: list) -> list[PoseEstimate]:
                 return self._count_refined(self.estimator.follow(rgb, K, last, predicted, options))
 
-        return self._tracked(stamp, K, dets, estimate, s.warm_strength > 0, follow)
+        return self._tracked(stamp, K, dets, estimate, s.warm_strength > 0, follow, s.score_threshold)
 
-    def _tracked(self, stamp: float, K: np.ndarray, detect, estimate, warm: bool, follow) -> Posed:
-        """The tracked objects' filtered poses on this frame (followed by their contours where `follow` is given),
+    def _tracked(self, stamp: float, K: np.ndarray, detect, estimate, warm: bool, follow, threshold: float) -> Posed:
+        """The tracked objects' filtered poses on this frame (followed by their contours where `follow` is given; a
+        new detection's pose then verified, below `threshold` refused and counted as `verifier_dropped`),
         warm-started from their predictions where `warm`; crops the estimator refused are counted."""
 
         def measure(crops: list[Crop]) -> list[PoseEstimate]:
             out = estimate([(c.obj_id, c.box) for c in crops], [c.prior for c in crops] if warm else None)
-            if refused := sum(not e.ok for e in out):
+            if follow is not None:
+                new = [k for k, c in enumerate(crops) if c.track is None]
+                checked = self.estimator.verified([crops[k].score for k in new], [out[k] for k in new], threshold)
+                for k, p in zip(new, checked, strict=True):
+                    if out[k].ok and not p.ok:
+                        self.count("verifier_dropped", 1)
+                    out[k] = p
+            if refused := sum(not e.ok and e.reason != "verifier" for e in out):
                 self.count("pose_refused", refused)
             return out
 

@@ -30,7 +30,7 @@ from axispose_core.estimator import SHIPPED_ESTIMATOR, EstimateOptions, Estimato
 from axispose_core.evaluate import instance_scores, object_symmetries
 from axispose_core.tracking.filter import FilterConfig
 from axispose_core.tracking.jitter import PosePair, jitter
-from axispose_core.tracking.tracker import Tracker, TrackingConfig
+from axispose_core.tracking.tracker import Sighting, Tracker, TrackingConfig
 
 Pose = tuple[int, np.ndarray, np.ndarray]
 
@@ -70,22 +70,33 @@ class Bench:
         return Tracker(TrackingConfig(**fields, filter=FilterConfig(**setting.get("filter", {}))))
 
     def _frame(self, rgb: np.ndarray, K: np.ndarray, stamp: float, tracker: Tracker | None, setting: dict, options) -> list[Pose]:
-        def detect() -> list:
-            return self.est.detect(rgb, self.threshold)
+        if tracker is None:  # as the node: the localiser's objects, rescored by the verifier where there is one
+            found = self.est.find(rgb, K, self.threshold, options)
+            return [(d.obj_id, e.R, e.t) for d, e in zip(found.detections, found.poses, strict=True) if e.ok]
 
-        if tracker is None:
-            found = detect()
-            estimates = self.est.estimate(rgb, K, [(d.obj_id, d.box) for d in found], options=options)
-            return [(d.obj_id, e.R, e.t) for d, e in zip(found, estimates, strict=True) if e.ok]
+        following, verifier = setting.get("follow", False), self.est.config.verifier
+
+        def detect() -> list:
+            """As the node's tracker gets them: posed and verified where the checkpoint has a verifier, unless
+            following (then the new ones are verified once posed)."""
+            if verifier is None or following:
+                return self.est.detect(rgb, self.threshold if verifier is None else verifier.min_score)
+            found = self.est.find(rgb, K, self.threshold, options)
+            return [Sighting(d.obj_id, d.score, d.box, p) for d, p in zip(found.detections, found.poses, strict=True)]
 
         def measure(crops: list) -> list:
             priors = [c.prior for c in crops] if setting.get("warm", False) else None
-            return self.est.estimate(rgb, K, [(c.obj_id, c.box) for c in crops], options=options, priors=priors)
+            out = self.est.estimate(rgb, K, [(c.obj_id, c.box) for c in crops], options=options, priors=priors)
+            if following:
+                new = [k for k, c in enumerate(crops) if c.track is None]
+                for k, p in zip(new, self.est.verified([crops[k].score for k in new], [out[k] for k in new], self.threshold), strict=True):
+                    out[k] = p
+            return out
 
         def follow(last: list, predicted: list) -> list:
             return self.est.follow(rgb, K, last, predicted, options)
 
-        tracked = tracker.step(stamp, K, detect, measure, follow if setting.get("follow", False) else None)
+        tracked = tracker.step(stamp, K, detect, measure, follow if following else None)
         return [(p.obj_id, p.R, p.t) for p in tracked]
 
 

@@ -462,3 +462,28 @@ def test_followed_tracks_are_measured_by_their_contours_and_the_agm_poses_only_t
         poses = step(k)
     assert {p.obj_id for p in poses} == {1} and tracker.counts["ended_misses"] == 1
     assert {p.track_id for p in poses} < ids  # object 1 kept its track throughout
+
+
+def test_following_a_new_pose_whose_contour_disagrees_starts_no_track_and_misses_wait_for_the_period():
+    """A detection whose refined pose separates its colours poorly starts no track (`starts_refused`); with a
+    follower, a track the AGM could not pose again waits for the localiser's period instead of running it."""
+    scene = _scene()
+    tracker = Tracker(TrackingConfig(redetect_period=5, max_misses=5))
+    weak = {5}
+
+    def estimate(crops: list[Crop]) -> list[Followed]:
+        return [Followed(p.ok, p.R, p.t, p.covariance, 0.5 if c.obj_id in weak else 0.9)
+                for c, p in zip(crops, scene.estimate(crops), strict=True)]  # fmt: skip
+
+    def follow(last: list, predicted: list) -> list[Followed]:
+        return [Followed(True, m.R, m.t, COV, 0.3 if m.t[0] > 0 else 0.9) for m in last]  # object 1 (x 0.05) is lost
+
+    poses = tracker.step(0.0, K, scene.detect, estimate, follow)
+    assert [p.obj_id for p in poses] == [1] and tracker.counts["starts_refused"] == 1
+    weak.add(1)  # from now on the AGM's pose of object 1 is poor too: it misses
+    for k in range(1, 5):
+        tracker.step(k / 30, K, scene.detect, estimate, follow)
+    assert scene.detect_calls == 1  # frame 0 only: the next is the period's, not every frame a track misses
+    tracker.step(5 / 30, K, scene.detect, estimate, follow)
+    assert scene.detect_calls == 2
+    assert tracker.counts["contour_lost"] >= 3 and tracker.tracks and tracker.tracks[0].misses >= 3

@@ -1,6 +1,8 @@
 """The detection verifier: a detection's pose signals, the logistic model fitted on them, the estimator's `find` that
 rescores with it, its place in the checkpoint, and `axispose fit-verifier`."""
 
+import dataclasses
+
 import numpy as np
 import pytest
 from conftest import TINY_AGM
@@ -121,6 +123,19 @@ def test_a_verifier_poses_down_to_its_min_score_and_publishes_its_probability(lo
     for d, original, pose in zip(found.detections, DETECTIONS, found.poses, strict=True):
         expected = lifted.config.verifier.rescore([original.score], [pose.fit_covariance if pose.ok else None])[0]
         assert d.score == pytest.approx(expected) and d.box == original.box
+
+
+def test_verified_refuses_the_poses_its_verifier_scores_below_the_threshold(localised):
+    """`Estimator.verified` (a tracker's new detections, posed on their own): a pose the verifier scores below the
+    threshold is refused with its reason; without a verifier, and for a pose already refused, nothing changes."""
+    score_only = localised.with_verifier(DetectionVerifier((1.0, 0.0, 0.0, 0.0), min_score=0.2))  # P(hit) = the score
+    image = np.zeros((480, 640, 3), np.uint8)
+    poses = [dataclasses.replace(p, ok=True) for p in score_only.estimate(image, LMO_K, [(d.obj_id, d.box) for d in DETECTIONS])]
+    checked = score_only.verified([d.score for d in DETECTIONS], poses, 0.3)
+    assert [p.ok for p in checked] == [False, True, True] and checked[0].reason == "verifier"
+    assert localised.verified([0.01], poses[:1], 0.3) == poses[:1]
+    refused = dataclasses.replace(poses[0], ok=False, reason="pose")
+    assert score_only.verified([0.01], [refused], 0.3)[0].reason == "pose"
 
 
 def test_the_verifier_reads_the_fusions_own_covariance_alike_at_any_number_of_samples(frames):

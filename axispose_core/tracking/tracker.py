@@ -64,9 +64,11 @@ class TrackingConfig:
     fallback_std: tuple[float, float] = (0.05, 0.35)
     """Measurement noise where the estimator gives no covariance: translation as a fraction of the depth, and
     rotation (rad)."""
-    lost_agreement: float = 0.6
+    lost_agreement: float = 0.7
     """With contour following: a followed contour that separates the object's colours from its surroundings' less
-    than this (0.5: not at all), or that the refiner kept, has lost its object; the AGM poses it on the same frame."""
+    than this (0.5: not at all), or that the refiner kept, has lost its object, and the AGM poses it on the same
+    frame; a new detection whose refined pose agrees less starts no track (on rendered streams, poses below it were
+    mostly wrong)."""
     filter: FilterConfig = field(default_factory=FilterConfig)
 
 
@@ -226,7 +228,7 @@ class Tracker:
         self._start_frame(stamp, K)
         out = self._follow(follow, K, stamp) if follow is not None else []
         followed = {pose.track_id for pose in out}
-        detecting = self._detection_due()
+        detecting = self._detection_due(following=follow is not None)
         crops = self._track_crops(K, every=detecting, skip=followed)
         if detecting:
             crops = self._with_detections(crops, detect(), [tr for tr in self.tracks if tr.id in followed], K)
@@ -291,9 +293,12 @@ class Tracker:
         return TrackedPose(tr.id, tr.obj_id, f.R.copy(), f.t.copy(), f.covariance, tr.score, tr.last, False,
                            self._predicted_box(tr, K), measured=False)  # fmt: skip
 
-    def _detection_due(self) -> bool:
+    def _detection_due(self, following: bool = False) -> bool:
+        """The localiser's turn: every period, with no tracks, after a track ended, or (without following, where a
+        lost track is posed in its predicted box anyway) while a track misses."""
         period = max(1, self.config.redetect_period)
-        due = self._lost or not self.tracks or self._frame % period == 0 or any(tr.misses > 0 for tr in self.tracks)
+        missing = not following and any(tr.misses > 0 for tr in self.tracks)
+        due = self._lost or not self.tracks or self._frame % period == 0 or missing
         self._lost = False
         return due
 
@@ -346,6 +351,9 @@ class Tracker:
         cov = self._noise(m)
         tr = tr or self._nearby_track(crop.obj_id, m.t)
         if tr is None:
+            if getattr(m, "contour_agreement", 1.0) < self.config.lost_agreement:  # nan (not refined) passes
+                self._count("starts_refused")
+                return None
             tr = self._start_track(crop, m, cov, stamp)
             return self._output(tr, m, True, K, crop.box)
         if tr.lost:  # its contour lost it: the AGM's pose starts it again, if that one holds
