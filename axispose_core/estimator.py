@@ -225,6 +225,9 @@ class PoseEstimate:
     colours: ColourHistograms | None = None
     """The object's and its surroundings' colours the refiner learned here: what a tracker carries to the next
     frame (`follow`)."""
+    contour_information: np.ndarray | None = None
+    """(6,6) what the contour alone says of a followed pose (`Refinement.information`): its tracker, whose
+    prediction was the refiner's prior, folds the pose in as that evidence, not the prior twice."""
 
 
 @dataclass(frozen=True)
@@ -589,5 +592,5 @@ class Estimator:
         for p, r in zip(last, self.refiner.refine(image_rgb, K, starts, [p.colours for p in last]), strict=True):
             out.append(replace(p, R=r.R, t=r.t, covariance=r.covariance, ok=r.refined, reason="" if r.refined else f"contour: {r.reason}",
                                refined=r.refined, refine_kept=r.reason, contour_lines=r.lines, contour_agreement=r.agreement,
-                               unrefined=None, colours=r.colours or p.colours))  # fmt: skip
+                               unrefined=None, colours=r.colours or p.colours, contour_information=r.information))  # fmt: skip
         return out

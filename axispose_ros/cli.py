@@ -43,6 +43,8 @@ def _replay(args: argparse.Namespace) -> int:
         params["tracking"] = args.tracking == "on"
     if args.refine is not None:
         params["refine"] = args.refine == "on"
+    if args.follow is not None:
+        params["follow"] = args.follow == "on"
     if args.redetect_period is not None:
         params["redetect_period"] = args.redetect_period
     if args.measure_every is not None:
@@ -144,6 +146,7 @@ def _add_ros_commands(add_parser: AddParser) -> None:
     )
     rp.add_argument("--tracking", choices=["on", "off"], default=None, help="tracking parameter of the node (default: its own)")
     rp.add_argument("--refine", choices=["on", "off"], default=None, help="refine parameter of the node (default: its own, on)")
+    rp.add_argument("--follow", choices=["on", "off"], default=None, help="follow parameter of the node (with tracking)")
     rp.add_argument("--redetect-period", type=int, default=None, help="redetect_period parameter of the node (with tracking)")
     rp.add_argument("--measure-every", type=int, default=None, help="measure_every parameter of the node (with tracking)")
     rp.add_argument("--threads", type=int, default=2)

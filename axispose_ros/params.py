@@ -87,6 +87,12 @@ SPECS = (
         "follow objects across frames: crops from predicted poses, the localiser every "
         "redetect_period frames, each pose filtered (constant velocity, gated)",
     ),
+    Spec(
+        "follow",
+        False,
+        "with tracking and a refiner, follow each track by its contour on every frame, the AGM posing only new and "
+        "lost objects: a fraction of the time per frame, steadier poses",
+    ),
     Spec("redetect_period", 5, "with tracking, run the localiser on every n-th frame (and when a track is lost)", ints=(1, 1000)),
     Spec(
         "measure_every",
@@ -132,6 +138,7 @@ class NodeSettings:
     score_threshold: float
     marker_lifetime: float
     tracking: bool
+    follow: bool
     redetect_period: int
     measure_every: int
     warm_strength: float

@@ -66,7 +66,7 @@ class FramePoser:
             found = find()
             return Posed(found.poses, [d.score for d in found.detections], [d.box for d in found.detections], [0] * len(found.poses))
 
-        following = self.estimator.refiner is not None and s.refine
+        following = self.estimator.refiner is not None and s.refine and s.follow
         verifier = self.estimator.config.verifier
 
         def dets() -> list:

@@ -447,6 +447,29 @@ def test_with_a_refiner_every_pose_is_counted_and_bad_input_is_answered_as_befor
         h.close()
 
 
+def test_following_tracks_by_their_contours_runs_the_frames_and_counts_them(tmp_path, lmo_dir):
+    """`tracking` with `follow` on a checkpoint with a localiser and a refiner: every frame ends in frames_processed,
+    each counted as followed or estimated by the tracker; nothing fails."""
+    reader = load_reader(SHIPPED_READER)
+    cfg = EstimatorConfig(agm=TINY_AGM, reader=reader.config, objects=tuple(lmo_objects()[:2]), ddim_steps=1)
+    localiser = Localiser(LocaliserConfig(obj_ids=(1, 5), input_size=(160, 128), trunk=ResidualBNConfig(widths=(8, 16, 24, 32))))
+    from axispose_core.data.meshes import refiner_meshes
+
+    path = tmp_path / "follow.safetensors"
+    est = Estimator(cfg, AxisGenerator(cfg.agm), reader).with_localiser(localiser)
+    est.with_refiner(refiner_meshes(lmo_dir / "models", [1, 5])).save(path)
+    h = Harness(path, score_threshold=0.0, tracking=True, follow=True)
+    try:
+        for sec in range(1, 4):
+            h.frame(sec=sec)
+            assert h.spin_until(lambda s=sec: h.node.counts["frames_processed"] >= s)
+        counts = h.node.counters()
+        assert counts.get("tracking_frames_estimated", 0) + counts.get("tracking_frames_followed", 0) == 3
+        assert "dropped_error" not in counts
+    finally:
+        h.close()
+
+
 @pytest.fixture(scope="module")
 def localised_checkpoint(tmp_path_factory):
     """The tiny estimator with an untrained localiser of ape and can: at threshold 0 it finds both, twice each."""

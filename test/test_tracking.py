@@ -487,3 +487,25 @@ def test_following_a_new_pose_whose_contour_disagrees_starts_no_track_and_misses
     assert tracker.counts["contour_lost"] >= 3 and tracker.tracks and tracker.tracks[0].misses >= 3
     tracker.step(5 / 30, K, scene.detect, estimate, follow)
     assert scene.detect_calls == 2
+
+
+def test_a_posterior_is_folded_in_as_the_one_measurement_that_gives_it():
+    """A pose refined from the filter's prediction as prior is that prior and its evidence already: folding it in
+    with the evidence's information moves the state (pose and velocity) exactly as the evidence's own measurement
+    would have, instead of counting the prior twice."""
+    import copy
+
+    rng = np.random.default_rng(3)
+    f = PoseFilter.start(FilterConfig(), np.eye(3), np.array([0.0, 0.0, 0.8]), COV)
+    f.predict(1 / 30)
+    R_z = Rotation.from_rotvec([0.002, -0.001, 0.003]).as_matrix() @ f.R
+    t_z = f.t + rng.normal(0, 0.002, 3)
+    noise = np.diag([2e-6, 3e-6, 1e-5, 1e-4, 2e-4, 1e-4])
+    by_measurement, by_posterior = copy.deepcopy(f), copy.deepcopy(f)
+    assert by_measurement.update(R_z, t_z, noise)[0]
+    # The posterior of that evidence given the prediction: the state the measurement update reached.
+    assert by_posterior.update_posterior(by_measurement.R, by_measurement.t, np.linalg.inv(noise))[0]
+    np.testing.assert_allclose(by_posterior.t, by_measurement.t, atol=1e-6)
+    np.testing.assert_allclose(by_posterior.R, by_measurement.R, atol=1e-6)
+    np.testing.assert_allclose(by_posterior.v, by_measurement.v, atol=1e-4)
+    np.testing.assert_allclose(by_posterior.P, by_measurement.P, rtol=1e-6, atol=1e-12)

@@ -66,7 +66,8 @@ class RefineConfig:
     keeps the unrefined pose: the image gave no evidence."""
     max_jump: float = 21.1
     """Most squared Mahalanobis length of the refined pose's change in rotation, or in translation, under the
-    starting covariance (χ²(3) at 0.9999): a larger jump is a run-away, and the unrefined pose is kept."""
+    starting covariance (χ²(3) at 0.9999): a larger jump is a run-away, and the unrefined pose is kept. Not for a
+    followed start: its tracker's filter gates what it takes."""
     covariance_scale: tuple[float, float] = (3.15, 1.77)
     """Factors on the refined pose's translation and rotation variances (the inverse of the lines' Gauss-Newton
     Hessian and the prior's information) that make its errors' median squared Mahalanobis lengths χ²(3)'s (2.37)

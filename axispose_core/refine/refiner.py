@@ -66,6 +66,9 @@ class Refinement:
     colours: ColourHistograms | None = None
     """The object's and its surroundings' colours as learned here (None where no pass ran): what a tracker carries
     to the next frame."""
+    information: np.ndarray | None = None
+    """(6,6) what the lines alone say of the refined pose (the inverse covariance without the prior, scaled as
+    `covariance`; geometry_msgs' order): lets a tracker whose prediction was the prior fold the pose in once."""
 
 
 @dataclass
@@ -265,7 +268,7 @@ class ContourRefiner:
         cfg = self.config
         H = -s.hessian + s.precision
         jump = (_rotvec(s.R @ s.start.R.T), s.t - s.start.t)
-        if _information(start.covariance) is not None and cfg.max_jump > 0:
+        if _information(start.covariance) is not None and cfg.max_jump > 0 and not s.carried:  # a tracker gates its own
             C = np.asarray(start.covariance, dtype=float)
             d2 = (float(jump[1] @ np.linalg.solve(C[:3, :3], jump[1])), float(jump[0] @ np.linalg.solve(C[3:, 3:], jump[0])))
             if max(d2) > cfg.max_jump:
@@ -273,13 +276,14 @@ class ContourRefiner:
         agreement = self._agreement(s, bins, K)
         if agreement < cfg.min_agreement:
             return Refinement(start.R, start.t, start.covariance, False, "no_contrast", s.valid, agreement, s.histograms)
+        d = np.sqrt(np.repeat(cfg.covariance_scale, 3))
         try:
             cov = np.linalg.inv(H + np.eye(6) * 1e-9)[np.ix_(_ORDER, _ORDER)]
-            d = np.sqrt(np.repeat(cfg.covariance_scale, 3))
             cov = (cov + cov.T) / 2 * np.outer(d, d)
         except np.linalg.LinAlgError:
             cov = start.covariance
-        return Refinement(s.R, s.t, cov, True, "", s.valid, agreement, s.histograms)
+        information = -s.hessian[np.ix_(_ORDER, _ORDER)] / np.outer(d, d)
+        return Refinement(s.R, s.t, cov, True, "", s.valid, agreement, s.histograms, (information + information.T) / 2)
 
     def _agreement(self, s: _State, bins: np.ndarray, K: np.ndarray) -> float:
         """Mean over the object's unoccluded lines at its final pose of P(foreground) in the four pixels inside the

@@ -125,6 +125,17 @@ class PoseFilter:
         self.P = 0.5 * (self.P + self.P.T)
         return True, d2
 
+    def update_posterior(self, R: np.ndarray, t: np.ndarray, information: np.ndarray) -> tuple[bool, float]:
+        """Fold in a pose that already is the posterior of some evidence (of (6, 6) `information`) given this
+        filter's prediction as prior, e.g. a contour refined from it: as the one measurement z with covariance
+        `information`⁻¹ that this update turns into that pose, z - x = (I + information⁻¹ P⁻¹)(pose - x)."""
+        P = self.covariance
+        L = np.asarray(information, float) + np.eye(6) * 1e-9
+        delta = np.concatenate([t - self.t, _log(R @ self.R.T)])
+        z = delta + np.linalg.solve(L, np.linalg.solve(P, delta))
+        noise = np.linalg.inv(L)
+        return self.update(_exp(z[3:]) @ self.R, self.t + z[:3], 0.5 * (noise + noise.T))
+
     @property
     def covariance(self) -> np.ndarray:
         """(6, 6) covariance of the pose (x, y, z, rx, ry, rz)."""

@@ -234,7 +234,8 @@ class Tracker:
             crops = self._with_detections(crops, detect(), [tr for tr in self.tracks if tr.id in followed], K)
             self._count("localiser_runs")
         measurements = _measurements(crops, estimate)
-        self._count("frames_followed" if follow is not None and not crops else "frames_estimated")
+        if follow is not None:
+            self._count("frames_estimated" if crops else "frames_followed")
         out += [self._measure(crop, m, K, stamp) for crop, m in zip(crops, measurements, strict=True)]
         cropped = {c.track for c in crops} | followed
         out += [self._predicted(tr, K) for tr in self.tracks if tr.id not in cropped and not tr.measured and tr.last is not None]
@@ -366,7 +367,10 @@ class Tracker:
             self._count("tracks_reinitialised")
             return self._output(tr, m, True, K, crop.box)
         tr.misses, tr.measured, tr.score, tr.last = 0, True, crop.score, m
-        accepted, _ = tr.filter.update(m.R, m.t, cov)
+        if (information := getattr(m, "contour_information", None)) is not None:  # followed from the prediction
+            accepted, _ = tr.filter.update_posterior(m.R, m.t, information)
+        else:
+            accepted, _ = tr.filter.update(m.R, m.t, cov)
         if accepted:
             tr.rejects, tr.updated = 0, stamp
         else:
