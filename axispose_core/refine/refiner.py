@@ -6,7 +6,8 @@ from coarse to fine line scales, each placing correspondence lines across the co
 object's viewpoint model, finding where along each line the contour lies, and taking Newton steps on their
 log-likelihood with the starting pose (and its covariance) as a prior. The frame's objects mask each other's lines
 in their depth order. A pose that cannot be refined (too small, off the image, too few lines, a jump its
-covariance does not allow) is kept as it came, with the reason.
+covariance does not allow) is kept as it came, with the reason. A tracked object brings the colours it learned on
+earlier frames and is followed on a short schedule from its predicted pose.
 """
 
 from __future__ import annotations

@@ -112,10 +112,9 @@ def log_odds(posterior: np.ndarray) -> np.ndarray:
 
 @dataclass(frozen=True)
 class Distributions:
-    """Where each line's contour lies: log probabilities (N,D) over the D places, their mean (N,) and variance (N,)
-    in segments (0 at the line's centre)."""
+    """Where each line's contour lies: the mean (N,) and variance (N,) of its distribution over the D places, in
+    segments (0 at the line's centre)."""
 
-    log_p: np.ndarray
     mean: np.ndarray
     variance: np.ndarray
 
@@ -136,7 +135,7 @@ def contour_distributions(odds: np.ndarray, scale: int, step: StepFunction, leng
     places = np.arange(length, dtype=np.float64)
     mean = p @ places
     variance = np.maximum(np.einsum("nd,nd->n", p, (places[None] - mean[:, None]) ** 2), step.min_variance)
-    return Distributions(log_p, mean - (length - 1) / 2, variance)
+    return Distributions(mean - (length - 1) / 2, variance)
 
 
 def line_jacobians(
