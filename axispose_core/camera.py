@@ -60,6 +60,12 @@ def project(K: np.ndarray, pts_cam: np.ndarray) -> np.ndarray:
     return uvw[:, :2] / uvw[:, 2:3]
 
 
+def projection_jacobian(K: np.ndarray, proj: np.ndarray, z: np.ndarray) -> np.ndarray:
+    """d (image point) / d (camera-frame point) (N,2,3) at image points proj (N,2) of homogeneous depth z = (K p)_z
+    (N,)."""
+    return (K[None, :2, :] - proj[:, :, None] * K[None, 2:3, :]) / z[:, None, None]
+
+
 def project_model(K: np.ndarray, R: np.ndarray, t: np.ndarray, pts: np.ndarray) -> np.ndarray:
     """Model points (N,3) at pose (R, t) to pixels (N,2)."""
     return project(K, transform(R, t, pts))

@@ -14,6 +14,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.lib.stride_tricks import sliding_window_view
 
+from axispose_core.camera import projection_jacobian
 from axispose_core.refine.config import RefineConfig
 from axispose_core.refine.viewpoints import ViewpointModel
 
@@ -70,10 +71,8 @@ def place_lines(model: ViewpointModel, R: np.ndarray, t: np.ndarray, K: np.ndarr
     safe = np.where(p[:, 2] > 1e-6, p[:, 2], 1.0)
     q = p @ K.T
     uv = q[:, :2] / np.where(q[:, 2:] > 1e-9, q[:, 2:], 1.0)
-    n3 = model.normals[v, pick] @ R.T
     # The normal's image direction: the projection's Jacobian applied to the 3D normal.
-    du = K[0, 0] * n3[:, 0] + K[0, 1] * n3[:, 1] - (uv[:, 0] - K[0, 2]) * n3[:, 2]
-    n = np.stack([du, K[1, 1] * n3[:, 1] - (uv[:, 1] - K[1, 2]) * n3[:, 2]], axis=1)
+    n = np.einsum("nij,nj->ni", projection_jacobian(K, uv, safe), model.normals[v, pick] @ R.T)
     n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-12)
     px_per_m = K[0, 0] * scale / safe
     return LinePlacement(X, p, uv, n, model.inside[v, pick] * px_per_m, model.outside[v, pick] * px_per_m)
@@ -147,8 +146,7 @@ def line_jacobians(
     q = p @ K.T
     z = q[:, 2]
     uv = q[:, :2] / z[:, None]
-    dproj = (K[None, :2, :] - uv[:, :, None] * K[None, 2:3, :]) / z[:, None, None]  # (N,2,3)
-    a = np.einsum("ni,nij->nj", normals, dproj) / scale  # d offset / d p
+    a = np.einsum("ni,nij->nj", normals, projection_jacobian(K, uv, z)) / scale  # d offset / d p
     return uv, np.concatenate([np.cross(p - t, a), a], axis=1)
 
 

@@ -15,7 +15,7 @@ from typing import NamedTuple
 import cv2
 import numpy as np
 
-from axispose_core.camera import project
+from axispose_core.camera import project, projection_jacobian
 
 MIN_POINTS = 8
 """Fewer usable correspondences than this give no translation."""
@@ -105,12 +105,6 @@ class DenseFusion:
             raise ValueError(f"dense_fusion.covariance_scale must be two positive factors, got {self.covariance_scale}")
 
 
-def _projection_jacobian(K: np.ndarray, proj: np.ndarray, z: np.ndarray) -> np.ndarray:
-    """d (image point) / d (camera-frame point) (N,2,3) at image points proj (N,2) of homogeneous depth z = (K p)_z
-    (N,)."""
-    return (K[None, :2, :] - proj[:, :, None] * K[None, 2:3, :]) / z[:, None, None]
-
-
 class FusedPose(NamedTuple):
     R: np.ndarray
     t: np.ndarray
@@ -168,7 +162,7 @@ def fuse_pose(
             if w.sum() <= 0:
                 return None
         # d proj / d p (N,2,3); through dp/dω = -[R X]x each row a gives a^T (-[R X]x) = (R X) × a, and dp/dt = I.
-        dproj = _projection_jacobian(K, proj, q[:, 2])
+        dproj = projection_jacobian(K, proj, q[:, 2])
         J = np.concatenate([np.cross((p - t)[:, None, :], dproj), dproj], axis=2).reshape(-1, 6)
         sw = np.repeat(w, 2) / sigma**2
         H = np.einsum("ni,nj->ij", J, J * sw[:, None])
@@ -182,7 +176,7 @@ def fuse_pose(
         g[5] -= dz * np.log(t[2] / depth) / fusion.depth_sigma
         qt = np.einsum("ij,j->i", K, t)
         at = qt[:2] / qt[2]  # where the origin projects now
-        Jo = _projection_jacobian(K, at[None], qt[2:])[0]  # it moves with t as any point does
+        Jo = projection_jacobian(K, at[None], qt[2:])[0]  # it moves with t as any point does
         H[3:, 3:] += np.einsum("ki,kj->ij", Jo, Jo) / fusion.origin_sigma**2
         g[3:] -= np.einsum("ki,k->i", Jo, at - origin) / fusion.origin_sigma**2
         step = np.linalg.solve(H, g)
