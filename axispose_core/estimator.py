@@ -353,20 +353,23 @@ class Estimator:
         poses = self.estimate(image_rgb, K, [(d.obj_id, d.box) for d in dets], options=options, cancelled=cancelled)
         if verifier is None:
             return Found(dets, poses)
-        least = self.localiser.config.threshold if threshold is None else threshold
-        scores = verifier.rescore([d.score for d in dets], [p.fit_covariance if p.ok else None for p in poses])
+        scores, least = self._rescored([d.score for d in dets], poses, threshold)
         keep = [k for k, s in enumerate(scores) if s >= least]
         return Found([replace(dets[k], score=float(scores[k])) for k in keep], [poses[k] for k in keep], len(dets) - len(keep))
 
     def verified(self, scores: Sequence[float], poses: list[PoseEstimate], threshold: float | None = None) -> list[PoseEstimate]:
         """Detections' poses (their localiser `scores`) with those the checkpoint's verifier scores below `threshold`
         (None: the localiser's) refused (`ok` False, reason "verifier"); all of them as they are without one."""
-        verifier = self.config.verifier
-        if verifier is None or not poses:
+        if self.config.verifier is None or not poses:
             return poses
-        least = self.localiser.config.threshold if threshold is None else threshold
-        probability = verifier.rescore(scores, [p.fit_covariance if p.ok else None for p in poses])
+        probability, least = self._rescored(scores, poses, threshold)
         return [p if q >= least or not p.ok else replace(p, ok=False, reason="verifier") for p, q in zip(poses, probability, strict=True)]
+
+    def _rescored(self, scores: Sequence[float], poses: list[PoseEstimate], threshold: float | None) -> tuple[np.ndarray, float]:
+        """The verifier's probability of each posed detection (its localiser score and its pose's dense-fusion
+        covariance), and the least one published (`threshold`, None: the localiser's)."""
+        least = self.localiser.config.threshold if threshold is None else threshold
+        return self.config.verifier.rescore(scores, [p.fit_covariance if p.ok else None for p in poses]), least
 
     def head_depth(self, log_depth: float, K_patch: np.ndarray, scale: float) -> float:
         """The encoder's depth (m) for a crop with intrinsics K_patch, its off-axis bias (`head_offaxis`) taken off."""
@@ -561,13 +564,16 @@ class Estimator:
                                     **spread))  # fmt: skip
         return out
 
+    def _size(self, obj_id: int, options: EstimateOptions) -> float:
+        """The object's size against its mesh's: a run-time λ_O (`options.scales`) over the checkpoint's."""
+        scale = self.objects[obj_id].scale
+        return (options.scales or {}).get(obj_id, scale) / scale
+
     def _refine(self, image_rgb: np.ndarray, K: np.ndarray, poses: list[PoseEstimate], options: EstimateOptions) -> list[PoseEstimate]:
         """The frame's poses moved to the image's contours together (each masks the lines of those behind it); a
         pose the refiner keeps says why (`refine_kept`)."""
-        scales = options.scales or {}
         posed = [k for k, p in enumerate(poses) if p.ok]
-        starts = [RefineStart(poses[k].obj_id, poses[k].R, poses[k].t, poses[k].covariance,
-                        scales.get(poses[k].obj_id, self.objects[poses[k].obj_id].scale) / self.objects[poses[k].obj_id].scale)
+        starts = [RefineStart(poses[k].obj_id, poses[k].R, poses[k].t, poses[k].covariance, self._size(poses[k].obj_id, options))
                   for k in posed]  # fmt: skip
         out = list(poses)
         for k, r in zip(posed, self.refiner.refine(image_rgb, np.asarray(K, dtype=np.float64), starts), strict=True):
@@ -585,9 +591,8 @@ class Estimator:
         if self.refiner is None:
             raise ValueError("this checkpoint has no contour refiner to follow objects with")
         K = validate_intrinsics(K)
-        scales = (options or EstimateOptions()).scales or {}
-        starts = [RefineStart(p.obj_id, R, t, cov, scales.get(p.obj_id, self.objects[p.obj_id].scale) / self.objects[p.obj_id].scale)
-                  for p, (R, t, cov) in zip(last, predicted, strict=True)]  # fmt: skip
+        options = options or EstimateOptions()
+        starts = [RefineStart(p.obj_id, R, t, cov, self._size(p.obj_id, options)) for p, (R, t, cov) in zip(last, predicted, strict=True)]
         out = []
         for p, r in zip(last, self.refiner.refine(image_rgb, K, starts, [p.colours for p in last]), strict=True):
             out.append(replace(p, R=r.R, t=r.t, covariance=r.covariance, ok=r.refined, reason="" if r.refined else f"contour: {r.reason}",

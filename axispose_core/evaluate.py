@@ -396,10 +396,8 @@ def unrefined_records(records: list[Record]) -> list[Record]:
 def pooled(records: list[Record]) -> dict[str, float]:
     """Over all instances at once rather than per object: the median rotation error and the mean |log| depth error
     of the posed ones (what one bad object's median hides), and ADD(-S)@0.1d and Reproj@15px."""
-    posed = [r for r in records if r.ok]
-    z = [abs(np.log(r.t[2] / r.t_gt[2])) for r in posed if r.t[2] > 0 and r.t_gt[2] > 0]
     return {"n": len(records), "rot_err_median_deg": float(np.median([r.scores["rot_err_deg"] for r in records])) if records else np.nan,
-            "depth_log_abs_mean": float(np.mean(z)) if z else float("nan"),
+            "depth_log_abs_mean": depth_errors(records)["depth_log_abs_mean"],
             **{k: float(np.mean([r.scores[k] for r in records])) if records else float("nan") for k in REFINE_KEYS}}  # fmt: skip
 
 
