@@ -254,7 +254,7 @@ class Tracker:
             raise ValueError(f"the follower gave {len(results)} poses for {len(tracks)} tracks")
         out = []
         for tr, m in zip(tracks, results, strict=True):
-            if m.ok and getattr(m, "contour_agreement", 1.0) >= self.config.lost_agreement:
+            if m.ok and self._holds(m):
                 out.append(self._measure(Crop(tr.obj_id, self._predicted_box(tr, K), tr.score, tr.id), m, K, stamp))
                 self._count("followed")
             else:
@@ -352,14 +352,14 @@ class Tracker:
         cov = self._noise(m)
         tr = tr or self._nearby_track(crop.obj_id, m.t)
         if tr is None:
-            if getattr(m, "contour_agreement", 1.0) < self.config.lost_agreement:  # nan (not refined) passes
+            if not self._holds(m):
                 self._count("starts_refused")
                 return None
             tr = self._start_track(crop, m, cov, stamp)
             return self._output(tr, m, True, K, crop.box)
         if tr.lost:  # its contour lost it: the AGM's pose starts it again, if that one holds
             tr.lost = False
-            if getattr(m, "contour_agreement", 1.0) < self.config.lost_agreement:
+            if not self._holds(m):
                 tr.misses += 1
                 return None
             tr.filter = PoseFilter.start(self.config.filter, m.R, m.t, cov)
@@ -381,6 +381,11 @@ class Tracker:
                 tr.rejects, tr.updated, accepted = 0, stamp, True
                 self._count("tracks_restarted")
         return self._output(tr, m, accepted, K, crop.box)
+
+    def _holds(self, m: Measurement) -> bool:
+        """The pose's contour agrees with the image at least `lost_agreement`; a pose that says nothing of its
+        contour (no refiner, NaN) holds."""
+        return not getattr(m, "contour_agreement", 1.0) < self.config.lost_agreement
 
     def _nearby_track(self, obj_id: int, t: np.ndarray) -> Track | None:
         near = [tr for tr in self.tracks if tr.obj_id == obj_id and not tr.measured
