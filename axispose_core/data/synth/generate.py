@@ -116,12 +116,16 @@ def moved(world: World, R: np.ndarray, t: np.ndarray) -> World:
     return World(placements, posed, table, world.background, world.light, world.shadows)
 
 
+def _target_centre(world: World) -> np.ndarray:
+    """The mean position of the world's target objects (of every placement where it has none): what a path orbits."""
+    return np.mean([p.t for p in world.placements if p.obj_id] or [p.t for p in world.placements], axis=0)
+
+
 def camera_motion(path: CameraPathConfig, world: World, count: int, rng: np.random.Generator) -> list[tuple[np.ndarray, np.ndarray]]:
     """The first camera's points in each of `count` cameras along the path, (R, t) per image (identity first):
     an orbit about the target objects' centre, composed with a random walk of the camera's pose and a sweep of
     its view about its own centre."""
-    targets = [p.t for p in world.placements if p.obj_id] or [p.t for p in world.placements]
-    centre = np.mean(targets, axis=0)
+    centre = _target_centre(world)
     axis = world.table.normal if world.table is not None else np.array([0.0, -1.0, 0.0])
     phase = rng.uniform(0, 2 * np.pi, 2) if path.sweep_deg > 0 else np.zeros(2)
     shake_R, shake_t = np.eye(3), np.zeros(3)
@@ -268,7 +272,7 @@ def _exposure(path: CameraPathConfig, world: World, cameras: list[tuple[np.ndarr
     own), with the scene's `sensor` generator for the camera's settings."""
     smear = (0.0, 0.0)
     if path.shutter > 0 and len(cameras) > 1:
-        centre = np.mean([p.t for p in world.placements if p.obj_id] or [p.t for p in world.placements], axis=0)
+        centre = _target_centre(world)
         (R0, t0), (R1, t1) = cameras[-2], cameras[-1]
         a, b = K @ (R0 @ centre + t0), K @ (R1 @ centre + t1)
         d = b[:2] / b[2] - a[:2] / a[2]
