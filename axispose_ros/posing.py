@@ -84,7 +84,7 @@ class FramePoser:
             redetect_period=s.redetect_period, measure_every=s.measure_every, track_timeout=s.track_timeout
         )
         follow = None
-        if following:  # every track followed by its contour; the AGM poses new detections (verified) and lost tracks
+        if following:  # every track followed by its contour; the AGM poses the localiser's boxes of new and lost objects (verified)
 
             def follow(last: list, predicted: list) -> list[PoseEstimate]:
                 return self._count_refined(self.estimator.follow(rgb, K, last, predicted, options))
@@ -93,13 +93,13 @@ class FramePoser:
 
     def _tracked(self, stamp: float, K: np.ndarray, detect, estimate, warm: bool, follow, threshold: float) -> Posed:
         """The tracked objects' filtered poses on this frame (followed by their contours where `follow` is given; a
-        new detection's pose then verified, below `threshold` refused and counted as `verifier_dropped`),
+        pose of a localiser's box then verified, below `threshold` refused and counted as `verifier_dropped`),
         warm-started from their predictions where `warm`; crops the estimator refused are counted."""
 
         def measure(crops: list[Crop]) -> list[PoseEstimate]:
             out = estimate([(c.obj_id, c.box) for c in crops], [c.prior for c in crops] if warm else None)
             if follow is not None:
-                new = [k for k, c in enumerate(crops) if c.track is None]
+                new = [k for k, c in enumerate(crops) if c.detected]
                 checked = self.estimator.verified([crops[k].score for k in new], [out[k] for k in new], threshold)
                 for k, p in zip(new, checked, strict=True):
                     if out[k].ok and not p.ok:

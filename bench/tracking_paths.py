@@ -88,7 +88,7 @@ class Bench:
             priors = [c.prior for c in crops] if setting.get("warm", False) else None
             out = self.est.estimate(rgb, K, [(c.obj_id, c.box) for c in crops], options=options, priors=priors)
             if following:
-                new = [k for k, c in enumerate(crops) if c.track is None]
+                new = [k for k, c in enumerate(crops) if c.detected]
                 for k, p in zip(new, self.est.verified([crops[k].score for k in new], [out[k] for k in new], self.threshold), strict=True):
                     out[k] = p
             return out

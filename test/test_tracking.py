@@ -424,8 +424,9 @@ class Followed(Pose):
 
 def test_followed_tracks_are_measured_by_their_contours_and_the_agm_poses_only_the_lost():
     """With a follower every track's pose on every frame is its contour's, the localiser runs every period and poses
-    nothing it already follows; a contour that loses its object (low agreement) gets the AGM's pose on the same
-    frame, which starts its track again; a track lost to both ends after `max_misses` frames."""
+    nothing it already follows; a contour that loses its object (low agreement) runs the localiser on the same
+    frame, and the AGM's pose of its detection starts its track again; a track lost to both ends after
+    `max_misses` frames."""
     scene = _scene()
     tracker = Tracker(TrackingConfig(redetect_period=4, max_misses=2))
     asked, agreement = [], {1: 0.9, 5: 0.9}
@@ -452,9 +453,10 @@ def test_followed_tracks_are_measured_by_their_contours_and_the_agm_poses_only_t
     assert scene.detect_calls == 1 and tracker.counts["followed"] == 6
     poses = step(4)  # the localiser's period: it finds the followed objects again and poses nothing
     assert scene.detect_calls == 2 and len(scene.crops) == 1 and len(poses) == 2
-    agreement[5] = 0.3  # object 5's contour is lost: the AGM poses it on the same frame and its track starts again
+    agreement[5] = 0.3  # object 5's contour is lost: the AGM poses its detection on the same frame, a new start
     poses = step(5)
-    assert [c.obj_id for c in scene.crops[-1]] == [5] and tracker.counts["contour_lost"] == 1
+    assert scene.detect_calls == 3 and [c.obj_id for c in scene.crops[-1]] == [5] and scene.crops[-1][0].detected
+    assert scene.crops[-1][0].box == scene.box(5) and tracker.counts["contour_lost"] == 1
     assert tracker.counts["tracks_reinitialised"] == 1 and {p.obj_id for p in poses} == {1, 5}
     scene.refuse = {5}  # lost to its contour and to the AGM: the track ends after max_misses frames
     ids = {p.track_id for p in poses}
@@ -464,29 +466,32 @@ def test_followed_tracks_are_measured_by_their_contours_and_the_agm_poses_only_t
     assert {p.track_id for p in poses} < ids  # object 1 kept its track throughout
 
 
-def test_following_a_new_pose_whose_contour_disagrees_starts_no_track_and_misses_wait_for_the_period():
-    """A detection whose refined pose separates its colours poorly starts no track (`starts_refused`); with a
-    follower, a track the AGM could not pose again waits for the localiser's period instead of running it."""
+def test_following_starts_every_verified_pose_and_a_lost_track_no_detection_finds_is_missed():
+    """A detection's pose starts a track whatever its contour's agreement (the next frame's contour judges it: a
+    lost one is posed again from the localiser's box, as without tracking); a lost track whose object the localiser
+    does not find is not posed in its predicted box, publishes nothing and ends after `max_misses` frames."""
     scene = _scene()
-    tracker = Tracker(TrackingConfig(redetect_period=5, max_misses=5))
-    weak = {5}
+    tracker = Tracker(TrackingConfig(redetect_period=50, max_misses=3))
 
     def estimate(crops: list[Crop]) -> list[Followed]:
-        return [Followed(p.ok, p.R, p.t, p.covariance, 0.5 if c.obj_id in weak else 0.9)
+        return [Followed(p.ok, p.R, p.t, p.covariance, 0.5 if c.obj_id == 5 else 0.9)
                 for c, p in zip(crops, scene.estimate(crops), strict=True)]  # fmt: skip
 
     def follow(last: list, predicted: list) -> list[Followed]:
-        return [Followed(True, m.R, m.t, COV, 0.3 if m.t[0] > 0 else 0.9) for m in last]  # object 1 (x 0.05) is lost
+        return [Followed(True, m.R, m.t, COV, 0.5 if m.t[0] < 0 else 0.9) for m in last]  # object 5 (x -0.1) is lost
 
     poses = tracker.step(0.0, K, scene.detect, estimate, follow)
-    assert [p.obj_id for p in poses] == [1] and tracker.counts["starts_refused"] == 1
-    weak.add(1)  # from now on the AGM's pose of object 1 is poor too: it misses
-    for k in range(1, 5):
-        tracker.step(k / 30, K, scene.detect, estimate, follow)
-    assert scene.detect_calls == 1  # frame 0 only: the next is the period's, not every frame a track misses
-    assert tracker.counts["contour_lost"] >= 3 and tracker.tracks and tracker.tracks[0].misses >= 3
-    tracker.step(5 / 30, K, scene.detect, estimate, follow)
-    assert scene.detect_calls == 2
+    assert sorted(p.obj_id for p in poses) == [1, 5] and tracker.counts["tracks_started"] == 2
+    poses = tracker.step(1 / 30, K, scene.detect, estimate, follow)  # 5 lost: the localiser runs, its box is posed
+    assert scene.detect_calls == 2 and [(c.obj_id, c.detected) for c in scene.crops[-1]] == [(5, True)]
+    assert sorted(p.obj_id for p in poses) == [1, 5] and tracker.counts["tracks_reinitialised"] == 1
+    scene.hidden = {5}  # the localiser no longer finds it: no pose in its predicted box, nothing published
+    posed = len(scene.crops)
+    for k in range(2, 5):
+        poses = tracker.step(k / 30, K, scene.detect, estimate, follow)
+        assert [p.obj_id for p in poses] == [1]
+    assert len(scene.crops) == posed and tracker.counts["ended_misses"] == 1
+    assert [tr.obj_id for tr in tracker.tracks] == [1]
 
 
 def test_a_posterior_is_folded_in_as_the_one_measurement_that_gives_it():

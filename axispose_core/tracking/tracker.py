@@ -2,8 +2,11 @@
 
 Where the estimator can follow objects by their contours (`follow`: its contour refiner, from each track's predicted
 pose with the colours the track learned), every track is followed on every frame and the AGM poses only new
-detections and the tracks whose contour was lost (agreement below `lost_agreement`): its pose re-initialises them.
-Otherwise (below) every tracked object is posed by the estimator:
+detections and the tracks whose contour was lost (agreement below `lost_agreement`): a lost contour runs the
+localiser on the same frame, and the AGM's pose of the detection that matches the lost track re-initialises it (a
+lost track no detection matches is missed). Frames too far apart to follow (a slow camera, a bag of stills) lose
+every contour, so each is posed as without tracking. Otherwise (below) every tracked object is posed by the
+estimator:
 
 A tracked object's crop comes from its predicted pose (the box it had, moved with the pose's projection and scaled
 with its depth), so the localiser runs only every `redetect_period` frames, while nothing is tracked, or after a
@@ -66,9 +69,8 @@ class TrackingConfig:
     rotation (rad)."""
     lost_agreement: float = 0.7
     """With contour following: a followed contour that separates the object's colours from its surroundings' less
-    than this (0.5: not at all), or that the refiner kept, has lost its object, and the AGM poses it on the same
-    frame; a new detection whose refined pose agrees less starts no track (on rendered streams, poses below it were
-    mostly wrong)."""
+    than this (0.5: not at all), or that the refiner kept, has lost its object, and the AGM poses it from the
+    localiser's box on the same frame."""
     filter: FilterConfig = field(default_factory=FilterConfig)
 
 
@@ -113,6 +115,8 @@ class Crop:
     track: int | None = None
     prior: tuple[np.ndarray, np.ndarray] | None = None
     measurement: Measurement | None = None
+    detected: bool = False
+    """The box is the localiser's on this frame (a caller verifies such poses where it verifies detections)."""
 
 
 @dataclass
@@ -233,20 +237,25 @@ class Tracker:
         if detecting:
             crops = self._with_detections(crops, detect(), [tr for tr in self.tracks if tr.id in followed], K)
             self._count("localiser_runs")
+        crops = self._unfound_dropped(crops)
         measurements = _measurements(crops, estimate)
         if follow is not None:
             self._count("frames_estimated" if crops else "frames_followed")
         out += [self._measure(crop, m, K, stamp) for crop, m in zip(crops, measurements, strict=True)]
         cropped = {c.track for c in crops} | followed
-        out += [self._predicted(tr, K) for tr in self.tracks if tr.id not in cropped and not tr.measured and tr.last is not None]
+        quiet = [tr for tr in self.tracks if tr.id not in cropped and not tr.measured and not tr.lost and tr.last is not None]
+        out += [self._predicted(tr, K) for tr in quiet]
         self._end_tracks()
         self._frame += 1
         return [pose for pose in out if pose is not None]
 
     def _follow(self, follow: Follower, K: np.ndarray, stamp: float) -> list[TrackedPose]:
         """Every track followed by its contour from its prediction: a pose whose contour held is the track's
-        measurement; a track whose contour was lost gets a crop for the AGM on this frame."""
-        tracks = [tr for tr in self.tracks if tr.last is not None]
+        measurement; a track whose contour was lost gets a crop for the AGM on this frame. A track that missed its
+        last frame is not followed (its pose is stale): it stays lost until a detection finds it."""
+        for tr in self.tracks:
+            tr.lost = tr.misses > 0
+        tracks = [tr for tr in self.tracks if tr.last is not None and not tr.lost]
         if not tracks:
             return []
         results = follow([tr.last for tr in tracks], [(tr.filter.R, tr.filter.t, tr.filter.covariance) for tr in tracks])
@@ -295,10 +304,10 @@ class Tracker:
                            self._predicted_box(tr, K), measured=False)  # fmt: skip
 
     def _detection_due(self, following: bool = False) -> bool:
-        """The localiser's turn: every period, with no tracks, after a track ended, or (without following, where a
-        lost track is posed in its predicted box anyway) while a track misses."""
+        """The localiser's turn: every period, with no tracks, after a track ended, while a track misses (without
+        following, where it is posed in its predicted box anyway) or where a contour was lost (following)."""
         period = max(1, self.config.redetect_period)
-        missing = not following and any(tr.misses > 0 for tr in self.tracks)
+        missing = any(tr.lost for tr in self.tracks) if following else any(tr.misses > 0 for tr in self.tracks)
         due = self._lost or not self.tracks or self._frame % period == 0 or missing
         self._lost = False
         return due
@@ -324,11 +333,24 @@ class Tracker:
             taken_c.add(i)
             taken_d.add(j)
             d = detections[j]
-            crops[i] = Crop(d.obj_id, tuple(d.box), d.score, crops[i].track, crops[i].prior, _posed(d))
+            crops[i] = Crop(d.obj_id, tuple(d.box), d.score, crops[i].track, crops[i].prior, _posed(d), detected=True)
         for i, c in enumerate(crops):
             tr = next(t for t in self.tracks if t.id == c.track)
             tr.unseen = 0 if i in taken_c else tr.unseen + 1
-        return crops + [Crop(d.obj_id, tuple(d.box), d.score, measurement=_posed(d)) for j, d in enumerate(detections) if j not in taken_d]
+        new = [d for j, d in enumerate(detections) if j not in taken_d]
+        return crops + [Crop(d.obj_id, tuple(d.box), d.score, measurement=_posed(d), detected=True) for d in new]
+
+    def _unfound_dropped(self, crops: list[Crop]) -> list[Crop]:
+        """The crops but those of tracks whose contour was lost and that no detection found: where the contour
+        lost its object its predicted box is no place to pose it (missed)."""
+        kept = []
+        for c in crops:
+            tr = next((t for t in self.tracks if t.id == c.track), None) if c.track is not None else None
+            if tr is not None and tr.lost and not c.detected:
+                tr.misses += 1
+            else:
+                kept.append(c)
+        return kept
 
     def _match(self, a: Box, b: Box) -> float | None:
         """How far detection box `b` is from track box `a` (centre distance over the larger diagonal); None when
@@ -352,16 +374,10 @@ class Tracker:
         cov = self._noise(m)
         tr = tr or self._nearby_track(crop.obj_id, m.t)
         if tr is None:
-            if not self._holds(m):
-                self._count("starts_refused")
-                return None
             tr = self._start_track(crop, m, cov, stamp)
             return self._output(tr, m, True, K, crop.box)
-        if tr.lost:  # its contour lost it: the AGM's pose starts it again, if that one holds
+        if tr.lost:  # its contour lost it: the AGM's pose starts it again (the next frame's contour judges it)
             tr.lost = False
-            if not self._holds(m):
-                tr.misses += 1
-                return None
             tr.filter = PoseFilter.start(self.config.filter, m.R, m.t, cov)
             tr.misses, tr.measured, tr.score, tr.last, tr.updated = 0, True, crop.score, m, stamp
             self._count("tracks_reinitialised")
