@@ -335,7 +335,7 @@ class Tracker:
             d = detections[j]
             crops[i] = Crop(d.obj_id, tuple(d.box), d.score, crops[i].track, crops[i].prior, _posed(d), detected=True)
         for i, c in enumerate(crops):
-            tr = next(t for t in self.tracks if t.id == c.track)
+            tr = self._track(c.track)
             tr.unseen = 0 if i in taken_c else tr.unseen + 1
         new = [d for j, d in enumerate(detections) if j not in taken_d]
         return crops + [Crop(d.obj_id, tuple(d.box), d.score, measurement=_posed(d), detected=True) for d in new]
@@ -345,7 +345,7 @@ class Tracker:
         lost its object its predicted box is no place to pose it (missed)."""
         kept = []
         for c in crops:
-            tr = next((t for t in self.tracks if t.id == c.track), None) if c.track is not None else None
+            tr = self._track(c.track)
             if tr is not None and tr.lost and not c.detected:
                 tr.misses += 1
             else:
@@ -366,7 +366,7 @@ class Tracker:
         return np.diag([(rel * m.t[2]) ** 2] * 3 + [rot**2] * 3)
 
     def _measure(self, crop: Crop, m: Measurement, K: np.ndarray, stamp: float) -> TrackedPose | None:
-        tr = next((t for t in self.tracks if t.id == crop.track), None) if crop.track is not None else None
+        tr = self._track(crop.track)
         if not m.ok:
             if tr is not None:
                 tr.misses += 1
@@ -397,6 +397,10 @@ class Tracker:
                 tr.rejects, tr.updated, accepted = 0, stamp, True
                 self._count("tracks_restarted")
         return self._output(tr, m, accepted, K, crop.box)
+
+    def _track(self, track_id: int | None) -> Track | None:
+        """The live track of this id (None: no id, or it ended)."""
+        return next((tr for tr in self.tracks if tr.id == track_id), None) if track_id is not None else None
 
     def _holds(self, m: Measurement) -> bool:
         """The pose's contour agrees with the image at least `lost_agreement`; a pose that says nothing of its
