@@ -424,11 +424,11 @@ class Followed(Pose):
 
 def test_followed_tracks_are_measured_by_their_contours_and_the_agm_poses_only_the_lost():
     """With a follower every track's pose on every frame is its contour's, the localiser runs every period and poses
-    nothing it already follows; a contour that loses its object (low agreement) runs the localiser on the same
-    frame, and the AGM's pose of its detection starts its track again; a track lost to both ends after
-    `max_misses` frames."""
+    nothing it already follows; a contour that held for a period and loses its object (low agreement) runs the
+    localiser on the same frame, and the AGM's pose of its detection starts its track again; a restarted track
+    whose contour does not hold ends at once, and nothing is posed for it until the localiser's next period."""
     scene = _scene()
-    tracker = Tracker(TrackingConfig(redetect_period=4, max_misses=2))
+    tracker = Tracker(TrackingConfig(redetect_period=4))
     asked, agreement = [], {1: 0.9, 5: 0.9}
 
     def follow(last: list, predicted: list) -> list[Followed]:
@@ -453,45 +453,66 @@ def test_followed_tracks_are_measured_by_their_contours_and_the_agm_poses_only_t
     assert scene.detect_calls == 1 and tracker.counts["followed"] == 6
     poses = step(4)  # the localiser's period: it finds the followed objects again and poses nothing
     assert scene.detect_calls == 2 and len(scene.crops) == 1 and len(poses) == 2
-    agreement[5] = 0.3  # object 5's contour is lost: the AGM poses its detection on the same frame, a new start
+    agreement[5] = 0.3  # object 5's contour, held for 4 frames, is lost: the AGM poses its detection, a new start
     poses = step(5)
     assert scene.detect_calls == 3 and [c.obj_id for c in scene.crops[-1]] == [5] and scene.crops[-1][0].detected
     assert scene.crops[-1][0].box == scene.box(5) and tracker.counts["contour_lost"] == 1
     assert tracker.counts["tracks_reinitialised"] == 1 and {p.obj_id for p in poses} == {1, 5}
-    scene.refuse = {5}  # lost to its contour and to the AGM: the track ends after max_misses frames
     ids = {p.track_id for p in poses}
-    for k in range(6, 9):
+    posed = len(scene.crops)
+    for k in (6, 7):  # the restart does not hold: the track ends, no localiser, no AGM, nothing published for 5
         poses = step(k)
-    assert {p.obj_id for p in poses} == {1} and tracker.counts["ended_misses"] == 1
+        assert {p.obj_id for p in poses} == {1}
+    assert tracker.counts["ended_unfollowable"] == 1 and scene.detect_calls == 3 and len(scene.crops) == posed
     assert {p.track_id for p in poses} < ids  # object 1 kept its track throughout
+    poses = step(8)  # the localiser's period finds object 5 again: a new track
+    assert scene.detect_calls == 4 and {p.obj_id for p in poses} == {1, 5} and tracker.counts["tracks_started"] == 3
 
 
-def test_following_starts_every_verified_pose_and_a_lost_track_no_detection_finds_is_missed():
-    """A detection's pose starts a track whatever its contour's agreement (the next frame's contour judges it: a
-    lost one is posed again from the localiser's box, as without tracking); a lost track whose object the localiser
-    does not find is not posed in its predicted box, publishes nothing and ends after `max_misses` frames."""
+def test_a_lost_track_no_detection_finds_ends_and_a_start_is_judged_by_the_next_contour():
+    """A detection's pose starts a track whatever its contour's agreement (the next frame's contour judges it); a
+    track whose contour held for a period, is lost, and whose object the localiser does not find ends on that
+    frame: it is not posed in its predicted box and publishes nothing."""
     scene = _scene()
-    tracker = Tracker(TrackingConfig(redetect_period=50, max_misses=3))
+    tracker = Tracker(TrackingConfig(redetect_period=3))
 
     def estimate(crops: list[Crop]) -> list[Followed]:
         return [Followed(p.ok, p.R, p.t, p.covariance, 0.5 if c.obj_id == 5 else 0.9)
                 for c, p in zip(crops, scene.estimate(crops), strict=True)]  # fmt: skip
 
+    lost = set()
+
     def follow(last: list, predicted: list) -> list[Followed]:
-        return [Followed(True, m.R, m.t, COV, 0.5 if m.t[0] < 0 else 0.9) for m in last]  # object 5 (x -0.1) is lost
+        return [Followed(True, m.R, m.t, COV, 0.5 if m.t[0] < 0 and lost else 0.9) for m in last]  # object 5: x -0.1
 
     poses = tracker.step(0.0, K, scene.detect, estimate, follow)
     assert sorted(p.obj_id for p in poses) == [1, 5] and tracker.counts["tracks_started"] == 2
-    poses = tracker.step(1 / 30, K, scene.detect, estimate, follow)  # 5 lost: the localiser runs, its box is posed
-    assert scene.detect_calls == 2 and [(c.obj_id, c.detected) for c in scene.crops[-1]] == [(5, True)]
-    assert sorted(p.obj_id for p in poses) == [1, 5] and tracker.counts["tracks_reinitialised"] == 1
-    scene.hidden = {5}  # the localiser no longer finds it: no pose in its predicted box, nothing published
-    posed = len(scene.crops)
-    for k in range(2, 5):
+    for k in range(1, 4):
         poses = tracker.step(k / 30, K, scene.detect, estimate, follow)
-        assert [p.obj_id for p in poses] == [1]
-    assert len(scene.crops) == posed and tracker.counts["ended_misses"] == 1
-    assert [tr.obj_id for tr in tracker.tracks] == [1]
+    assert sorted(p.obj_id for p in poses) == [1, 5] and scene.detect_calls == 2  # frames 0 and 3
+    lost.add(5)
+    scene.hidden = {5}  # its contour is lost and the localiser no longer finds it
+    posed = len(scene.crops)
+    poses = tracker.step(4 / 30, K, scene.detect, estimate, follow)
+    assert [p.obj_id for p in poses] == [1] and scene.detect_calls == 3 and len(scene.crops) == posed
+    assert tracker.counts["ended_unfound"] == 1 and [tr.obj_id for tr in tracker.tracks] == [1]
+
+
+def test_frames_on_which_no_contour_holds_are_posed_as_without_tracking():
+    """A bag of stills: no contour holds from one frame to the next, even right after the AGM posed them. Each such
+    frame runs the localiser and poses every object again from its box; the tracks go on (re-initialised), and
+    every object is published on every frame."""
+    scene, tracker = _scene(), Tracker(TrackingConfig(redetect_period=5))
+
+    def follow(last: list, predicted: list) -> list[Followed]:
+        return [Followed(True, m.R, m.t + 0.05, COV, 0.4) for m in last]
+
+    for k in range(4):
+        poses = tracker.step(k / 7.5, K, scene.detect, scene.estimate, follow)
+        assert sorted(p.obj_id for p in poses) == [1, 5]
+    assert scene.detect_calls == 4 and [len(c) for c in scene.crops] == [2, 2, 2, 2]
+    assert all(c.detected for crops in scene.crops for c in crops)
+    assert tracker.counts["tracks_reinitialised"] == 6 and "ended_unfollowable" not in tracker.counts
 
 
 def test_a_posterior_is_folded_in_as_the_one_measurement_that_gives_it():

@@ -2,11 +2,14 @@
 
 Where the estimator can follow objects by their contours (`follow`: its contour refiner, from each track's predicted
 pose with the colours the track learned), every track is followed on every frame and the AGM poses only new
-detections and the tracks whose contour was lost (agreement below `lost_agreement`): a lost contour runs the
-localiser on the same frame, and the AGM's pose of the detection that matches the lost track re-initialises it (a
-lost track no detection matches is missed). Frames too far apart to follow (a slow camera, a bag of stills) lose
-every contour, so each is posed as without tracking. Otherwise (below) every tracked object is posed by the
-estimator:
+detections and the tracks whose contour was lost (agreement below `lost_agreement`). A track whose contour held
+for at least `redetect_period` frames and is lost runs the localiser on the same frame, and the AGM's pose of the
+detection that matches it re-initialises it; one no detection matches ends. A track whose contour held for less
+ends when it is lost (the AGM's pose of it was not one its contour can follow: the localiser's next period finds
+the object again, as soon as re-posing it each frame would have paid off). A frame on which no contour holds is one
+too far from the last to follow (a slow camera, a bag of stills, a jump): every lost track is posed again from the
+localiser's boxes, so such frames are posed as without tracking. Otherwise (below) every tracked object is posed by
+the estimator:
 
 A tracked object's crop comes from its predicted pose (the box it had, moved with the pose's projection and scaled
 with its depth), so the localiser runs only every `redetect_period` frames, while nothing is tracked, or after a
@@ -69,8 +72,8 @@ class TrackingConfig:
     rotation (rad)."""
     lost_agreement: float = 0.7
     """With contour following: a followed contour that separates the object's colours from its surroundings' less
-    than this (0.5: not at all), or that the refiner kept, has lost its object, and the AGM poses it from the
-    localiser's box on the same frame."""
+    than this (0.5: not at all), or that the refiner kept, has lost its object: the AGM poses it from the
+    localiser's box on the same frame where its contour had held for `redetect_period` frames, else it ends."""
     filter: FilterConfig = field(default_factory=FilterConfig)
 
 
@@ -142,6 +145,8 @@ class Track:
     """The latest pose the estimator gave for it."""
     lost: bool = False
     """Its contour was lost on this frame: the AGM's pose re-initialises it."""
+    held: int = 0
+    """Frames its contour has held since the AGM last posed it."""
 
 
 @dataclass(frozen=True)
@@ -251,8 +256,10 @@ class Tracker:
 
     def _follow(self, follow: Follower, K: np.ndarray, stamp: float) -> list[TrackedPose]:
         """Every track followed by its contour from its prediction: a pose whose contour held is the track's
-        measurement; a track whose contour was lost gets a crop for the AGM on this frame. A track that missed its
-        last frame is not followed (its pose is stale): it stays lost until a detection finds it."""
+        measurement; a track whose contour was lost after holding for a localiser's period gets a crop for the AGM
+        on this frame, one lost sooner ends, unless no contour held on this frame (frames far apart, or a camera
+        that jumped: every lost track is posed again). A track that missed its last frame is not followed (its pose
+        is stale): it stays lost until a detection finds it."""
         for tr in self.tracks:
             tr.lost = tr.misses > 0
         tracks = [tr for tr in self.tracks if tr.last is not None and not tr.lost]
@@ -261,14 +268,19 @@ class Tracker:
         results = follow([tr.last for tr in tracks], [(tr.filter.R, tr.filter.t, tr.filter.covariance) for tr in tracks])
         if len(results) != len(tracks):
             raise ValueError(f"the follower gave {len(results)} poses for {len(tracks)} tracks")
-        out = []
+        out, unfollowable = [], set()
+        jumped = not any(m.ok and self._holds(m) for m in results)  # frames far apart, or the camera jumped
         for tr, m in zip(tracks, results, strict=True):
             if m.ok and self._holds(m):
+                tr.held += 1
                 out.append(self._measure(Crop(tr.obj_id, self._predicted_box(tr, K), tr.score, tr.id), m, K, stamp))
                 self._count("followed")
+            elif tr.held < self.config.redetect_period and not jumped:
+                unfollowable.add(tr.id)
             else:
                 tr.lost = True
                 self._count("contour_lost")
+        self._end("unfollowable", lambda tr: tr.id in unfollowable, look=False)
         return [pose for pose in out if pose is not None]
 
     def _start_frame(self, stamp: float, K: np.ndarray) -> None:
@@ -342,15 +354,11 @@ class Tracker:
 
     def _unfound_dropped(self, crops: list[Crop]) -> list[Crop]:
         """The crops but those of tracks whose contour was lost and that no detection found: where the contour
-        lost its object its predicted box is no place to pose it (missed)."""
-        kept = []
-        for c in crops:
-            tr = self._track(c.track)
-            if tr is not None and tr.lost and not c.detected:
-                tr.misses += 1
-            else:
-                kept.append(c)
-        return kept
+        lost its object its predicted box is no place to pose it, and the track ends (the localiser's period finds
+        the object again when it is back)."""
+        unfound = {c.track for c in crops if (tr := self._track(c.track)) is not None and tr.lost and not c.detected}
+        self._end("unfound", lambda tr: tr.id in unfound, look=False)
+        return [c for c in crops if c.track not in unfound]
 
     def _match(self, a: Box, b: Box) -> float | None:
         """How far detection box `b` is from track box `a` (centre distance over the larger diagonal); None when
@@ -377,7 +385,7 @@ class Tracker:
             tr = self._start_track(crop, m, cov, stamp)
             return self._output(tr, m, True, K, crop.box)
         if tr.lost:  # its contour lost it: the AGM's pose starts it again (the next frame's contour judges it)
-            tr.lost = False
+            tr.lost, tr.held = False, 0
             tr.filter = PoseFilter.start(self.config.filter, m.R, m.t, cov)
             tr.misses, tr.measured, tr.score, tr.last, tr.updated = 0, True, crop.score, m, stamp
             self._count("tracks_reinitialised")
