@@ -94,8 +94,8 @@ def _soak(args: argparse.Namespace) -> int:
     from axispose_ros.bag import BagError
     from axispose_ros.soak import SoakOptions, soak
 
-    opts = SoakOptions(seconds=args.minutes * 60, rate=args.rate, tracking=args.tracking == "on", faults=not args.no_faults,
-                       precision=args.precision, threads=args.threads)  # fmt: skip
+    opts = SoakOptions(seconds=args.minutes * 60, rate=args.rate, tracking=args.tracking == "on", follow=args.follow == "on",
+                       faults=not args.no_faults, precision=args.precision, threads=args.threads)  # fmt: skip
     try:
         r = soak(args.bag, args.checkpoint or SHIPPED_ESTIMATOR, opts, args.out)
     except (BagError, RuntimeError) as err:
@@ -159,6 +159,7 @@ def _add_ros_commands(add_parser: AddParser) -> None:
     sk.add_argument("--minutes", type=float, default=10.0)
     sk.add_argument("--rate", type=float, default=30.0, help="frames per second sent")
     sk.add_argument("--tracking", choices=["on", "off"], default="off")
+    sk.add_argument("--follow", choices=["on", "off"], default="off", help="follow parameter of the node (with tracking)")
     sk.add_argument("--no-faults", action="store_true", help="the stream alone")
     sk.add_argument("--precision", choices=["auto", "float32", "bfloat16"], default="float32")
     sk.add_argument("--threads", type=int, default=2)

@@ -40,7 +40,7 @@ FAULTS: dict[str, tuple[str, ...]] = {
     "stamps_back": ("stamps_backwards",),
     "other_size": ("dropped_camera_info_mismatch",),
     "corrupt": ("dropped_image_data",),
-    "objects_leave": ("tracking_ended_misses", "tracking_ended_unseen", "tracking_ended_timeout"),
+    "objects_leave": ("tracking_ended_misses", "tracking_ended_unseen", "tracking_ended_timeout", "tracking_ended_unfound"),
 }
 """Each fault and the /diagnostics counters of which at least one must grow (objects_leave's only with tracking)."""
 SETTLE_S = 4.0
@@ -55,6 +55,8 @@ class SoakOptions:
     seconds: float = 600.0
     rate: float = 30.0
     tracking: bool = False
+    follow: bool = False
+    """With tracking: follow the tracks by their contours (the node's `follow`)."""
     faults: bool = True
     precision: str = "float32"
     threads: int = 2
@@ -109,7 +111,7 @@ def load_frames(bag: str | Path) -> list[tuple[Image, CameraInfo]]:
 
 def _node_process(checkpoint: str, opts: SoakOptions, env: dict, log_path: Path) -> subprocess.Popen:
     params = {"checkpoint": checkpoint, "precision": opts.precision, "num_threads": opts.threads, "warmup_boxes": opts.warmup_boxes,
-              "tracking": str(opts.tracking).lower()}  # fmt: skip
+              "tracking": str(opts.tracking).lower(), "follow": str(opts.follow).lower()}  # fmt: skip
     args = [sys.executable, "-m", "axispose_ros.node", "--ros-args", *[a for k, v in params.items() for a in ("-p", f"{k}:={v}")],
             "-r", f"image:={IMAGE_TOPIC}", "-r", f"camera_info:={INFO_TOPIC}"]  # fmt: skip
     return subprocess.Popen(args, env=env, stdout=open(log_path, "w"), stderr=subprocess.STDOUT)

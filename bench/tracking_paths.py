@@ -5,9 +5,11 @@ either single-frame (the localiser's boxes, each posed on its own: `{"tracking":
 whose `TrackingConfig` fields and `filter` (a `FilterConfig`) the setting gives; `"follow": true` follows the
 tracks by their contours (`Estimator.follow`), the AGM posing only new and lost objects; `"refine": false` poses
 without contour refinement; `"warm": true` starts tracked samples from their predictions (`--warm-strength`, one
-step). Each GT instance is matched to the nearest pose of
-its object in its frame. Prints, per setting, ADD(-S)@0.1d and Reproj@15px (mean over scenes), and jitter
-(`tracking/jitter.py`) and the median frame time per scene, as one JSON line; `--out` writes them all.
+step); `"live": true` feeds the frames at `--fps` in real time, the newest taken whenever the last is done (the
+node's latest-frame-wins), and scores only those it took. Each GT instance is matched to the nearest pose of its
+object in its frame. Prints, per setting, ADD(-S)@0.1d and Reproj@15px (mean over scenes), and per scene jitter
+(`tracking/jitter.py`), drift and recovery (`tracking/stream_scores.py`), the median and mean frame time and the
+share of frames processed, as one JSON line; `--out` writes them all.
 
     python bench/tracking_paths.py --scene V777/000000 --scene V778/000000 \\
         --setting '{"tracking": false}' --setting '{}' --setting '{"warm": true}'
@@ -30,6 +32,7 @@ from axispose_core.estimator import SHIPPED_ESTIMATOR, EstimateOptions, Estimato
 from axispose_core.evaluate import instance_scores, object_symmetries
 from axispose_core.tracking.filter import FilterConfig
 from axispose_core.tracking.jitter import PosePair, jitter
+from axispose_core.tracking.stream_scores import Seen, drift, recovery
 from axispose_core.tracking.tracker import Sighting, Tracker, TrackingConfig
 
 Pose = tuple[int, np.ndarray, np.ndarray]
@@ -44,26 +47,35 @@ class Bench:
         self.threshold, self.options, self.fps = threshold, options, fps
 
     def scene(self, setting: dict, scene: BopScene) -> dict:
-        """One setting on one scene: its scores, jitter, frame time and the tracker's counts."""
+        """One setting on one scene: its scores, jitter, frame time and the tracker's counts. With `"live": true`
+        the frames come at `fps` whatever the time each takes, and the newest one is taken when the last is done
+        (the node's latest-frame-wins): only those are posed and scored (`processed`, their share)."""
         tracker = self._tracker(setting) if setting.get("tracking", True) else None
-        add, rp, pairs, times = [], [], [], []
+        rows, pairs, times = [], [], []
         options = dataclasses.replace(self.options, refine=setting.get("refine", True))
+        live, free, due = setting.get("live", False), 0.0, 0
         for k, im in enumerate(scene.image_ids):
+            if live and k < due:
+                continue
             rgb, K = scene.rgb(im), scene.cameras[im]
             start = time.perf_counter()
             poses = self._frame(rgb, K, k / self.fps, tracker, setting, options)
             times.append(time.perf_counter() - start)
+            free = max(free, k / self.fps) + times[-1]
+            due = int(np.floor(free * self.fps))  # the newest frame by the time this one is done
+            visible = {id(g): info.visib_fract for g, info in scene.instances(im)}
             for g in scene.gt[im]:
                 if g.obj_id not in self.specs:
                     continue
                 pose = _nearest(poses, g.obj_id, g.t)
                 s = instance_scores(self.specs[g.obj_id], self.points[g.obj_id], K, g.R, g.t, pose, self.syms.get(g.obj_id, ()))
-                add.append(s["add_0.1d"])
-                rp.append(s["reproj_15px"])
+                rows.append(Seen(k, g.obj_id, visible.get(id(g), 1.0), s["add_0.1d"], s["reproj_15px"]))
                 if pose is not None:
                     pairs.append(PosePair(k, g.obj_id, *pose, g.R, g.t))
-        return {"add": float(np.mean(add)), "rp15": float(np.mean(rp)), **jitter(pairs, self.syms),
-                "frame_ms": 1000 * float(np.median(times[1:])), "counts": tracker.counts if tracker else {}}  # fmt: skip
+        return {"add": float(np.mean([r.add for r in rows])), "rp15": float(np.mean([r.rp15 for r in rows])), **jitter(pairs, self.syms),
+                **drift(rows), **recovery(rows), "frame_ms": 1000 * float(np.median(times[1:])),
+                "frame_ms_mean": 1000 * float(np.mean(times[1:])), "processed": len(times) / len(scene.image_ids),
+                "counts": tracker.counts if tracker else {}}  # fmt: skip
 
     def _tracker(self, setting: dict) -> Tracker:
         fields = {k: v for k, v in setting.items() if k in TrackingConfig.__dataclass_fields__ and k != "filter"}

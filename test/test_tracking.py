@@ -300,6 +300,23 @@ def test_a_redetection_refreshes_a_track_instead_of_duplicating_it(period):
     assert len(tracker.tracks) == 2 and tracker.counts["tracks_started"] == 2
 
 
+def test_recovery_counts_frames_from_an_objects_return_to_its_first_right_pose():
+    """Object 1 is hidden on frames 10-19 and first posed right 3 frames after it is back; object 2 is out of view
+    (not annotated) on frames 15-29 and posed right on its return; object 3 never leaves. Drift compares the
+    first and last windows."""
+    from axispose_core.tracking.stream_scores import Seen, drift, recovery
+
+    rows = [Seen(k, 1, 0.0 if 10 <= k < 20 else 1.0, float(k < 20), float(k < 10 or k >= 23)) for k in range(40)]
+    rows += [Seen(k, 2, 1.0, 0.0, 1.0) for k in range(40) if not 15 <= k < 30]
+    rows += [Seen(k, 3, 1.0, 1.0, 1.0) for k in range(40)]
+    out = recovery(rows)
+    assert out["returns"] == 2 and out["recovery_median"] == pytest.approx(1.5) and out["recovered_in_5"] == 1.0
+    never = [r if r.obj_id != 1 or r.frame < 20 else Seen(r.frame, 1, 1.0, 0.0, 0.0) for r in rows]
+    assert sorted(recovery(never, away=5).values()) == sorted([2, 10.0, 0.5])  # 20 frames left: waits 0 and 20
+    scores = drift(rows, window=10)
+    assert scores["add_first"] == pytest.approx(20 / 30) and scores["add_last"] == pytest.approx(10 / 30)
+
+
 def test_jitter_measures_the_error_change_not_the_motion():
     from axispose_core.tracking.jitter import PosePair, jitter
 
