@@ -6,9 +6,7 @@ whose `TrackingConfig` fields and `filter` (a `FilterConfig`) the setting gives;
 tracks by their contours (`Estimator.follow`), the AGM posing only new and lost objects; `"refine": false` poses
 without contour refinement; `"warm": true` starts tracked samples from their predictions (`--warm-strength`, one
 step); `"live": true` feeds the frames at `--fps` in real time, the newest taken whenever the last is done (the
-node's latest-frame-wins), and scores only those it took; `"background": true` follows every frame and runs the
-localiser and the AGM as on a thread of their own (one torch thread; their results caught up over the frames that
-came meanwhile). Each GT instance is matched to the nearest pose of its
+node's latest-frame-wins), and scores only those it took. Each GT instance is matched to the nearest pose of its
 object in its frame. Prints, per setting, ADD(-S)@0.1d and Reproj@15px (mean over scenes), and per scene jitter
 (`tracking/jitter.py`), drift and recovery (`tracking/stream_scores.py`), the median and mean frame time and the
 share of frames processed, as one JSON line; `--out` writes them all.
@@ -35,7 +33,7 @@ from axispose_core.evaluate import instance_scores, object_symmetries
 from axispose_core.tracking.filter import FilterConfig
 from axispose_core.tracking.jitter import PosePair, jitter
 from axispose_core.tracking.stream_scores import Seen, drift, recovery
-from axispose_core.tracking.tracker import Sighting, Tracker, TrackingConfig, catch_up, pose_detections
+from axispose_core.tracking.tracker import Sighting, Tracker, TrackingConfig
 
 Pose = tuple[int, np.ndarray, np.ndarray]
 
@@ -56,15 +54,13 @@ class Bench:
         rows, pairs, times = [], [], []
         options = dataclasses.replace(self.options, refine=setting.get("refine", True))
         live, free, due = setting.get("live", False), 0.0, 0
-        self.pending, self.posing_times = None, []
         for k, im in enumerate(scene.image_ids):
             if live and k < due:
                 continue
             rgb, K = scene.rgb(im), scene.cameras[im]
-            self.clock, self.k, self.scene_now, self.options_now = max(free, k / self.fps), k, scene, options
             start = time.perf_counter()
             poses = self._frame(rgb, K, k / self.fps, tracker, setting, options)
-            times.append(self.followed if setting.get("background", False) else time.perf_counter() - start)
+            times.append(time.perf_counter() - start)
             free = max(free, k / self.fps) + times[-1]
             due = int(np.floor(free * self.fps))  # the newest frame by the time this one is done
             visible = {id(g): info.visib_fract for g, info in scene.instances(im)}
@@ -79,7 +75,6 @@ class Bench:
         return {"add": float(np.mean([r.add for r in rows])), "rp15": float(np.mean([r.rp15 for r in rows])), **jitter(pairs, self.syms),
                 **drift(rows), **recovery(rows), "frame_ms": 1000 * float(np.median(times[1:])),
                 "frame_ms_mean": 1000 * float(np.mean(times[1:])), "processed": len(times) / len(scene.image_ids),
-                "posing_ms_mean": 1000 * float(np.mean(self.posing_times)) if self.posing_times else 0.0,
                 "counts": tracker.counts if tracker else {}}  # fmt: skip
 
     def _tracker(self, setting: dict) -> Tracker:
@@ -91,7 +86,7 @@ class Bench:
             found = self.est.find(rgb, K, self.threshold, options)
             return [(d.obj_id, e.R, e.t) for d, e in zip(found.detections, found.poses, strict=True) if e.ok]
 
-        following, verifier = setting.get("follow", False) or setting.get("background", False), self.est.config.verifier
+        following, verifier = setting.get("follow", False), self.est.config.verifier
 
         def detect() -> list:
             """As the node's tracker gets them: posed and verified where the checkpoint has a verifier, unless
@@ -113,41 +108,8 @@ class Bench:
         def follow(last: list, predicted: list) -> list:
             return self.est.follow(rgb, K, last, predicted, options)
 
-        if setting.get("background", False):
-            return self._background(tracker, stamp, K, detect, measure, follow)
         tracked = tracker.step(stamp, K, detect, measure, follow if following else None)
         return [(p.obj_id, p.R, p.t) for p in tracked]
-
-    def _background(self, tracker: Tracker, stamp: float, K: np.ndarray, detect, measure, follow) -> list[Pose]:
-        """A frame of the frame loop with the localiser and the AGM on a thread of their own (as the node runs
-        them): a posing's result is folded in once the stream's clock (`self.clock`) has passed the time it took
-        (on one thread, the frame loop's contours on the other core), the tracks followed, a new posing handed over
-        where due. Its time goes to `self.posing_times`, not the frame's."""
-        start = time.perf_counter()
-        if self.pending is not None and self.pending[0] <= self.clock:
-            tracker.fold(self.pending[1])
-            self.pending = None
-        tracked, posing = tracker.follow_step(stamp, K, follow, idle=self.pending is None)
-        self.followed = time.perf_counter() - start
-        if posing is not None:
-            threads = torch.get_num_threads()
-            torch.set_num_threads(1)
-            start = time.perf_counter()
-            result = pose_detections(tracker.config, posing, detect(), measure)
-            ready = self.clock + self.followed + time.perf_counter() - start
-            done = self.k
-            while (upto := min(int(np.floor(ready * self.fps)), len(self.scene_now.image_ids) - 1)) > done:
-                began = time.perf_counter()  # the frames that came meanwhile, followed on the posing's thread
-                result = catch_up(tracker.config, result, [(i / self.fps, self._follower(i)) for i in range(done + 1, upto + 1)])
-                ready, done = ready + time.perf_counter() - began, upto
-            torch.set_num_threads(threads)
-            self.posing_times.append(ready - self.clock - self.followed)
-            self.pending = (ready, result)
-        return [(p.obj_id, p.R, p.t) for p in tracked]
-
-    def _follower(self, k: int):
-        rgb, K = self.scene_now.rgb(self.scene_now.image_ids[k]), self.scene_now.cameras[self.scene_now.image_ids[k]]
-        return lambda last, predicted: self.est.follow(rgb, K, last, predicted, self.options_now)
 
 
 def _nearest(poses: list[Pose], obj_id: int, t_gt: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:

@@ -11,7 +11,7 @@ from scipy.spatial.transform import Rotation
 from axispose_core.data.bop import GTInstance
 from axispose_core.tracking.filter import FilterConfig, PoseFilter
 from axispose_core.tracking.motion import camera_motion
-from axispose_core.tracking.tracker import Crop, Sighting, Tracker, TrackingConfig, pose_detections
+from axispose_core.tracking.tracker import Crop, Sighting, Tracker, TrackingConfig
 
 K = np.array([[572.4, 0.0, 325.3], [0.0, 573.6, 242.0], [0.0, 0.0, 1.0]])
 SIGMA_T, SIGMA_R = 0.01, np.deg2rad(5.0)
@@ -530,56 +530,6 @@ def test_frames_on_which_no_contour_holds_are_posed_as_without_tracking():
     assert scene.detect_calls == 4 and [len(c) for c in scene.crops] == [2, 2, 2, 2]
     assert all(c.detected for crops in scene.crops for c in crops)
     assert tracker.counts["tracks_reinitialised"] == 6 and "ended_unfollowable" not in tracker.counts
-
-
-def test_background_posing_starts_tracks_at_its_stamp_while_the_frame_loop_only_follows():
-    """The localiser and the AGM on a thread of their own: a frame hands over a posing where the localiser is due
-    and that thread is idle, and publishes only what the contours followed. A posing's result, folded in frames
-    later, starts the new objects' tracks at its own stamp (the next frame follows them from their predictions)
-    and finds the followed ones (a track it stops finding ends after `max_unseen`); a lost contour ends its track
-    and asks for a posing; a result from before a reset is dropped."""
-    scene = _scene()
-    tracker = Tracker(TrackingConfig(redetect_period=3, max_unseen=2))
-    agreement: dict[int, float] = {}
-
-    def follow(last: list, predicted: list) -> list[Followed]:
-        out = []
-        for _, t, _ in predicted:
-            obj = min(scene.poses, key=lambda o: np.linalg.norm(scene.poses[o][1] - t))
-            out.append(Followed(True, *scene.poses[obj], COV, agreement.get(obj, 0.9)))
-        return out
-
-    def pose(posing):
-        return pose_detections(tracker.config, posing, scene.detect(), scene.estimate)
-
-    poses, posing = tracker.follow_step(0.0, K, follow, idle=True)  # nothing tracked: a posing, nothing published
-    assert poses == [] and posing is not None and posing.followed == () and posing.stamp == 0.0
-    result = pose(posing)
-    assert sorted(c.obj_id for c in result.crops) == [1, 5] and all(c.detected for c in result.crops)
-    poses, again = tracker.follow_step(1 / 30, K, follow, idle=False)  # in flight: none asked for
-    assert poses == [] and again is None
-    tracker.fold(result)
-    assert sorted(tr.obj_id for tr in tracker.tracks) == [1, 5] and all(tr.stamp == 0.0 for tr in tracker.tracks)
-    poses, posing = tracker.follow_step(2 / 30, K, follow, idle=True)
-    assert sorted(p.obj_id for p in poses) == [1, 5] and posing is None and tracker.counts["followed"] == 2
-    ids = {p.track_id for p in poses}
-    scene.hidden = {5}
-    for k in range(3, 10):  # posings on frames 3, 6, 9 find object 1 only: 5's track ends after two
-        poses, posing = tracker.follow_step(k / 30, K, follow, idle=True)
-        if posing is not None:
-            assert {tid for tid, _, _ in posing.followed} <= ids
-            tracker.fold(pose(posing))
-    assert [tr.obj_id for tr in tracker.tracks] == [1] and tracker.counts["ended_unseen"] == 1
-    assert scene.detect_calls == 4 and len(scene.crops) == 1  # the followed object was never posed again
-    agreement[1] = 0.3  # object 1's contour is lost: its track ends, and the next frame asks for a posing
-    poses, posing = tracker.follow_step(10 / 30, K, follow, idle=True)
-    assert poses == [] and tracker.tracks == [] and tracker.counts["ended_lost"] == 1
-    poses, posing = tracker.follow_step(11 / 30, K, follow, idle=True)
-    assert posing is not None
-    result = pose(posing)
-    tracker.reset("test")
-    tracker.fold(result)
-    assert tracker.tracks == [] and tracker.counts["posings_dropped"] == 1
 
 
 def test_a_posterior_is_folded_in_as_the_one_measurement_that_gives_it():

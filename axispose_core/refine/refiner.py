@@ -165,7 +165,7 @@ class ContourRefiner:
                 kept[i] = "invalid"
             elif K[0, 0] * self.diameters[s.obj_id] * s.scale / s.t[2] < cfg.min_size:
                 kept[i] = "small"
-            states.append(None if i in kept else self._state(s, colours[i], K))
+            states.append(None if i in kept else self._state(s, colours[i]))
         for k in range(max(len(cfg.scales), len(cfg.track_scales))):
             live = [s for s in states if s is not None and not s.reason and k < len(s.schedule[0])]
             masks = self._occluders(live, K, shape)
@@ -177,40 +177,13 @@ class ContourRefiner:
             out.append(self._finish(start, s, bins, K, kept.get(i, "")))
         return out
 
-    def _state(self, s: Start, colours: ColourHistograms | None, K: np.ndarray) -> _State:
+    def _state(self, s: Start, colours: ColourHistograms | None) -> _State:
         info = _information(s.covariance) if self.config.prior else None
         cfg = self.config
         learned = colours.copy() if colours is not None else ColourHistograms.empty(cfg.histogram_bins)
-        schedule = self._follow_schedule(s, K) if colours is not None else (cfg.scales, cfg.sigmas)
+        schedule = (cfg.track_scales, cfg.track_sigmas) if colours is not None else (cfg.scales, cfg.sigmas)
         return _State(s, self.model(s.obj_id), self.diameters[s.obj_id] * s.scale, np.asarray(s.R, float), np.asarray(s.t, float),
                       np.zeros((6, 6)) if info is None else info, learned, schedule, carried=colours is not None)  # fmt: skip
-
-    def _follow_schedule(self, s: Start, K: np.ndarray) -> tuple[tuple[float, ...], tuple[float, ...]]:
-        """The short schedule of a followed start (`track_scales`), led by the whole schedule's coarser passes its
-        first lines cannot reach across: those that reach twice the start's uncertainty as it projects (its
-        covariance's sideways translation and rotation at the object's radius, in pixels). A frame that follows
-        the last closely takes the short schedule alone; one after a gap (a slow frame, dropped frames) or of a
-        new track (its speed unknown) searches as far as its prediction may be off."""
-        cfg = self.config
-        short = (cfg.track_scales, cfg.track_sigmas)
-        if s.covariance is None or not np.all(np.isfinite(s.covariance)):
-            return short
-        C = np.asarray(s.covariance, dtype=float)
-        radius = self.diameters[s.obj_id] * s.scale / 2
-        uncertain = 2.0 * K[0, 0] / s.t[2] * np.sqrt(max(C[0, 0], C[1, 1]) + radius**2 * max(C[3, 3], C[4, 4], C[5, 5]))
-        size = K[0, 0] * self.diameters[s.obj_id] * s.scale / s.t[2]
-        reach = (cfg.function_length + cfg.distribution_length - 1) / 2  # segments each side of a line's centre
-
-        def reaches(scale: float) -> float:
-            return reach * max(1, round(scale * size))
-
-        coarse = [k for k, sc in enumerate(cfg.scales) if sc > cfg.track_scales[0]]
-        needed = [k for k in coarse if reaches(cfg.scales[k]) >= uncertain]
-        if reaches(cfg.track_scales[0]) >= uncertain or not coarse:
-            return short
-        first = needed[-1] if needed else coarse[0]
-        lead = [k for k in coarse if k >= first]
-        return tuple(cfg.scales[k] for k in lead) + cfg.track_scales, tuple(cfg.sigmas[k] for k in lead) + cfg.track_sigmas
 
     def _occluders(self, states: list[_State], K: np.ndarray, shape: tuple[int, int]) -> list[np.ndarray]:
         """Per object, the mask of the frame's objects nearer the camera than it (their outline polygons)."""

@@ -25,7 +25,6 @@ the camera's intrinsics change.
 
 from __future__ import annotations
 
-import copy
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from typing import Protocol
@@ -170,37 +169,6 @@ class TrackedPose:
     """The track was posed on this frame (False: not its turn, `measure_every`; `measurement` is its latest)."""
 
 
-@dataclass(frozen=True)
-class Posing:
-    """The localiser's and the AGM's work on one frame, handed to a thread of its own while the frame loop follows
-    the tracks (`Tracker.follow_step`): the frame's stamp and camera, and the boxes of the tracks followed on it (a
-    detection near one is that track's object, not a new one)."""
-
-    stamp: float
-    K: np.ndarray
-    followed: tuple[tuple[int, int, Box], ...]
-    """(track id, object id, box) per followed track."""
-    epoch: int
-    """The tracker's reset count when it was asked for: a result from before a reset is dropped."""
-
-
-@dataclass(frozen=True)
-class PosingResult:
-    """What `pose_detections` made of a `Posing`: the followed tracks a detection found, and the new objects'
-    crops with their poses (refused ones included), to be folded into the tracker (`Tracker.fold`)."""
-
-    posing: Posing
-    seen: frozenset[int]
-    crops: tuple[Crop, ...]
-    measurements: tuple[Measurement, ...]
-    filters: tuple[PoseFilter | None, ...] = ()
-    """Per crop, where `catch_up` followed it to `stamp`: its filter there (None: refused, or lost on the way)."""
-    caught: tuple[Measurement | None, ...] = ()
-    """Per crop, its contour's pose on the frame at `stamp` (what its track follows from next)."""
-    stamp: float | None = None
-    """The frame `filters` are at (None: the posing's own)."""
-
-
 Follower = Callable[[list[Measurement], list[tuple[np.ndarray, np.ndarray, np.ndarray]]], Sequence[Measurement]]
 """(each track's last measurement, its predicted (R, t, covariance)) -> each track's pose on this frame by its contour
 (`Estimator.follow`): `ok` False where the contour was lost; its `contour_agreement` is read where it has one."""
@@ -233,68 +201,6 @@ def _iou(a: Box, b: Box) -> float:
     return inter / union if union > 0 else 0.0
 
 
-def _match(config: TrackingConfig, a: Box, b: Box) -> float | None:
-    """How far detection box `b` is from track box `a` (centre distance over the larger diagonal); None when they
-    do not match (`match_distance`, `match_iou`)."""
-    diag = max(np.hypot(a[2], a[3]), np.hypot(b[2], b[3]), 1e-9)
-    dist = float(np.hypot(a[0] + a[2] / 2 - b[0] - b[2] / 2, a[1] + a[3] / 2 - b[1] - b[3] / 2)) / diag
-    return dist if dist <= config.match_distance or _iou(a, b) >= config.match_iou else None
-
-
-def pose_detections(
-    config: TrackingConfig, posing: Posing, detections: Sequence[Detected], estimate: Callable[[list[Crop]], Sequence[Measurement]]
-) -> PosingResult:
-    """A `Posing`'s work, away from the tracker (it reads no tracker state, so it may run on another thread): each
-    followed track takes the nearest detection of its object; the others are new objects, posed in one batch."""
-    detections = list(detections)
-    seen = set()
-    for track_id, obj_id, box in posing.followed:
-        near = [(d, j) for j, det in enumerate(detections) if det.obj_id == obj_id and (d := _match(config, box, det.box)) is not None]
-        if near:
-            seen.add(track_id)
-            detections.pop(min(near)[1])
-    crops = [Crop(d.obj_id, tuple(d.box), d.score, measurement=_posed(d), detected=True) for d in detections]
-    return PosingResult(posing, frozenset(seen), tuple(crops), tuple(_measurements(crops, estimate)))
-
-
-def catch_up(config: TrackingConfig, result: PosingResult, frames: Sequence[tuple[float, Follower]]) -> PosingResult:
-    """A posing's new objects followed by their contours over the frames that came while it ran (each a stamp and
-    its frame's follower), so that they join the tracks where the camera is now rather than where it was: each
-    from its pose, with a filter of its own, as a track is followed; one whose contour is lost on the way is
-    dropped. Like `pose_detections`, it reads no tracker state."""
-    if result.filters:  # caught up to `result.stamp` already: on from there
-        filters = [copy.deepcopy(f) for f in result.filters]
-        last, stamp = list(result.caught), result.stamp
-    else:
-        filters = [PoseFilter.start(config.filter, m.R, m.t, _noise(config, m)) if m.ok else None for m in result.measurements]
-        last, stamp = [m if m.ok else None for m in result.measurements], result.posing.stamp
-    for frame_stamp, follow in frames:
-        live = [i for i, f in enumerate(filters) if f is not None]
-        if not live:
-            break
-        for i in live:
-            filters[i].predict(frame_stamp - stamp)
-        out = follow([last[i] for i in live], [(filters[i].R, filters[i].t, filters[i].covariance) for i in live])
-        for i, m in zip(live, out, strict=True):
-            information = getattr(m, "contour_information", None)
-            if not m.ok or getattr(m, "contour_agreement", 1.0) < config.lost_agreement or information is None:
-                filters[i] = None
-                continue
-            filters[i].update_posterior(m.R, m.t, information)
-            last[i] = m
-        stamp = frame_stamp
-    caught = tuple(m if f is not None else None for m, f in zip(last, filters, strict=True))
-    return PosingResult(result.posing, result.seen, result.crops, result.measurements, tuple(filters), caught, stamp)
-
-
-def _noise(config: TrackingConfig, m: Measurement) -> np.ndarray:
-    """A measurement's covariance, or `fallback_std`'s where it has none."""
-    if m.covariance is not None and np.all(np.isfinite(m.covariance)):
-        return np.asarray(m.covariance, float)
-    rel, rot = config.fallback_std
-    return np.diag([(rel * m.t[2]) ** 2] * 3 + [rot**2] * 3)
-
-
 class Tracker:
     """`step(stamp, K, detect, estimate)` per frame: tracks' crops (and the localiser's, when it runs) through
     the estimator, the poses into the tracks' filters, the tracks' filtered poses out. `counts` tallies what
@@ -310,8 +216,6 @@ class Tracker:
         self._K: np.ndarray | None = None
         self._lost = False
         """A track ended: look for its object on the next frame."""
-        self._epoch = 0
-        """Resets so far: a background posing asked for before the last one is dropped."""
 
     def reset(self, reason: str) -> None:
         """End every track (counted as `reset_<reason>`)."""
@@ -319,7 +223,6 @@ class Tracker:
             self._count(f"reset_{reason}")
         self.tracks = []
         self._frame = 0
-        self._epoch += 1
 
     def step(
         self,
@@ -351,54 +254,7 @@ class Tracker:
         self._frame += 1
         return [pose for pose in out if pose is not None]
 
-    def follow_step(self, stamp: float, K: np.ndarray, follow: Follower, idle: bool) -> tuple[list[TrackedPose], Posing | None]:
-        """One frame with the localiser and the AGM on a thread of their own: every track followed by its contour
-        (a lost one ends: the posing finds its object again, as a new track), and, where the localiser is due and
-        that thread is `idle`, the `Posing` to hand it (run by `pose_detections`; its result comes back through
-        `fold`, some frames later). The frame's time is the contours' alone."""
-        self._start_frame(stamp, K)
-        out = self._follow(follow, K, stamp, background=True)
-        posing = None
-        if idle and self._detection_due(following=True):
-            followed = {pose.track_id for pose in out}
-            boxes = tuple((tr.id, tr.obj_id, self._predicted_box(tr, K)) for tr in self.tracks if tr.id in followed)
-            posing = Posing(stamp, np.array(K, float), boxes, self._epoch)
-            self._count("localiser_runs")
-        self._end_tracks()
-        self._frame += 1
-        return out, posing
-
-    def fold(self, result: PosingResult) -> None:
-        """A background posing's result into the tracks, before the next `follow_step`: the followed tracks it did
-        not find are unseen once more (`max_unseen`); each new object it posed starts a track at the posing's stamp
-        (the next frame predicts it to its own and its contour takes it from there, or ends it), unless a track of
-        that object is already near (started meanwhile). Dropped where the tracker was reset since it was asked
-        for."""
-        posing = result.posing
-        if posing.epoch != self._epoch:
-            self._count("posings_dropped")
-            return
-        for track_id, _, _ in posing.followed:
-            if (tr := self._track(track_id)) is not None:
-                tr.unseen = 0 if track_id in result.seen else tr.unseen + 1
-        caught = result.filters and result.caught
-        for k, (crop, m) in enumerate(zip(result.crops, result.measurements, strict=True)):
-            if not m.ok or (caught and result.filters[k] is None):
-                self._count("lost_catching_up" if m.ok else "posings_refused")
-                continue
-            now = result.caught[k] if caught else m
-            near = self.config.same_distance * now.t[2]
-            if any(tr.obj_id == crop.obj_id and np.linalg.norm(tr.filter.t - now.t) < near for tr in self.tracks):
-                self._count("posed_twice")
-                continue
-            tr = self._start_track(crop, now, self._noise(m), result.stamp if caught else posing.stamp)
-            if caught:
-                tr.filter = result.filters[k]
-            centre = np.array([crop.box[0] + crop.box[2] / 2, crop.box[1] + crop.box[3] / 2])
-            tr.anchor = (centre - _project(posing.K, m.t), float(m.t[2]))
-        self._end("unseen", lambda tr: tr.unseen >= self.config.max_unseen, look=False)
-
-    def _follow(self, follow: Follower, K: np.ndarray, stamp: float, background: bool = False) -> list[TrackedPose]:
+    def _follow(self, follow: Follower, K: np.ndarray, stamp: float) -> list[TrackedPose]:
         """Every track followed by its contour from its prediction: a pose whose contour held is the track's
         measurement; a track whose contour was lost after holding for a localiser's period gets a crop for the AGM
         on this frame, one lost sooner ends, unless no contour held on this frame (frames far apart, or a camera
@@ -412,22 +268,19 @@ class Tracker:
         results = follow([tr.last for tr in tracks], [(tr.filter.R, tr.filter.t, tr.filter.covariance) for tr in tracks])
         if len(results) != len(tracks):
             raise ValueError(f"the follower gave {len(results)} poses for {len(tracks)} tracks")
-        out, unfollowable, lost = [], set(), set()
+        out, unfollowable = [], set()
         jumped = not any(m.ok and self._holds(m) for m in results)  # frames far apart, or the camera jumped
         for tr, m in zip(tracks, results, strict=True):
             if m.ok and self._holds(m):
                 tr.held += 1
                 out.append(self._measure(Crop(tr.obj_id, self._predicted_box(tr, K), tr.score, tr.id), m, K, stamp))
                 self._count("followed")
-            elif background:
-                lost.add(tr.id)
             elif tr.held < self.config.redetect_period and not jumped:
                 unfollowable.add(tr.id)
             else:
                 tr.lost = True
                 self._count("contour_lost")
         self._end("unfollowable", lambda tr: tr.id in unfollowable, look=False)
-        self._end("lost", lambda tr: tr.id in lost)
         return [pose for pose in out if pose is not None]
 
     def _start_frame(self, stamp: float, K: np.ndarray) -> None:
@@ -508,10 +361,17 @@ class Tracker:
         return [c for c in crops if c.track not in unfound]
 
     def _match(self, a: Box, b: Box) -> float | None:
-        return _match(self.config, a, b)
+        """How far detection box `b` is from track box `a` (centre distance over the larger diagonal); None when
+        they do not match."""
+        diag = max(np.hypot(a[2], a[3]), np.hypot(b[2], b[3]), 1e-9)
+        dist = float(np.hypot(a[0] + a[2] / 2 - b[0] - b[2] / 2, a[1] + a[3] / 2 - b[1] - b[3] / 2)) / diag
+        return dist if dist <= self.config.match_distance or _iou(a, b) >= self.config.match_iou else None
 
     def _noise(self, m: Measurement) -> np.ndarray:
-        return _noise(self.config, m)
+        if m.covariance is not None and np.all(np.isfinite(m.covariance)):
+            return np.asarray(m.covariance, float)
+        rel, rot = self.config.fallback_std
+        return np.diag([(rel * m.t[2]) ** 2] * 3 + [rot**2] * 3)
 
     def _measure(self, crop: Crop, m: Measurement, K: np.ndarray, stamp: float) -> TrackedPose | None:
         tr = self._track(crop.track)
