@@ -34,8 +34,8 @@ def drift(rows: list[Seen], window: int = 100) -> dict[str, float]:
 
 def recovery(rows: list[Seen], gone: float = 0.1, back: float = 0.5, away: int = 5) -> dict[str, float | int]:
     """Frames from an object's return (visible at least `back` after at least `away` frames below `gone` or not
-    annotated: it left the view or something passed in front of it) to its first pose within Reproj@15px: the median, the share
-    within 5 frames, and how many returns (a return never posed counts as the frames left in the stream)."""
+    annotated: it left the view or something passed in front of it) to its first pose within Reproj@15px: the
+    median, the share within 5 frames, and how many returns (a return never posed right counts the frames left)."""
     by_obj: dict[int, list[Seen]] = {}
     for r in sorted(rows, key=lambda r: r.frame):
         by_obj.setdefault(r.obj_id, []).append(r)
