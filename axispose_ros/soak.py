@@ -109,12 +109,16 @@ def load_frames(bag: str | Path) -> list[tuple[Image, CameraInfo]]:
     return frames
 
 
-def _node_process(checkpoint: str, opts: SoakOptions, env: dict, log_path: Path) -> subprocess.Popen:
+def node_command(checkpoint: str, opts: SoakOptions) -> list[str]:
+    """The node's command line: its parameters from the options, its topics remapped to the soak's."""
     params = {"checkpoint": checkpoint, "precision": opts.precision, "num_threads": opts.threads, "warmup_boxes": opts.warmup_boxes,
               "tracking": str(opts.tracking).lower(), "follow": str(opts.follow).lower()}  # fmt: skip
-    args = [sys.executable, "-m", "axispose_ros.node", "--ros-args", *[a for k, v in params.items() for a in ("-p", f"{k}:={v}")],
+    return [sys.executable, "-m", "axispose_ros.node", "--ros-args", *[a for k, v in params.items() for a in ("-p", f"{k}:={v}")],
             "-r", f"image:={IMAGE_TOPIC}", "-r", f"camera_info:={INFO_TOPIC}"]  # fmt: skip
-    return subprocess.Popen(args, env=env, stdout=open(log_path, "w"), stderr=subprocess.STDOUT)
+
+
+def _node_process(checkpoint: str, opts: SoakOptions, env: dict, log_path: Path) -> subprocess.Popen:
+    return subprocess.Popen(node_command(checkpoint, opts), env=env, stdout=open(log_path, "w"), stderr=subprocess.STDOUT)
 
 
 def _rss_mb(pid: int) -> float:

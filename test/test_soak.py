@@ -12,7 +12,8 @@ from pathlib import Path
 import pytest
 from conftest import save_tiny_estimator
 
-from axispose_ros.soak import FAULTS
+from axispose_ros.params import SPECS
+from axispose_ros.soak import FAULTS, SoakOptions, node_command
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -38,3 +39,19 @@ def test_a_short_soak_keeps_the_node_up_and_counts_every_fault(tmp_path):
     assert all(f["counted"] for f in report["faults"]), report["faults"]
     assert report["stamps"].get("stamps_backwards", 0) >= 1
     assert len(report["rss_series"]) > 10 and report["rss_mb"]["end"] > 50 and (out / "rss.png").is_file()
+
+
+def test_the_soak_starts_the_node_with_its_own_parameters_as_asked():
+    """Each `-p name:=value` the soak gives the node is one of the node's parameters, of its type; tracking and
+    following reach it as asked."""
+    specs = {spec.name: spec for spec in SPECS}
+    for opts in (SoakOptions(), SoakOptions(tracking=True, follow=True)):
+        cmd = node_command("model.safetensors", opts)
+        params = dict(cmd[i + 1].split(":=", 1) for i, a in enumerate(cmd) if a == "-p")
+        assert set(params) <= set(specs), set(params) - set(specs)
+        for name, value in params.items():
+            if isinstance(specs[name].default, bool):
+                assert value in ("true", "false")
+            elif isinstance(specs[name].default, int):
+                int(value)
+        assert params["tracking"] == params["follow"] == str(opts.follow).lower()
