@@ -32,6 +32,7 @@ from axispose_core.estimator import SHIPPED_ESTIMATOR, EstimateOptions, Estimato
 from axispose_core.evaluate import instance_scores, object_symmetries
 from axispose_core.tracking.filter import FilterConfig
 from axispose_core.tracking.jitter import PosePair, jitter
+from axispose_core.tracking.motion import camera_motion
 from axispose_core.tracking.stream_scores import Seen, drift, recovery
 from axispose_core.tracking.tracker import Sighting, Tracker, TrackingConfig
 
@@ -54,12 +55,13 @@ class Bench:
         rows, pairs, times = [], [], []
         options = dataclasses.replace(self.options, refine=setting.get("refine", True))
         live, free, due = setting.get("live", False), 0.0, 0
+        cameras = _camera_poses(scene) if setting.get("view_window", 0) else [None] * len(scene.image_ids)
         for k, im in enumerate(scene.image_ids):
             if live and k < due:
                 continue
             rgb, K = scene.rgb(im), scene.cameras[im]
             start = time.perf_counter()
-            poses = self._frame(rgb, K, k / self.fps, tracker, setting, options)
+            poses = self._frame(rgb, K, k / self.fps, tracker, setting, options, cameras[k])
             times.append(time.perf_counter() - start)
             free = max(free, k / self.fps) + times[-1]
             due = int(np.floor(free * self.fps))  # the newest frame by the time this one is done
@@ -81,7 +83,8 @@ class Bench:
         fields = {k: v for k, v in setting.items() if k in TrackingConfig.__dataclass_fields__ and k != "filter"}
         return Tracker(TrackingConfig(**fields, filter=FilterConfig(**setting.get("filter", {}))))
 
-    def _frame(self, rgb: np.ndarray, K: np.ndarray, stamp: float, tracker: Tracker | None, setting: dict, options) -> list[Pose]:
+    def _frame(self, rgb: np.ndarray, K: np.ndarray, stamp: float, tracker: Tracker | None, setting: dict, options,
+               camera: np.ndarray | None = None) -> list[Pose]:  # fmt: skip
         if tracker is None:  # as the node: the localiser's objects, rescored by the verifier where there is one
             found = self.est.find(rgb, K, self.threshold, options)
             return [(d.obj_id, e.R, e.t) for d, e in zip(found.detections, found.poses, strict=True) if e.ok]
@@ -108,8 +111,24 @@ class Bench:
         def follow(last: list, predicted: list) -> list:
             return self.est.follow(rgb, K, last, predicted, options)
 
-        tracked = tracker.step(stamp, K, detect, measure, follow if following else None)
+        tracked = tracker.step(stamp, K, detect, measure, follow if following else None, camera)
         return [(p.obj_id, p.R, p.t) for p in tracked]
+
+
+def _camera_poses(scene: BopScene, tol: float = 0.005) -> list[np.ndarray | None]:
+    """The camera's pose per frame in a fixed frame (4x4, camera to fixed) from the ground truth's frame-to-frame
+    motion (the rigid motion most objects agree on), as a robot's odometry would give it: None where no object is
+    common to two frames, a new fixed frame after."""
+    poses: list[np.ndarray | None] = [np.eye(4)]
+    for before, after in zip(scene.image_ids, scene.image_ids[1:], strict=False):
+        step = camera_motion(scene.gt[before], scene.gt[after], tol)
+        if step is None:
+            poses.append(None)
+        elif poses[-1] is None:
+            poses.append(np.eye(4))
+        else:
+            poses.append(poses[-1] @ np.linalg.inv(step[0]))
+    return poses
 
 
 def _nearest(poses: list[Pose], obj_id: int, t_gt: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:

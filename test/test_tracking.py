@@ -532,6 +532,52 @@ def test_frames_on_which_no_contour_holds_are_posed_as_without_tracking():
     assert tracker.counts["tracks_reinitialised"] == 6 and "ended_unfollowable" not in tracker.counts
 
 
+def test_a_still_objects_pose_is_averaged_over_the_views_a_moving_camera_gives():
+    """An object at rest, a camera circling it at a known pose (odometry); each view's pose is off by an error that
+    is the view's (it comes back with the view, here a depth error cycling over 10 degrees of turn), which a filter
+    cannot tell from motion. Averaged over the last views in the fixed frame (`view_window`), the published pose is nearer
+    the truth than the filter's alone; without a camera pose nothing is averaged; a pose that jumps (the object
+    moved) starts its views afresh."""
+    R_obj, p_obj = Rotation.from_euler("xyz", [10, 20, 30], degrees=True).as_matrix(), np.array([0.0, 0.0, 0.8])
+
+    def camera(k: int) -> np.ndarray:  # camera to fixed: turning about the object, 1 degree a frame
+        turn = Rotation.from_euler("y", k, degrees=True).as_matrix()
+        T = np.eye(4)
+        T[:3, :3], T[:3, 3] = turn, p_obj - turn @ p_obj
+        return T
+
+    def run(window: int, odometry: bool, moved_at: int | None = None) -> tuple[list[float], Tracker]:
+        tracker, errors = Tracker(TrackingConfig(redetect_period=1000, view_window=window)), []
+        view_rng = np.random.default_rng(7)
+        for k in range(60):
+            T = camera(k)
+            p_world = p_obj + (np.array([0.0, 0.3, 0.0]) if moved_at is not None and k >= moved_at else 0.0)
+            R_true, t_true = T[:3, :3].T @ R_obj, T[:3, :3].T @ (p_world - T[:3, 3])
+            ray = t_true / np.linalg.norm(t_true)
+            error = ray * 0.01 * np.sin(2 * np.pi * k / 10) + view_rng.normal(0, 0.001, 3)
+
+            def detect(R_true=R_true, t_true=t_true) -> list[Det]:
+                p = K @ t_true
+                return [Det(1, 0.9, (p[0] / p[2] - 40, p[1] / p[2] - 40, 80.0, 80.0))]
+
+            def estimate(crops: list[Crop], R_true=R_true, t_true=t_true, error=error) -> list[Pose]:
+                cov = np.diag([0.003**2, 0.003**2, 0.01**2] + [np.deg2rad(2) ** 2] * 3)
+                return [Pose(True, R_true, t_true + error, cov) for _ in crops]
+
+            poses = tracker.step(k / 30, K, detect, estimate, camera=T if odometry else None)
+            if k >= 15 and (moved_at is None or k < moved_at):
+                errors.append(float(np.linalg.norm(poses[0].t - t_true)))
+        return errors, tracker
+
+    alone, _ = run(0, True)
+    averaged, _ = run(10, True)
+    without, _ = run(10, False)
+    assert np.median(averaged) < 0.6 * np.median(alone)
+    assert without == alone
+    _, tracker = run(10, True, moved_at=40)
+    assert tracker.counts.get("views_restarted", 0) >= 1
+
+
 def test_a_posterior_is_folded_in_as_the_one_measurement_that_gives_it():
     """A pose refined from the filter's prediction as prior is that prior and its evidence already: folding it in
     with the evidence's information moves the state (pose and velocity) exactly as the evidence's own measurement

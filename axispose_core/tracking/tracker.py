@@ -26,10 +26,11 @@ the camera's intrinsics change.
 from __future__ import annotations
 
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Protocol
 
 import numpy as np
+from scipy.spatial.transform import Rotation
 
 from axispose_core.tracking.filter import FilterConfig, PoseFilter
 
@@ -74,6 +75,14 @@ class TrackingConfig:
     """With contour following: a followed contour that separates the object's colours from its surroundings' less
     than this (0.5: not at all), or that the refiner kept, has lost its object: the AGM poses it from the
     localiser's box on the same frame where its contour had held for `redetect_period` frames, else it ends."""
+    view_window: int = 0
+    """With the camera's pose in a fixed frame (`step(..., camera=...)`, e.g. from odometry): a track's published
+    position is the mean of its positions in that frame over its last n measured frames, brought to the current
+    camera. Objects at rest under a moving camera are seen from other views, and a single view's error (depth most
+    of all) differs from view to view (0: off)."""
+    view_gate: tuple[float, float] = (0.05, 15.0)
+    """A track pose this far from its last view (translation as a fraction of its depth, rotation in degrees) starts
+    its views afresh: it was re-initialised, turned to a symmetric twin, or the object moved."""
     filter: FilterConfig = field(default_factory=FilterConfig)
 
 
@@ -147,6 +156,8 @@ class Track:
     """Its contour was lost on this frame: the AGM's pose re-initialises it."""
     held: int = 0
     """Frames its contour has held since the AGM last posed it."""
+    views: list[tuple[np.ndarray, np.ndarray]] = field(default_factory=list)
+    """Its poses (R, t) in the camera's fixed frame on its last measured frames (`view_window`)."""
 
 
 @dataclass(frozen=True)
@@ -231,9 +242,11 @@ class Tracker:
         detect: Callable[[], Sequence[Detected]],
         estimate: Callable[[list[Crop]], Sequence[Measurement]],
         follow: Follower | None = None,
+        camera: np.ndarray | None = None,
     ) -> list[TrackedPose]:
         """One frame: resets and timeouts, prediction, the tracks followed by their contours (with `follow`), the
-        localiser where due, one estimator batch (of the crops without a pose), the updates."""
+        localiser where due, one estimator batch (of the crops without a pose), the updates; with `camera`, the
+        camera's pose in a fixed frame (4x4, camera to fixed), positions averaged over views (`view_window`)."""
         self._start_frame(stamp, K)
         out = self._follow(follow, K, stamp) if follow is not None else []
         followed = {pose.track_id for pose in out}
@@ -252,7 +265,38 @@ class Tracker:
         out += [self._predicted(tr, K) for tr in quiet]
         self._end_tracks()
         self._frame += 1
-        return [pose for pose in out if pose is not None]
+        return self._over_views([pose for pose in out if pose is not None], camera)
+
+    def _over_views(self, poses: list[TrackedPose], camera: np.ndarray | None) -> list[TrackedPose]:
+        """Each measured track's position averaged over its views in the camera's fixed frame (`view_window`); none
+        without a camera pose (every track's views start again)."""
+        if self.config.view_window <= 0:
+            return poses
+        if camera is None or not np.all(np.isfinite(camera)):
+            for tr in self.tracks:
+                tr.views = []
+            return poses
+        R_wc, t_wc = np.asarray(camera, float)[:3, :3], np.asarray(camera, float)[:3, 3]
+        out = []
+        for pose in poses:
+            tr = self._track(pose.track_id)
+            if tr is None or not pose.measured:
+                out.append(pose)
+                continue
+            here = (R_wc @ pose.R, R_wc @ pose.t + t_wc)
+            if tr.views and self._moved(tr.views[-1], here, pose.t[2]):
+                tr.views = []
+                self._count("views_restarted")
+            tr.views = (tr.views + [here])[-self.config.view_window :]
+            R_mean = Rotation.from_matrix(np.array([R for R, _ in tr.views])).mean().as_matrix()
+            t_mean = np.mean([t for _, t in tr.views], axis=0)
+            out.append(replace(pose, R=R_wc.T @ R_mean, t=R_wc.T @ (t_mean - t_wc)))
+        return out
+
+    def _moved(self, last: tuple[np.ndarray, np.ndarray], here: tuple[np.ndarray, np.ndarray], depth: float) -> bool:
+        shift, turn = self.config.view_gate
+        angle = np.degrees(np.linalg.norm(Rotation.from_matrix(here[0] @ last[0].T).as_rotvec()))
+        return bool(np.linalg.norm(here[1] - last[1]) > shift * depth or angle > turn)
 
     def _follow(self, follow: Follower, K: np.ndarray, stamp: float) -> list[TrackedPose]:
         """Every track followed by its contour from its prediction: a pose whose contour held is the track's
