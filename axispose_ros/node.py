@@ -2,7 +2,9 @@
 
 Inputs: `image` (sensor_msgs/Image) and `camera_info`, paired by stamp within `sync_slop`; the boxes to
 estimate come from `~/roi/<object_name>` (sensor_msgs/RegionOfInterest, the latest one per object within
-`roi_timeout` seconds), for users with their own detector. Outputs keep the image header:
+`roi_timeout` seconds), for users with their own detector; with tracking and `view_window`, `camera_odom`
+(nav_msgs/Odometry: the camera's optical frame in a fixed frame, nearest the image's stamp within `sync_slop`).
+Outputs keep the image header:
 - `~/detections` (axispose_msgs/DetectionArray, every processed frame): each posed instance with its object id
   and name, score, pose with covariance and image box; the message for a robot stack;
 - `~/pose` (each object's pose in turn, for simple consumers), `~/pose_cov` (the same poses with their
@@ -42,6 +44,7 @@ import rclpy
 import rclpy.executors
 import torch
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
+from nav_msgs.msg import Odometry
 from rclpy.exceptions import ParameterException
 from rclpy.node import Node
 from rclpy.qos import qos_profile_sensor_data
@@ -55,6 +58,7 @@ from axispose_ros import params
 from axispose_ros.conversions import InputError, Undistorter, check_frame, image_to_rgb
 from axispose_ros.counters import Counters
 from axispose_ros.health import Health, HealthConfig
+from axispose_ros.odometry import CameraPoses
 from axispose_ros.outputs import PoseOutputs
 from axispose_ros.params import DEFAULT_CHECKPOINT as DEFAULT_CHECKPOINT  # re-exported: the node's default
 from axispose_ros.params import NodeSettings
@@ -117,6 +121,8 @@ class AxisPoseNode(Node):
         qos_opts = QoSOverridingOptions.with_default_policies()
         self.create_subscription(Image, "image", self._on_image, qos_profile_sensor_data, qos_overriding_options=qos_opts)
         self.create_subscription(CameraInfo, "camera_info", self._on_info, qos_profile_sensor_data, qos_overriding_options=qos_opts)
+        self.camera_poses = CameraPoses(lambda: self.stats.add("camera_odom_invalid"))
+        self.create_subscription(Odometry, "camera_odom", self.camera_poses.on_message, 50)
         self.undistort = Undistorter()
         for obj_id, name in self.published.items():
             self.create_subscription(RegionOfInterest, f"~/roi/{name}", lambda m, i=obj_id: self._on_roi(i, m), 10)
@@ -217,7 +223,9 @@ class AxisPoseNode(Node):
         rois, outside = self.rois.fresh(time.monotonic(), s.roi_timeout, rgb.shape[1], rgb.shape[0])
         if outside:
             self.stats.add("roi_outside", outside)
-        posed = self.poser.pose(rgb, camera.K, _stamp_seconds(frame.image.header), rois, s, self.worker.cancelled)
+        stamp = _stamp_seconds(frame.image.header)
+        camera_pose = self.camera_poses.at(stamp, s.sync_slop) if s.tracking and s.view_window > 0 else None
+        posed = self.poser.pose(rgb, camera.K, stamp, rois, s, self.worker.cancelled, camera_pose)
         refused = self.outputs.publish(frame.image.header, posed, self.estimator, rgb, camera.K, s.marker_lifetime)
         if refused:
             self.stats.add("pose_refused", refused)

@@ -111,6 +111,13 @@ SPECS = (
     ),
     Spec("warm_steps", 1, "with tracking, DDIM steps of a warm-started sample", ints=(1, 1000)),
     Spec("track_timeout", 1.0, "with tracking, seconds without an accepted pose after which a track ends", floats=(0.0, 3600.0)),
+    Spec(
+        "view_window",
+        0,
+        "with tracking and the camera's pose on camera_odom (nav_msgs/Odometry of the optical frame in a fixed frame), "
+        "publish each still object's pose averaged over its last n views (0: off)",
+        ints=(0, 1000),
+    ),
     Spec("latency_budget", 2.0, "median latency (s) over which /diagnostics warns; at start", floats=(0.01, 60.0), at_start=True),
 )
 AT_START = frozenset(s.name for s in SPECS if s.at_start)
@@ -144,6 +151,7 @@ class NodeSettings:
     warm_strength: float
     warm_steps: int
     track_timeout: float
+    view_window: int
     latency_budget: float
     object_scales: Mapping[str, float] = field(default_factory=dict)
     """`object_scales.<name>` by name (0: not set)."""

@@ -40,9 +40,11 @@ class FramePoser:
         self._reported: dict[str, int] = {}
 
     def pose(
-        self, rgb: np.ndarray, K: np.ndarray, stamp: float, rois: Sequence[tuple[int, Box]], s: NodeSettings, cancelled: Callable[[], bool]
-    ) -> Posed:
-        """ROIs where fresh ones came; else the localiser's boxes, each posed on its own or through the tracker."""
+        self, rgb: np.ndarray, K: np.ndarray, stamp: float, rois: Sequence[tuple[int, Box]], s: NodeSettings, cancelled: Callable[[], bool],
+        camera_pose: np.ndarray | None = None,
+    ) -> Posed:  # fmt: skip
+        """ROIs where fresh ones came; else the localiser's boxes, each posed on its own or through the tracker (with
+        `camera_pose`, the camera's pose in a fixed frame at this frame, averaged over views: `view_window`)."""
         options = EstimateOptions(steps=s.ddim_steps, guidance_scale=s.guidance_scale, scales=s.scales(self.published),
                                   hypotheses=s.hypotheses, warm_steps=s.warm_steps, warm_strength=max(s.warm_strength, 1e-3),
                                   max_boxes=s.batch_boxes, refine=s.refine)  # fmt: skip
@@ -81,7 +83,7 @@ class FramePoser:
             return [Sighting(d.obj_id, d.score, d.box, p) for d, p in zip(found.detections, found.poses, strict=True)]
 
         self.tracker.config = TrackingConfig(
-            redetect_period=s.redetect_period, measure_every=s.measure_every, track_timeout=s.track_timeout
+            redetect_period=s.redetect_period, measure_every=s.measure_every, track_timeout=s.track_timeout, view_window=s.view_window
         )
         follow = None
         if following:  # every track followed by its contour; the AGM poses the localiser's boxes of new and lost objects (verified)
@@ -89,9 +91,9 @@ class FramePoser:
             def follow(last: list, predicted: list) -> list[PoseEstimate]:
                 return self._count_refined(self.estimator.follow(rgb, K, last, predicted, options))
 
-        return self._tracked(stamp, K, dets, estimate, s.warm_strength > 0, follow, s.score_threshold)
+        return self._tracked(stamp, K, dets, estimate, s.warm_strength > 0, follow, s.score_threshold, camera_pose)
 
-    def _tracked(self, stamp: float, K: np.ndarray, detect, estimate, warm: bool, follow, threshold: float) -> Posed:
+    def _tracked(self, stamp: float, K: np.ndarray, detect, estimate, warm: bool, follow, threshold: float, camera_pose=None) -> Posed:
         """The tracked objects' filtered poses on this frame (followed by their contours where `follow` is given; a
         pose of a localiser's box then verified, below `threshold` refused and counted as `verifier_dropped`),
         warm-started from their predictions where `warm`; crops the estimator refused are counted."""
@@ -109,7 +111,7 @@ class FramePoser:
                 self.count("pose_refused", refused)
             return out
 
-        tracked = self.tracker.step(stamp, K, detect, measure, follow)
+        tracked = self.tracker.step(stamp, K, detect, measure, follow, camera_pose)
         for key, n in self._new_counts().items():
             self.count(f"tracking_{key}", n)
         estimates = [dataclasses.replace(tp.measurement, R=tp.R, t=tp.t, covariance=tp.covariance) for tp in tracked]

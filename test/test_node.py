@@ -448,8 +448,9 @@ def test_with_a_refiner_every_pose_is_counted_and_bad_input_is_answered_as_befor
 
 
 def test_following_tracks_by_their_contours_runs_the_frames_and_counts_them(tmp_path, lmo_dir):
-    """`tracking` with `follow` on a checkpoint with a localiser and a refiner: every frame ends in frames_processed,
-    each counted as followed or estimated by the tracker; nothing fails."""
+    """`tracking` with `follow` (and `view_window`, the camera's pose on camera_odom) on a checkpoint with a localiser
+    and a refiner: every frame ends in frames_processed, each counted as followed or estimated by the tracker; an
+    odometry message that is no pose is counted; nothing fails."""
     reader = load_reader(SHIPPED_READER)
     cfg = EstimatorConfig(agm=TINY_AGM, reader=reader.config, objects=tuple(lmo_objects()[:2]), ddim_steps=1)
     localiser = Localiser(LocaliserConfig(obj_ids=(1, 5), input_size=(160, 128), trunk=ResidualBNConfig(widths=(8, 16, 24, 32))))
@@ -458,13 +459,22 @@ def test_following_tracks_by_their_contours_runs_the_frames_and_counts_them(tmp_
     path = tmp_path / "follow.safetensors"
     est = Estimator(cfg, AxisGenerator(cfg.agm), reader).with_localiser(localiser)
     est.with_refiner(refiner_meshes(lmo_dir / "models", [1, 5])).save(path)
-    h = Harness(path, score_threshold=0.0, tracking=True, follow=True)
+    h = Harness(path, score_threshold=0.0, tracking=True, follow=True, view_window=5)
+    from nav_msgs.msg import Odometry
+
+    odom = h.peer.create_publisher(Odometry, "camera_odom", 50)
     try:
-        for sec in range(1, 4):
+        for sec in range(1, 4):  # the camera's pose comes on camera_odom, a non-pose among them
+            msg = Odometry()
+            msg.header.stamp.sec = sec
+            msg.pose.pose.position.x, msg.pose.pose.orientation.w = 0.01 * sec, 1.0 if sec != 2 else 0.0
+            odom.publish(msg)
+            assert h.spin_until(lambda s=sec: h.node.camera_poses.at(s, 0.01) is not None or h.node.counts.get("camera_odom_invalid"))
             h.frame(sec=sec)
             assert h.spin_until(lambda s=sec: h.node.counts["frames_processed"] >= s)
         counts = h.node.counters()
         assert counts.get("tracking_frames_estimated", 0) + counts.get("tracking_frames_followed", 0) == 3
+        assert counts["camera_odom_invalid"] == 1 and h.node.camera_poses.at(3.0, 0.01)[0, 3] == pytest.approx(0.03)
         assert "dropped_error" not in counts
     finally:
         h.close()

@@ -19,7 +19,7 @@ ROSDEP_KEYS = {
     "ament_index_python": "ament_index_python", "numpy": "python3-numpy", "scipy": "python3-scipy", "cv2": "python3-opencv",
     "torch": "python3-torch", "safetensors": "python3-safetensors", "plyfile": "python3-plyfile", "yaml": "python3-yaml",
     "tqdm": "python3-tqdm", "matplotlib": "python3-matplotlib", "rosbags": "python3-rosbags-pip", "skimage": "python3-skimage",
-    "axispose_msgs": "axispose_msgs",
+    "axispose_msgs": "axispose_msgs", "nav_msgs": "nav_msgs",
 }  # fmt: skip
 """The rosdep key of each third-party module the package may import."""
 
