@@ -77,9 +77,9 @@ class TrackingConfig:
     localiser's box on the same frame where its contour had held for `redetect_period` frames, else it ends."""
     view_window: int = 0
     """With the camera's pose in a fixed frame (`step(..., camera=...)`, e.g. from odometry): a track's published
-    position is the mean of its positions in that frame over its last n measured frames, brought to the current
-    camera. Objects at rest under a moving camera are seen from other views, and a single view's error (depth most
-    of all) differs from view to view (0: off)."""
+    pose is the mean of its poses in that frame over its last n measured frames (positions averaged, rotations by
+    their chordal mean), brought to the current camera. Objects at rest under a moving camera are seen from other
+    views, and a single view's error (depth most of all) differs from view to view (0: off)."""
     view_gate: tuple[float, float] = (0.05, 15.0)
     """A track pose this far from its last view (translation as a fraction of its depth, rotation in degrees) starts
     its views afresh: it was re-initialised, turned to a symmetric twin, or the object moved."""
@@ -268,7 +268,7 @@ class Tracker:
         return self._over_views([pose for pose in out if pose is not None], camera)
 
     def _over_views(self, poses: list[TrackedPose], camera: np.ndarray | None) -> list[TrackedPose]:
-        """Each measured track's position averaged over its views in the camera's fixed frame (`view_window`); none
+        """Each measured track's pose averaged over its views in the camera's fixed frame (`view_window`); none
         without a camera pose (every track's views start again)."""
         if self.config.view_window <= 0:
             return poses
@@ -294,6 +294,7 @@ class Tracker:
         return out
 
     def _moved(self, last: tuple[np.ndarray, np.ndarray], here: tuple[np.ndarray, np.ndarray], depth: float) -> bool:
+        """The pose left its last view by more than `view_gate`."""
         shift, turn = self.config.view_gate
         angle = np.degrees(np.linalg.norm(Rotation.from_matrix(here[0] @ last[0].T).as_rotvec()))
         return bool(np.linalg.norm(here[1] - last[1]) > shift * depth or angle > turn)
