@@ -27,6 +27,11 @@ class InputError(ValueError):
         self.reason = reason
 
 
+def stamp_seconds(header: Header) -> float:
+    """A message header's stamp in seconds."""
+    return header.stamp.sec + 1e-9 * header.stamp.nanosec
+
+
 def printable(text: str, limit: int = 32) -> str:
     """A string from a message as it may be logged: quoted with escapes (no newline reaches the log), cut short."""
     return repr(text[:limit]) + ("…" if len(text) > limit else "")

@@ -55,7 +55,7 @@ from axispose_core.camera import Camera
 from axispose_core.checkpoint import CheckpointError
 from axispose_core.estimator import Estimator
 from axispose_ros import params
-from axispose_ros.conversions import InputError, Undistorter, check_frame, image_to_rgb
+from axispose_ros.conversions import InputError, Undistorter, check_frame, image_to_rgb, stamp_seconds
 from axispose_ros.counters import Counters
 from axispose_ros.health import Health, HealthConfig
 from axispose_ros.odometry import CameraPoses
@@ -70,10 +70,6 @@ from axispose_ros.worker import InferenceWorker
 FASTDDS_PROFILE_NAME = "fastdds_profile.xml"
 PROFILE_VARIABLES = ("FASTRTPS_DEFAULT_PROFILES_FILE", "FASTDDS_DEFAULT_PROFILES_FILE")
 """The variables Fast DDS reads its XML profiles from: 2.x (Jazzy) and 3.x."""
-
-
-def _stamp_seconds(header) -> float:
-    return header.stamp.sec + 1e-9 * header.stamp.nanosec
 
 
 def _load_estimator(checkpoint: str, device: str) -> Estimator:
@@ -146,7 +142,7 @@ class AxisPoseNode(Node):
     def _on_image(self, msg: Image) -> None:
         self.stats.add("frames_in")
         self.health.image(time.monotonic())
-        stamp = _stamp_seconds(msg.header)
+        stamp = stamp_seconds(msg.header)
         now = self.get_clock().now().nanoseconds * 1e-9  # a simulated clock reads 0 until /clock arrives: unknown
         verdict = self.stamps.add(stamp, now if now > 0 else None)
         if verdict.lost:  # the sensor-data QoS is best effort: what DDS dropped never arrives
@@ -160,7 +156,7 @@ class AxisPoseNode(Node):
     def _on_info(self, msg: CameraInfo) -> None:
         self.stats.add("camera_info_in")
         self.health.info(time.monotonic())
-        self.sync.add_info(_stamp_seconds(msg.header), msg)
+        self.sync.add_info(stamp_seconds(msg.header), msg)
 
     def _on_roi(self, obj_id: int, msg: RegionOfInterest) -> None:
         self.rois.add(obj_id, msg, time.monotonic())
@@ -223,7 +219,7 @@ class AxisPoseNode(Node):
         rois, outside = self.rois.fresh(time.monotonic(), s.roi_timeout, rgb.shape[1], rgb.shape[0])
         if outside:
             self.stats.add("roi_outside", outside)
-        stamp = _stamp_seconds(frame.image.header)
+        stamp = stamp_seconds(frame.image.header)
         camera_pose = self.camera_poses.at(stamp, s.sync_slop) if s.tracking and s.view_window > 0 else None
         posed = self.poser.pose(rgb, camera.K, stamp, rois, s, self.worker.cancelled, camera_pose)
         refused = self.outputs.publish(frame.image.header, posed, self.estimator, rgb, camera.K, s.marker_lifetime)

@@ -11,6 +11,8 @@ from collections.abc import Callable
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from axispose_ros.conversions import stamp_seconds
+
 KEEP_S = 2.0
 """Seconds of poses kept behind the newest: frames wait for inference far less."""
 
@@ -43,7 +45,7 @@ class CameraPoses:
         if pose is None:
             self._invalid()
         else:
-            self.add(msg.header.stamp.sec + msg.header.stamp.nanosec * 1e-9, pose)
+            self.add(stamp_seconds(msg.header), pose)
 
     def add(self, stamp: float, pose: np.ndarray) -> None:
         """One pose (camera to fixed frame) at `stamp` (s); those older than KEEP_S before the newest are forgotten."""

@@ -32,6 +32,7 @@ from typing import Protocol
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from axispose_core.metrics import re
 from axispose_core.tracking.filter import FilterConfig, PoseFilter
 
 Box = tuple[float, float, float, float]
@@ -296,8 +297,7 @@ class Tracker:
     def _moved(self, last: tuple[np.ndarray, np.ndarray], here: tuple[np.ndarray, np.ndarray], depth: float) -> bool:
         """The pose left its last view by more than `view_gate`."""
         shift, turn = self.config.view_gate
-        angle = np.degrees(np.linalg.norm(Rotation.from_matrix(here[0] @ last[0].T).as_rotvec()))
-        return bool(np.linalg.norm(here[1] - last[1]) > shift * depth or angle > turn)
+        return bool(np.linalg.norm(here[1] - last[1]) > shift * depth or re(here[0], last[0]) > turn)
 
     def _follow(self, follow: Follower, K: np.ndarray, stamp: float) -> list[TrackedPose]:
         """Every track followed by its contour from its prediction: a pose whose contour held is the track's
@@ -314,9 +314,10 @@ class Tracker:
         if len(results) != len(tracks):
             raise ValueError(f"the follower gave {len(results)} poses for {len(tracks)} tracks")
         out, unfollowable = [], set()
-        jumped = not any(m.ok and self._holds(m) for m in results)  # frames far apart, or the camera jumped
-        for tr, m in zip(tracks, results, strict=True):
-            if m.ok and self._holds(m):
+        holding = [m.ok and self._holds(m) for m in results]
+        jumped = not any(holding)  # frames far apart, or the camera jumped
+        for tr, m, holds in zip(tracks, results, holding, strict=True):
+            if holds:
                 tr.held += 1
                 out.append(self._measure(Crop(tr.obj_id, self._predicted_box(tr, K), tr.score, tr.id), m, K, stamp))
                 self._count("followed")
