@@ -5,6 +5,9 @@ A bag written by `make_bag` holds, per frame, on one stamp:
 - the ground truth: `/gt/<object_name>` `geometry_msgs/PoseStamped` (object in the camera frame, one message
   per instance with visib_fract >= 0.1, BOP19), and `/roi/<object_name>` `sensor_msgs/RegionOfInterest` (its
   GT box, what an external detector would give the node);
+- where the scene gives the camera's pose (scene_camera.json's `cam_R_w2c`, `cam_t_w2c`: a rendered camera path):
+  `/camera/odom` `nav_msgs/Odometry`, the camera's optical frame in the scene's world frame (`odom`), what a
+  robot's odometry gives the node's `camera_odom`;
 - once, at the start: `/gt/models/<object_name>` `sensor_msgs/PointCloud2` (x, y, z float32 in m, object
   frame), the model points the metrics need, so that a bag is evaluated without the models folder.
 
@@ -34,6 +37,8 @@ FORMATS = {"sqlite3": StoragePlugin.SQLITE3, "mcap": StoragePlugin.MCAP}
 IMAGE_TOPIC = "/camera/color/image_raw"
 INFO_TOPIC = "/camera/color/camera_info"
 FRAME_ID = "camera_color_optical_frame"
+ODOM_TOPIC = "/camera/odom"
+ODOM_FRAME = "odom"
 GT_PREFIX = "/gt/"
 MODELS_PREFIX = "/gt/models/"
 ROI_PREFIX = "/roi/"
@@ -70,13 +75,27 @@ def _camera_info(K: np.ndarray, width: int, height: int, header):
     )  # fmt: skip
 
 
-def _pose_stamped(R: np.ndarray, t: np.ndarray, header):
+def _pose(R: np.ndarray, t: np.ndarray):
     x, y, z, w = Rotation.from_matrix(R).as_quat()
-    pose = _T["geometry_msgs/msg/Pose"](
+    return _T["geometry_msgs/msg/Pose"](
         position=_T["geometry_msgs/msg/Point"](x=float(t[0]), y=float(t[1]), z=float(t[2])),
         orientation=_T["geometry_msgs/msg/Quaternion"](x=float(x), y=float(y), z=float(z), w=float(w)),
     )
-    return _T["geometry_msgs/msg/PoseStamped"](header=header, pose=pose)
+
+
+def _pose_stamped(R: np.ndarray, t: np.ndarray, header):
+    return _T["geometry_msgs/msg/PoseStamped"](header=header, pose=_pose(R, t))
+
+
+def _odometry(R_w2c: np.ndarray, t_w2c: np.ndarray, stamp_ns: int):
+    """The camera's optical frame in the world frame (the inverse of world to camera), no twist."""
+    pose = _T["geometry_msgs/msg/PoseWithCovariance"](pose=_pose(R_w2c.T, -R_w2c.T @ t_w2c), covariance=np.zeros(36))
+    twist = _T["geometry_msgs/msg/TwistWithCovariance"](
+        twist=_T["geometry_msgs/msg/Twist"](linear=_T["geometry_msgs/msg/Vector3"](x=0.0, y=0.0, z=0.0),
+                                            angular=_T["geometry_msgs/msg/Vector3"](x=0.0, y=0.0, z=0.0)),
+        covariance=np.zeros(36),
+    )  # fmt: skip
+    return _T["nav_msgs/msg/Odometry"](header=_header(stamp_ns, ODOM_FRAME), child_frame_id=FRAME_ID, pose=pose, twist=twist)
 
 
 def _roi(box: tuple[int, int, int, int], width: int, height: int):
@@ -189,6 +208,8 @@ def make_bag(
                 write(GT_PREFIX + name, "geometry_msgs/msg/PoseStamped", _pose_stamped(g.R, g.t, header), stamp)
                 write(ROI_PREFIX + name, "sensor_msgs/msg/RegionOfInterest", _roi(box, w, h), stamp)
                 instances += 1
+            if im_id in scene.camera_poses:
+                write(ODOM_TOPIC, "nav_msgs/msg/Odometry", _odometry(*scene.camera_poses[im_id], stamp), stamp)
             write(INFO_TOPIC, "sensor_msgs/msg/CameraInfo", _camera_info(scene.cameras[im_id], w, h, header), stamp)
             write(IMAGE_TOPIC, "sensor_msgs/msg/Image", _image(rgb, header), stamp)
             frames += 1

@@ -13,6 +13,13 @@ from pathlib import Path
 from axispose_core.cli import AddParser, build_parser, object_ids
 from axispose_core.cli import main as core_main
 
+REPLAY_PARAMS = {
+    "steps": "ddim_steps", "hypotheses": "hypotheses", "guidance": "guidance_scale", "precision": "precision", "tracking": "tracking",
+    "refine": "refine", "follow": "follow", "redetect_period": "redetect_period", "measure_every": "measure_every",
+    "view_window": "view_window",
+}  # fmt: skip
+"""`replay`'s options that set the node's parameter of that name ("on" / "off": True / False)."""
+
 
 def _make_bag(args: argparse.Namespace) -> int:
     from axispose_core.objects import objects_from_models
@@ -31,27 +38,13 @@ def _replay(args: argparse.Namespace) -> int:
     from axispose_ros.replay import ReplayOptions, replay
 
     params: dict[str, object] = {"num_threads": args.threads}
-    if args.steps is not None:
-        params["ddim_steps"] = args.steps
-    if args.hypotheses is not None:
-        params["hypotheses"] = args.hypotheses
-    if args.guidance is not None:
-        params["guidance_scale"] = args.guidance
-    if args.precision is not None:
-        params["precision"] = args.precision
-    if args.tracking is not None:
-        params["tracking"] = args.tracking == "on"
-    if args.refine is not None:
-        params["refine"] = args.refine == "on"
-    if args.follow is not None:
-        params["follow"] = args.follow == "on"
-    if args.redetect_period is not None:
-        params["redetect_period"] = args.redetect_period
-    if args.measure_every is not None:
-        params["measure_every"] = args.measure_every
+    for arg, name in REPLAY_PARAMS.items():
+        if (value := getattr(args, arg)) is not None:
+            params[name] = value == "on" if value in ("on", "off") else value
     options = ReplayOptions(
         rate=None if args.as_fast_as_possible else args.rate, params=params, image_topic=args.image_topic,
-        info_topic=args.camera_info_topic, storage=args.format, overlays=args.overlays, use_rois=not args.ignore_rois,
+        info_topic=args.camera_info_topic, odom_topic=args.odom_topic, storage=args.format, overlays=args.overlays,
+        use_rois=not args.ignore_rois,
     )  # fmt: skip
     try:
         result = replay(args.bag, args.checkpoint, args.out, options)
@@ -141,6 +134,7 @@ def _add_ros_commands(add_parser: AddParser) -> None:
     rp.add_argument("--format", choices=["sqlite3", "mcap"], default="mcap", help="storage of the output bag")
     rp.add_argument("--image-topic", default=None, help="Image topic in the bag (default: its only one)")
     rp.add_argument("--camera-info-topic", default=None, help="CameraInfo topic in the bag (default: its only one)")
+    rp.add_argument("--odom-topic", default=None, help="Odometry topic in the bag played onto camera_odom (default: its only one, if any)")
     rp.add_argument(
         "--ignore-rois", action="store_true", help="do not play the bag's /roi/<name> boxes: the checkpoint's localiser finds the objects"
     )
@@ -149,6 +143,7 @@ def _add_ros_commands(add_parser: AddParser) -> None:
     rp.add_argument("--follow", choices=["on", "off"], default=None, help="follow parameter of the node (with tracking)")
     rp.add_argument("--redetect-period", type=int, default=None, help="redetect_period parameter of the node (with tracking)")
     rp.add_argument("--measure-every", type=int, default=None, help="measure_every parameter of the node (with tracking)")
+    rp.add_argument("--view-window", type=int, default=None, help="view_window parameter of the node (with tracking and odometry)")
     rp.add_argument("--threads", type=int, default=2)
     rp.set_defaults(func=_replay)
 

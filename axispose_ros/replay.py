@@ -1,9 +1,10 @@
 """`axispose replay`: the real node, in-process, on a recorded bag; its outputs recorded; metrics against GT.
 
 A private rclpy Context holds the node under test and a player node. The player publishes the bag's camera
-stream (and its `/roi/<name>` boxes, onto the node's `~/roi/<name>`) on the bag's topic names, which the node
-subscribes by remapping; its image and CameraInfo subscriptions are switched to reliable delivery through the
-node's own QoS-override parameters, so that DDS does not discard large images in a burst. Two pacings:
+stream (and its `/roi/<name>` boxes, onto the node's `~/roi/<name>`; its camera odometry, where it has one, onto
+the node's `camera_odom`) on the bag's topic names, which the node subscribes by remapping; its image and
+CameraInfo subscriptions are switched to reliable delivery through the node's own QoS-override parameters, so
+that DDS does not discard large images in a burst. Two pacings:
 - lock-step (as fast as possible, the default): each image is published once the node is idle, so every frame
   is processed and the metrics see all of them;
 - `rate` R: the bag's own timing scaled by R, as a live camera would deliver it; frames the node cannot keep up
@@ -26,6 +27,7 @@ import numpy as np
 import rclpy
 from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PoseArray, PoseStamped, PoseWithCovarianceStamped
+from nav_msgs.msg import Odometry
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.parameter import Parameter
@@ -56,7 +58,7 @@ from axispose_ros.bag import (
     read_bag,
     register_types,
 )
-from axispose_ros.conversions import image_to_rgb
+from axispose_ros.conversions import image_to_rgb, stamp_seconds
 from axispose_ros.node import AxisPoseNode
 
 # How long one spin of the replay's executor may wait for an event before it re-checks its condition. The node's
@@ -69,7 +71,9 @@ ROS_TYPES = {
     "sensor_msgs/msg/Image": Image,
     "sensor_msgs/msg/CameraInfo": CameraInfo,
     "sensor_msgs/msg/RegionOfInterest": RegionOfInterest,
+    "nav_msgs/msg/Odometry": Odometry,
 }
+ODOMETRY = "nav_msgs/msg/Odometry"
 
 
 def _msg_folder() -> Path:
@@ -106,6 +110,8 @@ class ReplayOptions:
     """The bag's Image topic; None: its only one."""
     info_topic: str | None = None
     """The bag's CameraInfo topic; None: its only one."""
+    odom_topic: str | None = None
+    """The bag's Odometry topic (the camera's pose) played onto the node's `camera_odom`; None: its only one, if any."""
     storage: str = "mcap"
     """Storage of the output bag (a key of FORMATS)."""
     overlays: str | Path | None = None
@@ -143,6 +149,7 @@ class _Session:
     exe: SingleThreadedExecutor
     image_topic: str
     info_topic: str
+    odom_topic: str | None = None
 
 
 @dataclass
@@ -207,6 +214,8 @@ def replay(bag: str | Path, checkpoint: str | Path, out_bag: str | Path, options
     topics = bag_topics(bag)
     image_topic = _unique_topic(topics, "sensor_msgs/msg/Image", opts.image_topic)
     info_topic = _unique_topic(topics, "sensor_msgs/msg/CameraInfo", opts.info_topic)
+    odom_topic = _unique_topic(topics, ODOMETRY, opts.odom_topic) if opts.odom_topic or ODOMETRY in topics.values() else None
+    remaps = [f"image:={image_topic}", f"camera_info:={info_topic}"] + ([f"camera_odom:={odom_topic}"] if odom_topic else [])
 
     ctx = rclpy.Context()
     rclpy.init(context=ctx)
@@ -215,13 +224,13 @@ def replay(bag: str | Path, checkpoint: str | Path, out_bag: str | Path, options
         node = AxisPoseNode(
             context=ctx,
             parameter_overrides=_overrides(checkpoint, opts.params, (image_topic, info_topic)),
-            cli_args=["--ros-args", "-r", f"image:={image_topic}", "-r", f"camera_info:={info_topic}"],
+            cli_args=["--ros-args", *[a for r in remaps for a in ("-r", r)]],
         )
         player = rclpy.create_node("axispose_replay", context=ctx)
         exe = SingleThreadedExecutor(context=ctx)
         exe.add_node(node)
         exe.add_node(player)
-        return _run(bag, _Session(node, player, exe, image_topic, info_topic), out_bag, opts)
+        return _run(bag, _Session(node, player, exe, image_topic, info_topic, odom_topic), out_bag, opts)
     finally:
         if node is not None:
             node.destroy_node()
@@ -317,6 +326,8 @@ class _Player:
             s.image_topic: s.player.create_publisher(Image, s.image_topic, reliable),
             s.info_topic: s.player.create_publisher(CameraInfo, s.info_topic, reliable),
         }
+        if s.odom_topic:
+            self.pubs[s.odom_topic] = s.player.create_publisher(Odometry, s.odom_topic, reliable)
         self.by_name = {o.name: o for o in s.node.estimator.config.objects} if opts.use_rois else {}
         for name in self.by_name:
             self.pubs[ROI_PREFIX + name] = s.player.create_publisher(RegionOfInterest, s.node.resolve_topic_name(f"~/roi/{name}"), 10)
@@ -341,11 +352,13 @@ class _Player:
             bar.close()
 
     def _frame(self, stamp: int, stream: list[tuple[str, object]], bar: tqdm) -> None:
-        """One frame: its boxes, its CameraInfo, then its image (in lock-step, waiting for the node to finish it)."""
+        """One frame: its boxes, the camera's pose, its CameraInfo, then its image (in lock-step, waiting for the
+        node to finish it)."""
         s, lock_step = self.s, self.opts.rate is None
         if not lock_step:
             self._pace(stamp)
         self._boxes(stamp, {t[len(ROI_PREFIX) :]: msg for t, msg in stream if t.startswith(ROI_PREFIX)})
+        self._odometry([msg for t, msg in stream if t == s.odom_topic])
         for topic, msg in stream:
             if topic == s.info_topic:
                 self.truth.cameras[_stamp_ns(msg.header)] = np.array(msg.k, dtype=float).reshape(3, 3)
@@ -358,6 +371,14 @@ class _Player:
                 bar.update(1)
                 if lock_step:
                     _await_frame(s.exe, s.node, self.frames, self.opts.frame_timeout)
+
+    def _odometry(self, messages: list[Odometry]) -> None:
+        """Publish the frame's camera poses; in lock-step, wait until the node holds them (their stamps' poses)."""
+        for msg in messages:
+            self.pubs[self.s.odom_topic].publish(msg)
+        if self.opts.rate is None and messages:
+            poses, stamp = self.s.node.camera_poses, stamp_seconds(messages[-1].header)
+            _spin_until(self.s.exe, lambda: poses.at(stamp, 0.0) is not None, 10.0)
 
     def _pace(self, stamp: int) -> None:
         """Spin until the frame of bag time `stamp` is due: the bag's timing scaled by `rate`."""

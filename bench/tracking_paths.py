@@ -6,11 +6,12 @@ whose `TrackingConfig` fields and `filter` (a `FilterConfig`) the setting gives;
 tracks by their contours (`Estimator.follow`), the AGM posing only new and lost objects; `"refine": false` poses
 without contour refinement; `"warm": true` starts tracked samples from their predictions (`--warm-strength`, one
 step); `"live": true` feeds the frames at `--fps` in real time, the newest taken whenever the last is done (the
-node's latest-frame-wins), and scores only those it took; `"view_window": n` gives the tracker the camera's motion
-from the ground truth (as odometry would) to average each pose over its last n views. Each GT instance is matched to the nearest pose of its
-object in its frame. Prints, per setting, ADD(-S)@0.1d and Reproj@15px (mean over scenes), and per scene jitter
-(`tracking/jitter.py`), drift and recovery (`tracking/stream_scores.py`), the median and mean frame time and the
-share of frames processed, as one JSON line; `--out` writes them all.
+node's latest-frame-wins), and scores only those it took; `"view_window": n` gives the tracker the camera's pose
+the scene records (scene_camera.json's `cam_R_w2c`, as odometry would) to average each pose over its last n views.
+Each GT instance is matched to the nearest pose of its object in its frame. Prints, per setting, ADD(-S)@0.1d and
+Reproj@15px (mean over scenes), and per scene jitter (`tracking/jitter.py`), drift and recovery
+(`tracking/stream_scores.py`), the median and mean frame time and the share of frames processed, as one JSON line;
+`--out` writes them all.
 
     python bench/tracking_paths.py --scene V777/000000 --scene V778/000000 \\
         --setting '{"tracking": false}' --setting '{}' --setting '{"warm": true}'
@@ -33,7 +34,6 @@ from axispose_core.estimator import SHIPPED_ESTIMATOR, EstimateOptions, Estimato
 from axispose_core.evaluate import instance_scores, object_symmetries
 from axispose_core.tracking.filter import FilterConfig
 from axispose_core.tracking.jitter import PosePair, jitter
-from axispose_core.tracking.motion import camera_motion
 from axispose_core.tracking.stream_scores import Seen, drift, recovery
 from axispose_core.tracking.tracker import Sighting, Tracker, TrackingConfig
 
@@ -56,7 +56,7 @@ class Bench:
         rows, pairs, times = [], [], []
         options = dataclasses.replace(self.options, refine=setting.get("refine", True))
         live, free, due = setting.get("live", False), 0.0, 0
-        cameras = _camera_poses(scene) if setting.get("view_window", 0) else [None] * len(scene.image_ids)
+        cameras = [_camera_to_world(scene, im) for im in scene.image_ids]
         for k, im in enumerate(scene.image_ids):
             if live and k < due:
                 continue
@@ -116,20 +116,14 @@ class Bench:
         return [(p.obj_id, p.R, p.t) for p in tracked]
 
 
-def _camera_poses(scene: BopScene, tol: float = 0.005) -> list[np.ndarray | None]:
-    """The camera's pose per frame in a fixed frame (4x4, camera to fixed) from the ground truth's frame-to-frame
-    motion (the rigid motion most objects agree on), as a robot's odometry would give it: None where no object is
-    common to two frames, a new fixed frame after."""
-    poses: list[np.ndarray | None] = [np.eye(4)]
-    for before, after in zip(scene.image_ids, scene.image_ids[1:], strict=False):
-        step = camera_motion(scene.gt[before], scene.gt[after], tol)
-        if step is None:
-            poses.append(None)
-        elif poses[-1] is None:
-            poses.append(np.eye(4))
-        else:
-            poses.append(poses[-1] @ np.linalg.inv(step[0]))
-    return poses
+def _camera_to_world(scene: BopScene, im_id: int) -> np.ndarray | None:
+    """The camera's pose in the scene's world frame (4x4, camera to world) where the scene records one."""
+    if im_id not in scene.camera_poses:
+        return None
+    R, t = scene.camera_poses[im_id]
+    T = np.eye(4)
+    T[:3, :3], T[:3, 3] = R.T, -R.T @ t
+    return T
 
 
 def _nearest(poses: list[Pose], obj_id: int, t_gt: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:

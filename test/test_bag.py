@@ -20,8 +20,22 @@ from axispose_core.data.synth.generate import generate
 from axispose_core.estimator import Estimator, EstimatorConfig, PoseEstimate
 from axispose_core.objects import objects_from_models
 from axispose_core.tbm.reader import SHIPPED_READER, load_reader
-from axispose_ros.bag import IMAGE_TOPIC, INFO_TOPIC, BagError, BagOptions, bag_topics, cloud_points, deserialize, make_bag, read_bag
+from axispose_ros.bag import (
+    FRAME_ID,
+    IMAGE_TOPIC,
+    INFO_TOPIC,
+    ODOM_TOPIC,
+    BagError,
+    BagOptions,
+    bag_topics,
+    cloud_points,
+    deserialize,
+    make_bag,
+    read_bag,
+)
 from axispose_ros.cli import main
+from axispose_ros.odometry import pose_matrix
+from axispose_ros.posing import FramePoser
 from axispose_ros.replay import ReplayOptions, replay
 
 OBJECTS = (1, 5, 8)  # ape, can, driller
@@ -184,6 +198,36 @@ def test_make_bag_refuses_bad_arguments(scene, objects, lmo_dir, tmp_path):
         make_bag(scene, tmp_path / "exists", objects, lmo_dir / "models_eval")
     with pytest.raises(ValueError, match="fps"):
         BagOptions(fps=0.0)
+
+
+def test_a_camera_paths_bag_plays_the_cameras_pose_to_the_node(objects, checkpoint, lmo_dir, tmp_path, monkeypatch):
+    """A rendered camera path's bag carries the camera's pose (`/camera/odom`, the optical frame in the world: the
+    inverse of the scene's world-to-camera pose), and replay plays it onto the node's camera_odom, where each frame
+    finds its own (what `view_window` averages over)."""
+    from axispose_core.data.synth.config import CameraPathConfig
+
+    cfg = SynthConfig(seed=21, scenes=1, images_per_scene=3, objects=OBJECTS, camera_path=CameraPathConfig(orbit_deg=5.0))
+    generate(cfg, lmo_dir / "models", tmp_path / "data", progress=False)
+    scene = BopScene(tmp_path / "data" / "000000")
+    make_bag(scene.root, tmp_path / "bag", objects, lmo_dir / "models_eval", BagOptions(storage="mcap", progress=False))
+    truth = []
+    for im_id in scene.image_ids:
+        R, t = scene.camera_poses[im_id]
+        truth.append(np.block([[R.T, (-R.T @ t)[:, None]], [np.zeros((1, 3)), np.ones((1, 1))]]))
+    odometry = [deserialize(m) for m in read_bag(tmp_path / "bag", [ODOM_TOPIC])]
+    assert [(o.header.frame_id, o.child_frame_id) for o in odometry] == [("odom", FRAME_ID)] * 3
+    for msg, T in zip(odometry, truth, strict=True):
+        np.testing.assert_allclose(pose_matrix(msg.pose.pose.position, msg.pose.pose.orientation), T, atol=1e-9)
+    given = []
+    pose = FramePoser.pose
+    monkeypatch.setattr(FramePoser, "pose", lambda self, *args: given.append(args[-1]) or pose(self, *args))
+    params = {"tracking": True, "view_window": 3}
+    assert replay(tmp_path / "bag", checkpoint, tmp_path / "out", ReplayOptions(params=params, progress=False)).frames_published == 3
+    assert len(given) == 3
+    for T_given, T in zip(given, truth, strict=True):
+        np.testing.assert_allclose(T_given, T, atol=1e-6)
+    with pytest.raises(BagError, match="no nav_msgs/msg/Odometry topic '/odom'"):
+        replay(tmp_path / "bag", checkpoint, tmp_path / "out2", ReplayOptions(odom_topic="/odom", progress=False))
 
 
 def test_replay_options_refuse_bad_values():

@@ -14,6 +14,7 @@ from axispose_core.data.bop import (
     GTInfo,
     GTInstance,
     bbox_from_model,
+    load_camera_poses,
     load_models_info,
     load_scene_camera,
     load_scene_gt,
@@ -86,6 +87,24 @@ def test_scene_round_trip_keeps_metres(tmp_path, rng):
     assert [info.bbox_obj for _, info in scene.instances(1)] == [(10, 20, 30, 40)] * 2
     pairs = scene.instances(2)
     assert [g.obj_id for g, _ in pairs] == [1, 5] and [info.visib_fract for _, info in pairs] == [0.5, 0.5]
+
+
+def test_camera_poses_round_trip_in_mm_where_given_and_a_non_rotation_is_refused(tmp_path, rng):
+    """BOP's optional world-to-camera pose per image: metres in memory, mm on disk, only the images that have one."""
+    _scene(tmp_path, rng)
+    assert BopScene(tmp_path).camera_poses == {}
+    R = Rotation.random(random_state=rng).as_matrix()
+    write_scene_camera(tmp_path / "scene_camera.json", {i: LMO_K for i in range(3)}, poses={1: (R, np.array([0.1, 0.0, -0.5]))})
+    raw = json.loads((tmp_path / "scene_camera.json").read_text())
+    assert raw["1"]["cam_t_w2c"] == pytest.approx([100.0, 0.0, -500.0]) and "cam_R_w2c" not in raw["0"]
+    poses = BopScene(tmp_path).camera_poses
+    assert list(poses) == [1]
+    np.testing.assert_allclose(poses[1][0], R, atol=1e-12)
+    np.testing.assert_allclose(poses[1][1], [0.1, 0.0, -0.5])
+    raw["1"]["cam_R_w2c"] = [2, 0, 0, 0, 1, 0, 0, 0, 1]
+    (tmp_path / "scene_camera.json").write_text(json.dumps(raw))
+    with pytest.raises(BopFormatError, match=r"cam_R_w2c.*not a rotation"):
+        load_camera_poses(tmp_path / "scene_camera.json")
 
 
 def test_boxes_and_visibility_from_models_when_gt_info_is_absent(tmp_path, lmo_dir):

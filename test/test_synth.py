@@ -214,6 +214,27 @@ def test_a_camera_path_films_one_world(meshes):
     assert np.array_equal(render_image(cfg, meshes, diameters, 0, 2).rgb, frames[2].rgb)
 
 
+def test_a_camera_path_scene_records_the_cameras_pose(lmo_dir, tmp_path):
+    """A camera path's scene_camera.json gives each image's camera pose (BOP's cam_R_w2c, cam_t_w2c), the one the
+    objects were filmed from: each object's pose brought back to the world by it is the same in every image."""
+    from axispose_core.data.synth.config import CameraPathConfig
+
+    path = CameraPathConfig(orbit_deg=3.0, sweep_deg=10.0, sweep_frames=8)
+    cfg = dataclasses.replace(CFG, scenes=1, images_per_scene=4, camera_path=path)
+    generate(cfg, lmo_dir / "models", tmp_path, workers=1, progress=False)
+    scene = BopScene(tmp_path / "000000")
+    assert sorted(scene.camera_poses) == scene.image_ids == [0, 1, 2, 3]
+    np.testing.assert_allclose(scene.camera_poses[0][0], np.eye(3), atol=1e-12)  # the world is the first camera's frame
+    world = {}
+    for im_id in scene.image_ids:
+        R, t = scene.camera_poses[im_id]
+        for g in scene.gt[im_id]:
+            R_w, t_w = world.setdefault(g.obj_id, (R.T @ g.R, R.T @ (g.t - t)))
+            np.testing.assert_allclose(R.T @ g.R, R_w, atol=1e-6)
+            np.testing.assert_allclose(R.T @ (g.t - t), t_w, atol=1e-6)  # mm on disk: float rounding only
+    assert np.degrees(np.arccos((np.trace(scene.camera_poses[3][0]) - 1) / 2)) > 1.0  # the camera moved
+
+
 def test_a_camera_stream_sweeps_smears_passes_occluders_and_keeps_its_cameras_settings(meshes):
     """A stream as a hand-held camera films one: the view sweeps (the world turns far more than the orbit), frames
     are smeared along their motion and their exposure walks, an occluder crosses the view once (an unannotated

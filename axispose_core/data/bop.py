@@ -265,6 +265,24 @@ def load_scene_camera(path: str | Path) -> dict[int, np.ndarray]:
     return cams
 
 
+def load_camera_poses(path: str | Path) -> dict[int, tuple[np.ndarray, np.ndarray]]:
+    """scene_camera.json's camera poses (`cam_R_w2c`, `cam_t_w2c`: world to camera, t in m) per image id, for the
+    images that give one (BOP's optional fields: a recording's odometry, a rendered camera path's truth)."""
+    path = Path(path)
+    poses = {}
+    for im_id, e in _keyed(path, "image"):
+        if not isinstance(e, dict) or "cam_R_w2c" not in e:
+            continue
+        where = f"image {im_id}"
+        R = _numbers(path, where, "cam_R_w2c", e["cam_R_w2c"], 9).reshape(3, 3)
+        t = _numbers(path, where, "cam_t_w2c", _field(path, where, e, "cam_t_w2c"), 3) * MM
+        off = max(float(np.abs(R @ R.T - np.eye(3)).max()), abs(float(np.linalg.det(R)) - 1.0))
+        if off > ROTATION_TOL:
+            raise BopFormatError(f"{path}: {where}: field 'cam_R_w2c' is not a rotation matrix (off orthonormal by {off:.3g})")
+        poses[im_id] = (nearest_rotation(R) if off > 1e-6 else R, t)
+    return poses
+
+
 def load_depth_scales(path: str | Path) -> dict[int, float]:
     """scene_camera.json's depth_scale per image id (mm per depth-image unit; 1.0 where absent)."""
     path = Path(path)
@@ -311,9 +329,12 @@ def load_camera(path: str | Path) -> tuple[np.ndarray, int | None, int | None]:
     return K, size[0], size[1]
 
 
-def write_scene_camera(path: str | Path, cams: dict[int, np.ndarray], depth_scale: float = 1.0) -> None:
-    """Write scene_camera.json."""
+def write_scene_camera(path: str | Path, cams: dict[int, np.ndarray], depth_scale: float = 1.0,
+                       poses: dict[int, tuple[np.ndarray, np.ndarray]] | None = None) -> None:  # fmt: skip
+    """Write scene_camera.json; with `poses`, each image's camera pose (world to camera, t in m) where it has one."""
     out = {str(i): {"cam_K": np.asarray(K).ravel().tolist(), "depth_scale": depth_scale} for i, K in sorted(cams.items())}
+    for i, (R, t) in (poses or {}).items():
+        out[str(i)].update(cam_R_w2c=np.asarray(R).ravel().tolist(), cam_t_w2c=(np.asarray(t) / MM).tolist())
     _write_json(Path(path), out)
 
 
@@ -472,6 +493,8 @@ class BopScene:
     gt: dict[int, list[GTInstance]] = field(init=False)
     cameras: dict[int, np.ndarray] = field(init=False)
     gt_info: dict[int, list[GTInfo]] | None = field(init=False)
+    camera_poses: dict[int, tuple[np.ndarray, np.ndarray]] = field(init=False)
+    """The camera's pose (world to camera, t in m) of the images scene_camera.json gives one for."""
     rotations_projected: int = field(init=False)
     """GT rotations of scene_gt.json that were not orthonormal and were projected (`read_scene_gt`)."""
 
@@ -480,6 +503,7 @@ class BopScene:
         gt = read_scene_gt(self.root / "scene_gt.json")
         self.gt, self.rotations_projected = gt.instances, gt.projected
         self.cameras = load_scene_camera(self.root / "scene_camera.json")
+        self.camera_poses = load_camera_poses(self.root / "scene_camera.json")
         info_path = self.root / "scene_gt_info.json"
         self.gt_info = load_scene_gt_info(info_path) if info_path.exists() else None
         self._estimated: dict[int, list[GTInfo]] = {}

@@ -13,7 +13,7 @@ from __future__ import annotations
 import multiprocessing as mp
 import os
 import shutil
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import cv2
@@ -59,6 +59,8 @@ class SynthImage:
     """Of the meshes (m; inf elsewhere, 0 under cut-outs)."""
     table: Table | None = None
     """The table top the objects rest on, if the frame has one."""
+    camera: tuple[np.ndarray, np.ndarray] | None = None
+    """Along a camera path: the camera's pose, world (the first camera's frame) to this camera (R, t in m)."""
 
 
 @dataclass
@@ -261,8 +263,9 @@ def render_image(cfg: SynthConfig, meshes: dict[int, RenderMesh], diameters: dic
             seen.placements.append(Placement(0, *pose, radius))
             seen.posed.append((passer.mesh, *pose))
     scene_rngs = (np.random.default_rng([cfg.seed, scene_id, 0, 4]), np.random.default_rng([cfg.seed, scene_id, 0, 5]))
-    return render_world(cfg, seen, meshes, np.random.default_rng([cfg.seed, scene_id, im_id, 2]), _exposure(path, world, cameras, K,
-                        *scene_rngs))  # fmt: skip
+    frame = render_world(cfg, seen, meshes, np.random.default_rng([cfg.seed, scene_id, im_id, 2]), _exposure(path, world, cameras, K,
+                         *scene_rngs))  # fmt: skip
+    return replace(frame, camera=(R, t))
 
 
 def _exposure(path: CameraPathConfig, world: World, cameras: list[tuple[np.ndarray, np.ndarray]], K: np.ndarray,
@@ -291,7 +294,7 @@ def generate_scene(cfg: SynthConfig, meshes: dict[int, RenderMesh], diameters: d
     for sub in ("rgb", "mask", "mask_visib"):
         (folder / sub).mkdir(parents=True, exist_ok=True)
     K = np.asarray(cfg.K, dtype=np.float64).reshape(3, 3)
-    gts, infos, cams = {}, {}, {}
+    gts, infos, cams, poses = {}, {}, {}, {}
     for im_id in range(cfg.images_per_scene):
         frame = render_image(cfg, meshes, diameters, scene_id, im_id)
         cv2.imwrite(str(folder / "rgb" / f"{im_id:06d}.jpg"), frame.rgb[..., ::-1], [cv2.IMWRITE_JPEG_QUALITY, frame.jpeg_quality])
@@ -299,10 +302,12 @@ def generate_scene(cfg: SynthConfig, meshes: dict[int, RenderMesh], diameters: d
             cv2.imwrite(str(folder / "mask" / f"{im_id:06d}_{k:06d}.png"), full.astype(np.uint8) * 255)
             cv2.imwrite(str(folder / "mask_visib" / f"{im_id:06d}_{k:06d}.png"), vis.astype(np.uint8) * 255)
         gts[im_id], infos[im_id], cams[im_id] = frame.gt, frame.info, K
+        if frame.camera is not None:
+            poses[im_id] = frame.camera
         if cfg.depth:
             write_depth(folder / "depth" / f"{im_id:06d}.png", frame.depth, DEPTH_SCALE)
     write_scene_gt(folder / "scene_gt.json", gts)
-    write_scene_camera(folder / "scene_camera.json", cams, DEPTH_SCALE)
+    write_scene_camera(folder / "scene_camera.json", cams, DEPTH_SCALE, poses)
     write_scene_gt_info(folder / "scene_gt_info.json", infos)  # last: marks the scene complete
     return cfg.images_per_scene
 
