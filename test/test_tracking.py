@@ -578,6 +578,29 @@ def test_a_still_objects_pose_is_averaged_over_the_views_a_moving_camera_gives()
     assert tracker.counts.get("views_restarted", 0) >= 1
 
 
+def test_views_from_other_directions_pin_the_depth_that_one_view_barely_sees():
+    """Each view's position is off along its own line of sight only (its depth), and says so in its covariance
+    (loose along the ray, tight across it). Fused by their information the views meet where the rays' lateral
+    constraints cross, at the truth, where the views' plain mean keeps their average depth error."""
+    p_obj = np.array([0.0, 0.0, 0.8])
+
+    def run(lateral_sd: float) -> float:
+        tracker = Tracker(TrackingConfig(redetect_period=1000, view_window=4))
+        for k, error in enumerate((0.03, 0.02, 0.03, 0.025)):  # fractions of the depth, along each ray
+            turn = Rotation.from_euler("y", 4 * k, degrees=True).as_matrix()
+            T = np.eye(4)
+            T[:3, :3], T[:3, 3] = turn, p_obj - turn @ p_obj
+            t_true = turn.T @ (p_obj - T[:3, 3])
+            cov = np.diag([lateral_sd**2, lateral_sd**2, (0.01 * t_true[2]) ** 2] + [np.deg2rad(2) ** 2] * 3)
+            box = (*(K @ t_true)[:2] / t_true[2] - 40, 80.0, 80.0)
+            measured = Pose(True, np.eye(3), t_true * (1 + error), cov)
+            poses = tracker.step(k / 30, K, lambda box=box: [Det(1, 0.9, box)], lambda crops, m=measured: [m] * len(crops), camera=T)
+        return float(np.linalg.norm(poses[0].t - t_true))
+
+    assert run(1e-5) < 0.001  # the lines of sight cross within a millimetre
+    assert run(1.0) > 0.015  # as good as no lateral information: the mean depth error (2.6 % of 0.8 m) stays
+
+
 def test_a_posterior_is_folded_in_as_the_one_measurement_that_gives_it():
     """A pose refined from the filter's prediction as prior is that prior and its evidence already: folding it in
     with the evidence's information moves the state (pose and velocity) exactly as the evidence's own measurement

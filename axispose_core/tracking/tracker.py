@@ -78,9 +78,11 @@ class TrackingConfig:
     localiser's box on the same frame where its contour had held for `redetect_period` frames, else it ends."""
     view_window: int = 0
     """With the camera's pose in a fixed frame (`step(..., camera=...)`, e.g. from odometry): a track's published
-    pose is the mean of its poses in that frame over its last n measured frames (positions averaged, rotations by
-    their chordal mean), brought to the current camera. Objects at rest under a moving camera are seen from other
-    views, and a single view's error (depth most of all) differs from view to view (0: off)."""
+    pose is fused from its measurements in that frame over its last n measured frames, brought to the current
+    camera: positions weighted by their information (each view's covariance turned into the fixed frame: precise
+    across its line of sight, loose along it, so views from other directions pin the depth), rotations by their
+    chordal mean. Objects at rest under a moving camera are seen from other views, and a single view's error (depth
+    most of all) differs from view to view (0: off)."""
     view_gate: tuple[float, float] = (0.05, 15.0)
     """A track pose this far from its last view (translation as a fraction of its depth, rotation in degrees) starts
     its views afresh: it was re-initialised, turned to a symmetric twin, or the object moved."""
@@ -132,6 +134,15 @@ class Crop:
     """The box is the localiser's on this frame (a caller verifies such poses where it verifies detections)."""
 
 
+@dataclass(frozen=True)
+class View:
+    """A measured pose (R, t) and its translation's covariance, in the camera's fixed frame."""
+
+    R: np.ndarray
+    t: np.ndarray
+    covariance: np.ndarray
+
+
 @dataclass
 class Track:
     id: int
@@ -157,8 +168,8 @@ class Track:
     """Its contour was lost on this frame: the AGM's pose re-initialises it."""
     held: int = 0
     """Frames its contour has held since the AGM last posed it."""
-    views: list[tuple[np.ndarray, np.ndarray]] = field(default_factory=list)
-    """Its poses (R, t) in the camera's fixed frame on its last measured frames (`view_window`)."""
+    views: list[View] = field(default_factory=list)
+    """Its measurements in the camera's fixed frame on its last measured frames (`view_window`)."""
 
 
 @dataclass(frozen=True)
@@ -203,6 +214,15 @@ def _measurements(crops: list[Crop], estimate: Callable[[list[Crop]], Sequence[M
         raise ValueError(f"the estimator gave {len(fresh)} poses for {len(todo)} crops")
     posed = iter(fresh)
     return [c.measurement if c.measurement is not None else next(posed) for c in crops]
+
+
+def _fused_position(views: list[View]) -> np.ndarray:
+    """The views' positions weighted by their information (the least-squares point of their error ellipsoids)."""
+    information = [np.linalg.pinv(v.covariance) for v in views]
+    total = np.sum(information, axis=0)
+    if not np.all(np.isfinite(total)) or np.linalg.matrix_rank(total) < 3:
+        return np.mean([v.t for v in views], axis=0)
+    return np.linalg.solve(total, np.sum([info @ v.t for info, v in zip(information, views, strict=True)], axis=0))
 
 
 def _iou(a: Box, b: Box) -> float:
@@ -269,8 +289,8 @@ class Tracker:
         return self._over_views([pose for pose in out if pose is not None], camera)
 
     def _over_views(self, poses: list[TrackedPose], camera: np.ndarray | None) -> list[TrackedPose]:
-        """Each measured track's pose averaged over its views in the camera's fixed frame (`view_window`); none
-        without a camera pose (every track's views start again)."""
+        """Each measured track's pose fused from its measurements over its views in the camera's fixed frame
+        (`view_window`); none without a camera pose (every track's views start again)."""
         if self.config.view_window <= 0:
             return poses
         if camera is None or not np.all(np.isfinite(camera)):
@@ -284,20 +304,20 @@ class Tracker:
             if tr is None or not pose.measured:
                 out.append(pose)
                 continue
-            here = (R_wc @ pose.R, R_wc @ pose.t + t_wc)
-            if tr.views and self._moved(tr.views[-1], here, pose.t[2]):
+            m = pose.measurement
+            here = View(R_wc @ m.R, R_wc @ m.t + t_wc, R_wc @ self._noise(m)[:3, :3] @ R_wc.T)
+            if tr.views and self._moved(tr.views[-1], here, float(m.t[2])):
                 tr.views = []
                 self._count("views_restarted")
             tr.views = (tr.views + [here])[-self.config.view_window :]
-            R_mean = Rotation.from_matrix(np.array([R for R, _ in tr.views])).mean().as_matrix()
-            t_mean = np.mean([t for _, t in tr.views], axis=0)
-            out.append(replace(pose, R=R_wc.T @ R_mean, t=R_wc.T @ (t_mean - t_wc)))
+            R_mean = Rotation.from_matrix(np.array([v.R for v in tr.views])).mean().as_matrix()
+            out.append(replace(pose, R=R_wc.T @ R_mean, t=R_wc.T @ (_fused_position(tr.views) - t_wc)))
         return out
 
-    def _moved(self, last: tuple[np.ndarray, np.ndarray], here: tuple[np.ndarray, np.ndarray], depth: float) -> bool:
+    def _moved(self, last: View, here: View, depth: float) -> bool:
         """The pose left its last view by more than `view_gate`."""
         shift, turn = self.config.view_gate
-        return bool(np.linalg.norm(here[1] - last[1]) > shift * depth or re(here[0], last[0]) > turn)
+        return bool(np.linalg.norm(here.t - last.t) > shift * depth or re(here.R, last.R) > turn)
 
     def _follow(self, follow: Follower, K: np.ndarray, stamp: float) -> list[TrackedPose]:
         """Every track followed by its contour from its prediction: a pose whose contour held is the track's
