@@ -115,7 +115,7 @@ SPECS = (
         "view_window",
         0,
         "with tracking and the camera's pose on camera_odom (nav_msgs/Odometry of the optical frame in a fixed frame), "
-        "publish each still object's pose averaged over its last n views (0: off)",
+        "publish each still object's pose fused from its views over the last n frames (0: off)",
         ints=(0, 1000),
     ),
     Spec("latency_budget", 2.0, "median latency (s) over which /diagnostics warns; at start", floats=(0.01, 60.0), at_start=True),

@@ -536,8 +536,8 @@ def test_a_still_objects_pose_is_averaged_over_the_views_a_moving_camera_gives()
     """An object at rest, a camera circling it at a known pose (odometry); each view's pose is off by an error that
     is the view's (it comes back with the view, here a depth error cycling over 10 degrees of turn), which a filter
     cannot tell from motion. Averaged over the last views in the fixed frame (`view_window`), the published pose is nearer
-    the truth than the filter's alone; without a camera pose nothing is averaged; a pose that jumps (the object
-    moved) starts its views afresh."""
+    the truth than the filter's alone; without a camera pose nothing is averaged; once the object moved its old views
+    are left out (`view_gate`) and the new ones averaged."""
     R_obj, p_obj = Rotation.from_euler("xyz", [10, 20, 30], degrees=True).as_matrix(), np.array([0.0, 0.0, 0.8])
 
     def camera(k: int) -> np.ndarray:  # camera to fixed: turning about the object, 1 degree a frame
@@ -546,8 +546,8 @@ def test_a_still_objects_pose_is_averaged_over_the_views_a_moving_camera_gives()
         T[:3, :3], T[:3, 3] = turn, p_obj - turn @ p_obj
         return T
 
-    def run(window: int, odometry: bool, moved_at: int | None = None) -> tuple[list[float], Tracker]:
-        tracker, errors = Tracker(TrackingConfig(redetect_period=1000, view_window=window)), []
+    def run(window: int, odometry: bool, moved_at: int | None = None) -> tuple[list[float], list[float], Tracker]:
+        tracker, errors, after = Tracker(TrackingConfig(redetect_period=1000, view_window=window)), [], []
         view_rng = np.random.default_rng(7)
         for k in range(60):
             T = camera(k)
@@ -567,15 +567,17 @@ def test_a_still_objects_pose_is_averaged_over_the_views_a_moving_camera_gives()
             poses = tracker.step(k / 30, K, detect, estimate, camera=T if odometry else None)
             if k >= 15 and (moved_at is None or k < moved_at):
                 errors.append(float(np.linalg.norm(poses[0].t - t_true)))
-        return errors, tracker
+            elif moved_at is not None and k >= moved_at + 10:
+                after.append(float(np.linalg.norm(poses[0].t - t_true)))
+        return errors, after, tracker
 
-    alone, _ = run(0, True)
-    averaged, _ = run(10, True)
-    without, _ = run(10, False)
+    alone, _, _ = run(0, True)
+    averaged, _, _ = run(10, True)
+    without, _, _ = run(10, False)
     assert np.median(averaged) < 0.6 * np.median(alone)
     assert without == alone
-    _, tracker = run(10, True, moved_at=40)
-    assert tracker.counts.get("views_restarted", 0) >= 1
+    _, moved, tracker = run(10, True, moved_at=40)
+    assert tracker.counts["views_gated"] >= 9 and np.median(moved) < 0.6 * np.median(alone)
 
 
 def test_views_from_other_directions_pin_the_depth_that_one_view_barely_sees():
@@ -599,6 +601,37 @@ def test_views_from_other_directions_pin_the_depth_that_one_view_barely_sees():
 
     assert run(1e-5) < 0.001  # the lines of sight cross within a millimetre
     assert run(1.0) > 0.015  # as good as no lateral information: the mean depth error (2.6 % of 0.8 m) stays
+
+
+def test_an_object_found_again_brings_its_views_back():
+    """Views are the object's, not one track's: a track that ended (its object unposed for `max_misses` frames)
+    and the new one that finds the object again fuse the same views, so the new track's first poses already have
+    the depth the earlier views pinned; views older than `view_window` frames are forgotten."""
+    p_obj = np.array([0.0, 0.0, 0.8])
+
+    def run(window: int, lateral_var: float) -> tuple[tuple[float, float], float, Tracker]:
+        """The depth error (m, signed), fused and raw, on the new track's first frame and (fused) on the last: views
+        2 % too far before the gap, 2 % too near after."""
+        tracker = Tracker(TrackingConfig(redetect_period=1000, view_window=window))
+        for k in range(24):
+            turn = Rotation.from_euler("y", 2 * k, degrees=True).as_matrix()
+            T = np.eye(4)
+            T[:3, :3], T[:3, 3] = turn, p_obj - turn @ p_obj
+            t_true = turn.T @ (p_obj - T[:3, 3])
+            cov = np.diag([lateral_var, lateral_var, (0.01 * t_true[2]) ** 2] + [np.deg2rad(2) ** 2] * 3)
+            seen = Pose(k not in (16, 17, 18), turn.T, t_true * (1.02 if k < 16 else 0.98), cov)  # unposed: the track ends
+            box = (*(K @ t_true)[:2] / t_true[2] - 40, 80.0, 80.0)
+            poses = tracker.step(k / 30, K, lambda box=box: [Det(1, 0.9, box)], lambda crops, m=seen: [m] * len(crops), camera=T)
+            if k == 19:
+                first = (float(poses[0].t[2] - t_true[2]), float(seen.t[2] - t_true[2]))
+        return first, float(poses[0].t[2] - t_true[2]), tracker
+
+    (found_again, raw), _, tracker = run(20, 1e-8)  # each view sees across its line of sight: the views pin the depth
+    assert tracker.counts["ended_misses"] == 1 and tracker.counts["tracks_started"] == 2
+    assert abs(found_again) < 0.001 < abs(raw)
+    # Views as precise across as along (8 mm): the views' mean, pulled by the earlier ones, unless they are beyond the
+    # window (only the new ones, all too near).
+    assert run(20, 0.008**2)[1] > 0 > -0.01 > run(5, 0.008**2)[1]
 
 
 def test_a_posterior_is_folded_in_as_the_one_measurement_that_gives_it():

@@ -78,14 +78,15 @@ class TrackingConfig:
     localiser's box on the same frame where its contour had held for `redetect_period` frames, else it ends."""
     view_window: int = 0
     """With the camera's pose in a fixed frame (`step(..., camera=...)`, e.g. from odometry): a track's published
-    pose is fused from its measurements in that frame over its last n measured frames, brought to the current
-    camera: positions weighted by their information (each view's covariance turned into the fixed frame: precise
-    across its line of sight, loose along it, so views from other directions pin the depth), rotations by their
-    chordal mean. Objects at rest under a moving camera are seen from other views, and a single view's error (depth
-    most of all) differs from view to view (0: off)."""
+    pose is fused from its object's measurements in that frame over the last n frames (by any of its tracks: an
+    object found again brings its views back), brought to the current camera: positions weighted by their
+    information (each view's covariance turned into the fixed frame: precise across its line of sight, loose along
+    it, so views from other directions pin the depth), rotations by their chordal mean. Objects at rest under a
+    moving camera are seen from other views, and a single view's error (depth most of all) differs from view to
+    view (0: off)."""
     view_gate: tuple[float, float] = (0.05, 15.0)
-    """A track pose this far from its last view (translation as a fraction of its depth, rotation in degrees) starts
-    its views afresh: it was re-initialised, turned to a symmetric twin, or the object moved."""
+    """A view this far from the track's measurement on this frame (translation as a fraction of its depth, rotation
+    in degrees) is left out: another instance of the object, the object moved, a symmetric twin, a wrong pose."""
     filter: FilterConfig = field(default_factory=FilterConfig)
 
 
@@ -136,11 +137,13 @@ class Crop:
 
 @dataclass(frozen=True)
 class View:
-    """A measured pose (R, t) and its translation's covariance, in the camera's fixed frame."""
+    """A measured pose (R, t) and its translation's information (inverse covariance), in the camera's fixed frame,
+    and its frame."""
 
     R: np.ndarray
     t: np.ndarray
-    covariance: np.ndarray
+    information: np.ndarray
+    frame: int
 
 
 @dataclass
@@ -168,8 +171,6 @@ class Track:
     """Its contour was lost on this frame: the AGM's pose re-initialises it."""
     held: int = 0
     """Frames its contour has held since the AGM last posed it."""
-    views: list[View] = field(default_factory=list)
-    """Its measurements in the camera's fixed frame on its last measured frames (`view_window`)."""
 
 
 @dataclass(frozen=True)
@@ -218,11 +219,11 @@ def _measurements(crops: list[Crop], estimate: Callable[[list[Crop]], Sequence[M
 
 def _fused_position(views: list[View]) -> np.ndarray:
     """The views' positions weighted by their information (the least-squares point of their error ellipsoids)."""
-    information = [np.linalg.pinv(v.covariance) for v in views]
-    total = np.sum(information, axis=0)
+    information = np.array([v.information for v in views])
+    total = information.sum(axis=0)
     if not np.all(np.isfinite(total)) or np.linalg.matrix_rank(total) < 3:
         return np.mean([v.t for v in views], axis=0)
-    return np.linalg.solve(total, np.sum([info @ v.t for info, v in zip(information, views, strict=True)], axis=0))
+    return np.linalg.solve(total, np.einsum("nij,nj->i", information, np.array([v.t for v in views])))
 
 
 def _iou(a: Box, b: Box) -> float:
@@ -248,13 +249,16 @@ class Tracker:
         self._K: np.ndarray | None = None
         self._lost = False
         """A track ended: look for its object on the next frame."""
+        self._views: dict[int, list[View]] = {}
+        """Each object's measurements over the last `view_window` frames, in the camera's fixed frame."""
 
     def reset(self, reason: str) -> None:
-        """End every track (counted as `reset_<reason>`)."""
+        """End every track (counted as `reset_<reason>`) and forget every view."""
         if self.tracks:
             self._count(f"reset_{reason}")
         self.tracks = []
         self._frame = 0
+        self._views = {}
 
     def step(
         self,
@@ -289,35 +293,36 @@ class Tracker:
         return self._over_views([pose for pose in out if pose is not None], camera)
 
     def _over_views(self, poses: list[TrackedPose], camera: np.ndarray | None) -> list[TrackedPose]:
-        """Each measured track's pose fused from its measurements over its views in the camera's fixed frame
-        (`view_window`); none without a camera pose (every track's views start again)."""
+        """Each measured track's pose fused from its object's views in the camera's fixed frame that agree with
+        its measurement (`view_window`, `view_gate`); none without a camera pose (the views are forgotten: the
+        next pose may be in another fixed frame)."""
         if self.config.view_window <= 0:
             return poses
         if camera is None or not np.all(np.isfinite(camera)):
-            for tr in self.tracks:
-                tr.views = []
+            self._views = {}
             return poses
         R_wc, t_wc = np.asarray(camera, float)[:3, :3], np.asarray(camera, float)[:3, 3]
+        for obj_id, views in self._views.items():
+            self._views[obj_id] = [v for v in views if v.frame > self._frame - self.config.view_window]
         out = []
         for pose in poses:
-            tr = self._track(pose.track_id)
-            if tr is None or not pose.measured:
+            if not pose.measured:
                 out.append(pose)
                 continue
             m = pose.measurement
-            here = View(R_wc @ m.R, R_wc @ m.t + t_wc, R_wc @ self._noise(m)[:3, :3] @ R_wc.T)
-            if tr.views and self._moved(tr.views[-1], here, float(m.t[2])):
-                tr.views = []
-                self._count("views_restarted")
-            tr.views = (tr.views + [here])[-self.config.view_window :]
-            R_mean = Rotation.from_matrix(np.array([v.R for v in tr.views])).mean().as_matrix()
-            out.append(replace(pose, R=R_wc.T @ R_mean, t=R_wc.T @ (_fused_position(tr.views) - t_wc)))
+            here = View(R_wc @ m.R, R_wc @ m.t + t_wc, R_wc @ np.linalg.pinv(self._noise(m)[:3, :3]) @ R_wc.T, self._frame)
+            views = self._views.setdefault(pose.obj_id, [])
+            near = [v for v in views if not self._apart(v, here, float(m.t[2]))] + [here]
+            self._count("views_gated", len(views) + 1 - len(near))
+            views.append(here)
+            R_mean = Rotation.from_matrix(np.array([v.R for v in near])).mean().as_matrix()
+            out.append(replace(pose, R=R_wc.T @ R_mean, t=R_wc.T @ (_fused_position(near) - t_wc)))
         return out
 
-    def _moved(self, last: View, here: View, depth: float) -> bool:
-        """The pose left its last view by more than `view_gate`."""
+    def _apart(self, view: View, here: View, depth: float) -> bool:
+        """The view is further from this frame's measurement than `view_gate`."""
         shift, turn = self.config.view_gate
-        return bool(np.linalg.norm(here.t - last.t) > shift * depth or re(here.R, last.R) > turn)
+        return bool(np.linalg.norm(here.t - view.t) > shift * depth or re(here.R, view.R) > turn)
 
     def _follow(self, follow: Follower, K: np.ndarray, stamp: float) -> list[TrackedPose]:
         """Every track followed by its contour from its prediction: a pose whose contour held is the track's
