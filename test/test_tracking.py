@@ -634,6 +634,38 @@ def test_an_object_found_again_brings_its_views_back():
     assert run(20, 0.008**2)[1] > 0 > -0.01 > run(5, 0.008**2)[1]
 
 
+def test_an_object_back_in_view_is_followed_from_where_its_views_put_it():
+    """With views (the camera's pose) an object no track holds is looked for where its views put it: a contour that
+    holds there starts its track (`tracks_recalled`) before the localiser's period, and the AGM poses nothing; where
+    it is not found it is looked for there again only after a localiser's period."""
+    scene = _scene()
+    tracker = Tracker(TrackingConfig(redetect_period=10, view_window=30))
+    asked: list[list[int]] = []
+
+    def follow(last: list, predicted: list) -> list[Followed]:
+        objs = [min(scene.poses, key=lambda o: np.linalg.norm(scene.poses[o][1] - t)) for _, t, _ in predicted]
+        asked.append(objs)
+        return [Followed(True, *scene.poses[o], COV, 0.3 if o in scene.hidden else 0.9) for o in objs]
+
+    def step(k: int) -> list:
+        return tracker.step(k / 30, K, scene.detect, scene.estimate, follow, camera=np.eye(4))
+
+    for k in range(3):
+        assert {p.obj_id for p in step(k)} == {1, 5}
+    scene.hidden = {5}  # its contour loses it (held 2 frames, less than a period: the track ends)
+    assert {p.obj_id for p in step(3)} == {1} and tracker.counts["ended_unfollowable"] == 1
+    scene.hidden = set()
+    posed = len(scene.crops)
+    poses = step(4)  # back: followed from its views, found, no localiser, no AGM
+    assert asked[-2:] == [[1], [5]] and {p.obj_id for p in poses} == {1, 5} and tracker.counts["tracks_recalled"] == 1
+    assert scene.detect_calls == 1 and len(scene.crops) == posed
+    np.testing.assert_allclose(next(p.t for p in poses if p.obj_id == 5), scene.poses[5][1], atol=0.01)
+    scene.hidden = {5}
+    step(5)  # lost again: ends
+    tries = [k for k in range(6, 10) if 5 in (step(k), asked[-1])[1]]
+    assert tries == [6] and tracker.counts["tracks_recalled"] == 1  # not found at 6: not looked for there until 16
+
+
 def test_a_posterior_is_folded_in_as_the_one_measurement_that_gives_it():
     """A pose refined from the filter's prediction as prior is that prior and its evidence already: folding it in
     with the evidence's information moves the state (pose and velocity) exactly as the evidence's own measurement

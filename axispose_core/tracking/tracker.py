@@ -21,6 +21,10 @@ the caller has posed already, a `Sighting`, brings its pose and is not posed aga
 Tracks end after `track_timeout` seconds without a measurement, `max_misses` frames in a row without a pose, or
 `max_unseen` localiser runs in a row that do not find them; all end when the stamps go backwards (a looped bag) or
 the camera's intrinsics change.
+
+With the camera's pose in a fixed frame (odometry) and `view_window`, each measured pose is published fused with its
+object's other views in that frame (`views.ObjectViews`), and, when following, an object no track holds is followed
+from where its views put it: a contour that holds there starts its track without the localiser or the AGM.
 """
 
 from __future__ import annotations
@@ -30,10 +34,9 @@ from dataclasses import dataclass, field, replace
 from typing import Protocol
 
 import numpy as np
-from scipy.spatial.transform import Rotation
 
-from axispose_core.metrics import re
 from axispose_core.tracking.filter import FilterConfig, PoseFilter
+from axispose_core.tracking.views import ObjectViews, Remembered, View, in_fixed_frame
 
 Box = tuple[float, float, float, float]
 """(x, y, w, h) in image pixels."""
@@ -83,7 +86,8 @@ class TrackingConfig:
     information (each view's covariance turned into the fixed frame: precise across its line of sight, loose along
     it, so views from other directions pin the depth), rotations by their chordal mean. Objects at rest under a
     moving camera are seen from other views, and a single view's error (depth most of all) differs from view to
-    view (0: off)."""
+    view. With following, an object no track holds is looked for where its views put it (where its contour is not
+    found, again after `redetect_period` frames) (0: off)."""
     view_gate: tuple[float, float] = (0.05, 15.0)
     """A view this far from the track's measurement on this frame (translation as a fraction of its depth, rotation
     in degrees) is left out: another instance of the object, the object moved, a symmetric twin, a wrong pose."""
@@ -133,17 +137,6 @@ class Crop:
     measurement: Measurement | None = None
     detected: bool = False
     """The box is the localiser's on this frame (a caller verifies such poses where it verifies detections)."""
-
-
-@dataclass(frozen=True)
-class View:
-    """A measured pose (R, t) and its translation's information (inverse covariance), in the camera's fixed frame,
-    and its frame."""
-
-    R: np.ndarray
-    t: np.ndarray
-    information: np.ndarray
-    frame: int
 
 
 @dataclass
@@ -203,6 +196,12 @@ def _project(K: np.ndarray, t: np.ndarray) -> np.ndarray:
     return p[:2] / p[2]
 
 
+def _in_view(K: np.ndarray, t: np.ndarray) -> bool:
+    """The point projects into the image (taken as twice the principal point's size: intrinsics alone)."""
+    u, v = _project(K, t)
+    return bool(t[2] > MIN_DEPTH and 0 <= u < 2 * K[0, 2] and 0 <= v < 2 * K[1, 2])
+
+
 def _posed(d: Detected) -> Measurement | None:
     return d.measurement if isinstance(d, Sighting) else None
 
@@ -215,15 +214,6 @@ def _measurements(crops: list[Crop], estimate: Callable[[list[Crop]], Sequence[M
         raise ValueError(f"the estimator gave {len(fresh)} poses for {len(todo)} crops")
     posed = iter(fresh)
     return [c.measurement if c.measurement is not None else next(posed) for c in crops]
-
-
-def _fused_position(views: list[View]) -> np.ndarray:
-    """The views' positions weighted by their information (the least-squares point of their error ellipsoids)."""
-    information = np.array([v.information for v in views])
-    total = information.sum(axis=0)
-    if not np.all(np.isfinite(total)) or np.linalg.matrix_rank(total) < 3:
-        return np.mean([v.t for v in views], axis=0)
-    return np.linalg.solve(total, np.einsum("nij,nj->i", information, np.array([v.t for v in views])))
 
 
 def _iou(a: Box, b: Box) -> float:
@@ -249,8 +239,10 @@ class Tracker:
         self._K: np.ndarray | None = None
         self._lost = False
         """A track ended: look for its object on the next frame."""
-        self._views: dict[int, list[View]] = {}
+        self._views = ObjectViews(config.view_window, config.view_gate)
         """Each object's measurements over the last `view_window` frames, in the camera's fixed frame."""
+        self._recall_due: dict[int, int] = {}
+        """The frame from which an object not found where its views put it is looked for there again."""
 
     def reset(self, reason: str) -> None:
         """End every track (counted as `reset_<reason>`) and forget every view."""
@@ -258,7 +250,8 @@ class Tracker:
             self._count(f"reset_{reason}")
         self.tracks = []
         self._frame = 0
-        self._views = {}
+        self._views.forget()
+        self._recall_due = {}
 
     def step(
         self,
@@ -273,7 +266,8 @@ class Tracker:
         localiser where due, one estimator batch (of the crops without a pose), the updates; with `camera`, the
         camera's pose in a fixed frame (4x4, camera to fixed), positions averaged over views (`view_window`)."""
         self._start_frame(stamp, K)
-        out = self._follow(follow, K, stamp) if follow is not None else []
+        held = {tr.obj_id for tr in self.tracks}
+        out = self._follow(follow, K, stamp) + self._recall(follow, K, stamp, camera, held) if follow is not None else []
         followed = {pose.track_id for pose in out}
         detecting = self._detection_due(following=follow is not None)
         crops = self._track_crops(K, every=detecting, skip=followed)
@@ -289,8 +283,9 @@ class Tracker:
         quiet = [tr for tr in self.tracks if tr.id not in cropped and not tr.measured and not tr.lost and tr.last is not None]
         out += [self._predicted(tr, K) for tr in quiet]
         self._end_tracks()
+        poses = self._over_views([pose for pose in out if pose is not None], camera)
         self._frame += 1
-        return self._over_views([pose for pose in out if pose is not None], camera)
+        return poses
 
     def _over_views(self, poses: list[TrackedPose], camera: np.ndarray | None) -> list[TrackedPose]:
         """Each measured track's pose fused from its object's views in the camera's fixed frame that agree with
@@ -299,30 +294,52 @@ class Tracker:
         if self.config.view_window <= 0:
             return poses
         if camera is None or not np.all(np.isfinite(camera)):
-            self._views = {}
+            self._views.forget()
             return poses
-        R_wc, t_wc = np.asarray(camera, float)[:3, :3], np.asarray(camera, float)[:3, 3]
-        for obj_id, views in self._views.items():
-            self._views[obj_id] = [v for v in views if v.frame > self._frame - self.config.view_window]
+        camera = np.asarray(camera, float)
+        self._views.window, self._views.gate = self.config.view_window, self.config.view_gate
+        self._views.age(self._frame)
         out = []
         for pose in poses:
             if not pose.measured:
                 out.append(pose)
                 continue
             m = pose.measurement
-            here = View(R_wc @ m.R, R_wc @ m.t + t_wc, R_wc @ np.linalg.pinv(self._noise(m)[:3, :3]) @ R_wc.T, self._frame)
-            views = self._views.setdefault(pose.obj_id, [])
-            near = [v for v in views if not self._apart(v, here, float(m.t[2]))] + [here]
-            self._count("views_gated", len(views) + 1 - len(near))
-            views.append(here)
-            R_mean = Rotation.from_matrix(np.array([v.R for v in near])).mean().as_matrix()
-            out.append(replace(pose, R=R_wc.T @ R_mean, t=R_wc.T @ (_fused_position(near) - t_wc)))
+            R, t, information = in_fixed_frame(camera, m.R, m.t, self._noise(m)[:3, :3])
+            R, t, gated = self._views.add(pose.obj_id, View(R, t, information, float(m.t[2]), self._frame, m, pose.box, pose.score))
+            self._count("views_gated", int(gated > 0))
+            out.append(replace(pose, R=camera[:3, :3].T @ R, t=camera[:3, :3].T @ (t - camera[:3, 3])))
         return out
 
-    def _apart(self, view: View, here: View, depth: float) -> bool:
-        """The view is further from this frame's measurement than `view_gate`."""
-        shift, turn = self.config.view_gate
-        return bool(np.linalg.norm(here.t - view.t) > shift * depth or re(here.R, view.R) > turn)
+    def _recall(self, follow: Follower, K: np.ndarray, stamp: float, camera: np.ndarray | None, held: set[int]) -> list[TrackedPose]:
+        """The objects no track holds (nor `held` at the frame's start: one just lost is not looked for where it
+        was lost), followed from where their views put them: one whose contour holds there starts a track
+        (`tracks_recalled`), so an object back in view is posed before the localiser finds it."""
+        if self.config.view_window <= 0 or camera is None or not np.all(np.isfinite(camera)):
+            return []
+        remembered = self._views.remembered(np.asarray(camera, float), self._frame, held | {tr.obj_id for tr in self.tracks})
+        remembered = [r for r in remembered if _in_view(K, r.t) and self._recall_due.get(r.obj_id, 0) <= self._frame]
+        if not remembered:
+            return []
+        results = follow([r.latest.measurement for r in remembered], [(r.R, r.t, r.covariance) for r in remembered])
+        out = []
+        for r, m in zip(remembered, results, strict=True):
+            if m.ok and self._holds(m):
+                self._recall_due.pop(r.obj_id, None)
+                out.append(self._recalled(r, m, K, stamp))
+            else:  # not there: looked for there again after a localiser's period
+                self._recall_due[r.obj_id] = self._frame + max(1, self.config.redetect_period)
+        return out
+
+    def _recalled(self, r: Remembered, m: Measurement, K: np.ndarray, stamp: float) -> TrackedPose:
+        """A track started by the contour found where the object's views put it, in the box its last track had
+        (moved to the projection, scaled with the depth)."""
+        scale = r.latest.depth / r.t[2]
+        (cx, cy), w, h = _project(K, r.t), r.latest.box[2] * scale, r.latest.box[3] * scale
+        box = (cx - w / 2, cy - h / 2, w, h)
+        tr = self._start_track(Crop(r.obj_id, box, r.latest.score), m, self._noise(m), stamp)
+        self._count("tracks_recalled")
+        return self._output(tr, m, True, K, box)
 
     def _follow(self, follow: Follower, K: np.ndarray, stamp: float) -> list[TrackedPose]:
         """Every track followed by its contour from its prediction: a pose whose contour held is the track's
