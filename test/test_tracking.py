@@ -666,6 +666,36 @@ def test_an_object_back_in_view_is_followed_from_where_its_views_put_it():
     assert tries == [6] and tracker.counts["tracks_recalled"] == 1  # not found at 6: not looked for there until 16
 
 
+def test_a_track_is_looked_for_where_the_cameras_own_motion_moved_it():
+    """With views and the camera's pose a still object is followed from its pose in the fixed frame brought into the
+    camera: a camera that pans back and forth (8 degrees a frame) loses no contour, where the filter's constant
+    velocity, which knows nothing of the camera, looks for it 11 cm off."""
+    p_obj = np.array([0.0, 0.0, 0.8])
+
+    def run(odometry: bool) -> dict[str, int]:
+        tracker = Tracker(TrackingConfig(redetect_period=100, view_window=10))
+        for k in range(12):
+            turn = Rotation.from_euler("y", 8 * (k % 2), degrees=True).as_matrix()
+            T = np.eye(4)
+            T[:3, :3] = turn
+            R_true, t_true = turn.T, turn.T @ p_obj
+            box = (*(K @ t_true)[:2] / t_true[2] - 40, 80.0, 80.0)
+            measured = Pose(True, R_true, t_true, COV)
+
+            def follow(last: list, predicted: list, R_true=R_true, t_true=t_true) -> list[Followed]:
+                # the contour's basin: it finds the object from within a centimetre
+                return [Followed(True, R_true, t_true, COV, 0.9 if np.linalg.norm(t - t_true) < 0.01 else 0.3) for _, t, _ in predicted]
+
+            tracker.step(
+                k / 30, K, lambda box=box: [Det(1, 0.9, box)], lambda crops, m=measured: [m] * len(crops), follow, T if odometry else None
+            )
+        return tracker.counts
+
+    moved = run(True)
+    assert moved["followed"] == 11 and "contour_lost" not in moved and "ended_unfollowable" not in moved
+    assert run(False)["contour_lost"] == 11  # each frame's contour lost: the AGM poses the object again every frame
+
+
 def test_a_posterior_is_folded_in_as_the_one_measurement_that_gives_it():
     """A pose refined from the filter's prediction as prior is that prior and its evidence already: folding it in
     with the evidence's information moves the state (pose and velocity) exactly as the evidence's own measurement

@@ -164,6 +164,10 @@ class Track:
     """Its contour was lost on this frame: the AGM's pose re-initialises it."""
     held: int = 0
     """Frames its contour has held since the AGM last posed it."""
+    fixed: tuple[np.ndarray, np.ndarray] | None = None
+    """Its latest published pose in the camera's fixed frame (`view_window`): where it is followed from next, moved
+    into the camera by the camera's own motion (the filter's constant velocity does not know where a hand-held
+    camera turns, nor how far when frames are dropped)."""
 
 
 @dataclass(frozen=True)
@@ -267,7 +271,7 @@ class Tracker:
         camera's pose in a fixed frame (4x4, camera to fixed), positions averaged over views (`view_window`)."""
         self._start_frame(stamp, K)
         held = {tr.obj_id for tr in self.tracks}
-        out = self._follow(follow, K, stamp) + self._recall(follow, K, stamp, camera, held) if follow is not None else []
+        out = self._follow(follow, K, stamp, camera) + self._recall(follow, K, stamp, camera, held) if follow is not None else []
         followed = {pose.track_id for pose in out}
         detecting = self._detection_due(following=follow is not None)
         crops = self._track_crops(K, every=detecting, skip=followed)
@@ -295,6 +299,8 @@ class Tracker:
             return poses
         if camera is None or not np.all(np.isfinite(camera)):
             self._views.forget()
+            for tr in self.tracks:
+                tr.fixed = None
             return poses
         camera = np.asarray(camera, float)
         self._views.window, self._views.gate = self.config.view_window, self.config.view_gate
@@ -308,6 +314,8 @@ class Tracker:
             R, t, information = in_fixed_frame(camera, m.R, m.t, self._noise(m)[:3, :3])
             R, t, gated = self._views.add(pose.obj_id, View(R, t, information, float(m.t[2]), self._frame, m, pose.box, pose.score))
             self._count("views_gated", int(gated > 0))
+            if (tr := self._track(pose.track_id)) is not None:
+                tr.fixed = (R, t)
             out.append(replace(pose, R=camera[:3, :3].T @ R, t=camera[:3, :3].T @ (t - camera[:3, 3])))
         return out
 
@@ -341,8 +349,8 @@ class Tracker:
         self._count("tracks_recalled")
         return self._output(tr, m, True, K, box)
 
-    def _follow(self, follow: Follower, K: np.ndarray, stamp: float) -> list[TrackedPose]:
-        """Every track followed by its contour from its prediction: a pose whose contour held is the track's
+    def _follow(self, follow: Follower, K: np.ndarray, stamp: float, camera: np.ndarray | None = None) -> list[TrackedPose]:
+        """Every track followed by its contour from its prediction (`_predicted_pose`): a pose whose contour held is the track's
         measurement; a track whose contour was lost after holding for a localiser's period gets a crop for the AGM
         on this frame, one lost sooner ends, unless no contour held on this frame (frames far apart, or a camera
         that jumped: every lost track is posed again). A track that missed its last frame is not followed (its pose
@@ -352,7 +360,7 @@ class Tracker:
         tracks = [tr for tr in self.tracks if tr.last is not None and not tr.lost]
         if not tracks:
             return []
-        results = follow([tr.last for tr in tracks], [(tr.filter.R, tr.filter.t, tr.filter.covariance) for tr in tracks])
+        results = follow([tr.last for tr in tracks], [self._predicted_pose(tr, camera) for tr in tracks])
         if len(results) != len(tracks):
             raise ValueError(f"the follower gave {len(results)} poses for {len(tracks)} tracks")
         out, unfollowable = [], set()
@@ -370,6 +378,14 @@ class Tracker:
                 self._count("contour_lost")
         self._end("unfollowable", lambda tr: tr.id in unfollowable, look=False)
         return [pose for pose in out if pose is not None]
+
+    def _predicted_pose(self, tr: Track, camera: np.ndarray | None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Where a track is looked for on this frame (R, t, covariance): its pose in the fixed frame brought into the
+        camera where views are kept and the camera's pose is known, else its filter's prediction."""
+        if tr.fixed is None or self.config.view_window <= 0 or camera is None or not np.all(np.isfinite(camera)):
+            return tr.filter.R, tr.filter.t, tr.filter.covariance
+        R_wc, t_wc = np.asarray(camera, float)[:3, :3], np.asarray(camera, float)[:3, 3]
+        return R_wc.T @ tr.fixed[0], R_wc.T @ (tr.fixed[1] - t_wc), tr.filter.covariance
 
     def _start_frame(self, stamp: float, K: np.ndarray) -> None:
         if self._stamp is not None and stamp < self._stamp:
