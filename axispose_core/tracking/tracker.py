@@ -200,10 +200,17 @@ def _project(K: np.ndarray, t: np.ndarray) -> np.ndarray:
     return p[:2] / p[2]
 
 
-def _in_view(K: np.ndarray, t: np.ndarray) -> bool:
-    """The point projects into the image (taken as twice the principal point's size: intrinsics alone)."""
-    u, v = _project(K, t)
-    return bool(t[2] > MIN_DEPTH and 0 <= u < 2 * K[0, 2] and 0 <= v < 2 * K[1, 2])
+def _remembered_box(r: Remembered, K: np.ndarray) -> Box:
+    """The box an object's last track had, moved to where its views put it and scaled with the depth."""
+    scale = r.latest.depth / r.t[2]
+    (cx, cy), w, h = _project(K, r.t), r.latest.box[2] * scale, r.latest.box[3] * scale
+    return (cx - w / 2, cy - h / 2, w, h)
+
+
+def _in_view(K: np.ndarray, box: Box) -> bool:
+    """Part of the box lies in the image (taken as twice the principal point's size: intrinsics alone)."""
+    x, y, w, h = box
+    return bool(x + w > 0 and x < 2 * K[0, 2] and y + h > 0 and y < 2 * K[1, 2])
 
 
 def _posed(d: Detected) -> Measurement | None:
@@ -326,7 +333,7 @@ class Tracker:
         if self.config.view_window <= 0 or camera is None or not np.all(np.isfinite(camera)):
             return []
         remembered = self._views.remembered(np.asarray(camera, float), self._frame, held | {tr.obj_id for tr in self.tracks})
-        remembered = [r for r in remembered if _in_view(K, r.t) and self._recall_due.get(r.obj_id, 0) <= self._frame]
+        remembered = [r for r in remembered if _in_view(K, _remembered_box(r, K)) and self._recall_due.get(r.obj_id, 0) <= self._frame]
         if not remembered:
             return []
         results = follow([r.latest.measurement for r in remembered], [(r.R, r.t, r.covariance) for r in remembered])
@@ -340,11 +347,8 @@ class Tracker:
         return out
 
     def _recalled(self, r: Remembered, m: Measurement, K: np.ndarray, stamp: float) -> TrackedPose:
-        """A track started by the contour found where the object's views put it, in the box its last track had
-        (moved to the projection, scaled with the depth)."""
-        scale = r.latest.depth / r.t[2]
-        (cx, cy), w, h = _project(K, r.t), r.latest.box[2] * scale, r.latest.box[3] * scale
-        box = (cx - w / 2, cy - h / 2, w, h)
+        """A track started by the contour found where the object's views put it."""
+        box = _remembered_box(r, K)
         tr = self._start_track(Crop(r.obj_id, box, r.latest.score), m, self._noise(m), stamp)
         self._count("tracks_recalled")
         return self._output(tr, m, True, K, box)
