@@ -88,7 +88,7 @@ def _soak(args: argparse.Namespace) -> int:
     from axispose_ros.soak import SoakOptions, soak
 
     opts = SoakOptions(seconds=args.minutes * 60, rate=args.rate, tracking=args.tracking == "on", follow=args.follow == "on",
-                       faults=not args.no_faults, precision=args.precision, threads=args.threads)  # fmt: skip
+                       view_window=args.view_window, faults=not args.no_faults, precision=args.precision, threads=args.threads)  # fmt: skip
     try:
         r = soak(args.bag, args.checkpoint or SHIPPED_ESTIMATOR, opts, args.out)
     except (BagError, RuntimeError) as err:
@@ -155,6 +155,7 @@ def _add_ros_commands(add_parser: AddParser) -> None:
     sk.add_argument("--rate", type=float, default=30.0, help="frames per second sent")
     sk.add_argument("--tracking", choices=["on", "off"], default="off")
     sk.add_argument("--follow", choices=["on", "off"], default="off", help="follow parameter of the node (with tracking)")
+    sk.add_argument("--view-window", type=int, default=0, help="view_window parameter of the node (with tracking and the bag's odometry)")
     sk.add_argument("--no-faults", action="store_true", help="the stream alone")
     sk.add_argument("--precision", choices=["auto", "float32", "bfloat16"], default="float32")
     sk.add_argument("--threads", type=int, default=2)

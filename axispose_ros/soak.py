@@ -2,7 +2,8 @@
 given time while faults are injected, as a robot stack would meet them; the report says whether it held.
 
 This process is the camera (it loads the shipped Fast DDS profile, as a camera driver beside the node must) and the
-listener: it publishes the bag's frames restamped by the clock, one fault at a time on a schedule, follows
+listener: it publishes the bag's frames (and their camera odometry, where the bag has it) restamped by the clock,
+one fault at a time on a schedule, follows
 `/diagnostics` and `~/detections`, and samples the node's resident memory. The faults and the counters each must
 move in `/diagnostics` (FAULTS):
 - `camera_info_gap`: no CameraInfo for 3 s (the images go on) -> `dropped_no_camera_info`;
@@ -27,6 +28,7 @@ from pathlib import Path
 import numpy as np
 import rclpy
 from diagnostic_msgs.msg import DiagnosticArray
+from nav_msgs.msg import Odometry
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.qos import qos_profile_sensor_data
 from sensor_msgs.msg import CameraInfo, Image
@@ -45,7 +47,7 @@ FAULTS: dict[str, tuple[str, ...]] = {
 """Each fault and the /diagnostics counters of which at least one must grow (objects_leave's only with tracking)."""
 SETTLE_S = 4.0
 """Seconds after a fault ends before the counters it moved are read (diagnostics come once a second)."""
-IMAGE_TOPIC, INFO_TOPIC = "/soak/image", "/soak/camera_info"
+IMAGE_TOPIC, INFO_TOPIC, ODOM_TOPIC = "/soak/image", "/soak/camera_info", "/soak/camera_odom"
 
 
 @dataclass(frozen=True)
@@ -57,6 +59,8 @@ class SoakOptions:
     tracking: bool = False
     follow: bool = False
     """With tracking: follow the tracks by their contours (the node's `follow`)."""
+    view_window: int = 0
+    """With tracking: the node's `view_window` (the bag's camera odometry is played on `camera_odom` either way)."""
     faults: bool = True
     precision: str = "float32"
     threads: int = 2
@@ -89,21 +93,25 @@ class _Log:
         self.answered += 1
 
 
-def load_frames(bag: str | Path) -> list[tuple[Image, CameraInfo]]:
-    """The bag's (Image, CameraInfo) pairs in order, as ROS messages."""
+def load_frames(bag: str | Path) -> list[tuple[Image, CameraInfo, Odometry | None]]:
+    """The bag's (Image, CameraInfo) pairs in order, as ROS messages, each with the camera's odometry of its stamp
+    where the bag has an Odometry topic (else None)."""
     from rclpy.serialization import deserialize_message
 
     topics = bag_topics(bag)
     image_topic = next((t for t, m in topics.items() if m == "sensor_msgs/msg/Image"), None)
     info_topic = next((t for t, m in topics.items() if m == "sensor_msgs/msg/CameraInfo"), None)
+    odom_topic = next((t for t, m in topics.items() if m == "nav_msgs/msg/Odometry"), None)
     if image_topic is None or info_topic is None:
         raise BagError(f"{bag}: needs an Image and a CameraInfo topic, has {sorted(topics)}")
-    infos, frames = {}, []
-    for m in read_bag(bag, [image_topic, info_topic]):
+    infos, odometry, frames = {}, {}, []
+    for m in read_bag(bag, [t for t in (image_topic, info_topic, odom_topic) if t]):
         if m.topic == info_topic:
             infos[m.stamp_ns] = deserialize_message(m.raw, CameraInfo)
+        elif m.topic == odom_topic:
+            odometry[m.stamp_ns] = deserialize_message(m.raw, Odometry)
         elif m.stamp_ns in infos:
-            frames.append((deserialize_message(m.raw, Image), infos[m.stamp_ns]))
+            frames.append((deserialize_message(m.raw, Image), infos[m.stamp_ns], odometry.get(m.stamp_ns)))
     if not frames:
         raise BagError(f"{bag}: no Image with a CameraInfo of the same stamp")
     return frames
@@ -112,9 +120,9 @@ def load_frames(bag: str | Path) -> list[tuple[Image, CameraInfo]]:
 def node_command(checkpoint: str, opts: SoakOptions) -> list[str]:
     """The node's command line: its parameters from the options, its topics remapped to the soak's."""
     params = {"checkpoint": checkpoint, "precision": opts.precision, "num_threads": opts.threads, "warmup_boxes": opts.warmup_boxes,
-              "tracking": str(opts.tracking).lower(), "follow": str(opts.follow).lower()}  # fmt: skip
+              "tracking": str(opts.tracking).lower(), "follow": str(opts.follow).lower(), "view_window": opts.view_window}  # fmt: skip
     return [sys.executable, "-m", "axispose_ros.node", "--ros-args", *[a for k, v in params.items() for a in ("-p", f"{k}:={v}")],
-            "-r", f"image:={IMAGE_TOPIC}", "-r", f"camera_info:={INFO_TOPIC}"]  # fmt: skip
+            "-r", f"image:={IMAGE_TOPIC}", "-r", f"camera_info:={INFO_TOPIC}", "-r", f"camera_odom:={ODOM_TOPIC}"]  # fmt: skip
 
 
 def _node_process(checkpoint: str, opts: SoakOptions, env: dict, log_path: Path) -> subprocess.Popen:
@@ -131,21 +139,26 @@ def _rss_mb(pid: int) -> float:
 class _Camera:
     """Publishes the frames in a loop, stamped by the clock, with the fault of the moment applied."""
 
-    def __init__(self, node, frames: list[tuple[Image, CameraInfo]]) -> None:
+    def __init__(self, node, frames: list[tuple[Image, CameraInfo, Odometry | None]]) -> None:
         self.node, self.frames, self.k, self.sent = node, frames, 0, 0
         self.pub_image = node.create_publisher(Image, IMAGE_TOPIC, qos_profile_sensor_data)
         self.pub_info = node.create_publisher(CameraInfo, INFO_TOPIC, qos_profile_sensor_data)
+        self.pub_odom = node.create_publisher(Odometry, ODOM_TOPIC, 50)
         h, w = frames[0][0].height, frames[0][0].width
         self.grey = Image(height=h, width=w, encoding="rgb8", step=3 * w, data=np.full(h * w * 3, 128, np.uint8).tobytes())
 
     def publish(self, fault: str | None) -> None:
-        image, info = self.frames[self.k % len(self.frames)]
+        image, info, odometry = self.frames[self.k % len(self.frames)]
         self.k += 1
         image, info = copy.copy(image), copy.copy(info)
         stamp = self.node.get_clock().now()
         if fault == "stamps_back":
             stamp = stamp - rclpy.duration.Duration(seconds=5.0)
         image.header.stamp = info.header.stamp = stamp.to_msg()
+        if odometry is not None:
+            odometry = copy.copy(odometry)
+            odometry.header.stamp = image.header.stamp
+            self.pub_odom.publish(odometry)
         if fault == "objects_leave":
             image = copy.copy(self.grey)
             image.header = info.header
