@@ -9,7 +9,7 @@ looked for where its views put it.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 from scipy.spatial.transform import Rotation
@@ -19,7 +19,7 @@ from scipy.spatial.transform import Rotation
 class View:
     """One measurement in the fixed frame: pose (R, t), its translation's information (inverse covariance), its depth
     from the camera that made it, the frame it was made on, and what a track recalled from it starts with (the
-    measurement, its box and score)."""
+    measurement, with the colours it learned: kept for an object's latest view only; its box and score)."""
 
     R: np.ndarray
     t: np.ndarray
@@ -68,6 +68,8 @@ class ObjectViews:
         the object's views the gate left out."""
         views = self._views.setdefault(obj_id, [])
         near = self._near(views, view) + [view]
+        if views:
+            views[-1] = replace(views[-1], measurement=None)  # its images and histograms: memory for the latest only
         views.append(view)
         return _mean_rotation(near), _fused_position(near), len(views) - len(near)
 
