@@ -275,7 +275,8 @@ class Tracker:
     ) -> list[TrackedPose]:
         """One frame: resets and timeouts, prediction, the tracks followed by their contours (with `follow`), the
         localiser where due, one estimator batch (of the crops without a pose), the updates; with `camera`, the
-        camera's pose in a fixed frame (4x4, camera to fixed), positions averaged over views (`view_window`)."""
+        camera's pose in a fixed frame (4x4, camera to fixed), and `view_window`, poses fused over their objects'
+        views, tracks followed from their poses in that frame and objects no track holds looked for there."""
         self._start_frame(stamp, K)
         held = {tr.obj_id for tr in self.tracks}
         out = self._follow(follow, K, stamp, camera) + self._recall(follow, K, stamp, camera, held) if follow is not None else []
@@ -354,11 +355,11 @@ class Tracker:
         return self._output(tr, m, True, K, box)
 
     def _follow(self, follow: Follower, K: np.ndarray, stamp: float, camera: np.ndarray | None = None) -> list[TrackedPose]:
-        """Every track followed by its contour from its prediction (`_predicted_pose`): a pose whose contour held is the track's
-        measurement; a track whose contour was lost after holding for a localiser's period gets a crop for the AGM
-        on this frame, one lost sooner ends, unless no contour held on this frame (frames far apart, or a camera
-        that jumped: every lost track is posed again). A track that missed its last frame is not followed (its pose
-        is stale): it stays lost until a detection finds it."""
+        """Every track followed by its contour from its prediction (`_predicted_pose`): a pose whose contour held is
+        the track's measurement; a track whose contour was lost after holding for a localiser's period gets a crop
+        for the AGM on this frame, one lost sooner ends, unless no contour held on this frame (frames far apart, or
+        a camera that jumped: every lost track is posed again). A track that missed its last frame is not followed
+        (its pose is stale): it stays lost until a detection finds it."""
         for tr in self.tracks:
             tr.lost = tr.misses > 0
         tracks = [tr for tr in self.tracks if tr.last is not None and not tr.lost]
