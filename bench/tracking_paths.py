@@ -7,7 +7,7 @@ tracks by their contours (`Estimator.follow`), the AGM posing only new and lost 
 without contour refinement; `"warm": true` starts tracked samples from their predictions (`--warm-strength`, one
 step); `"live": true` feeds the frames at `--fps` in real time, the newest taken whenever the last is done (the
 node's latest-frame-wins), and scores only those it took; `"view_window": n` gives the tracker the camera's pose
-the scene records (scene_camera.json's `cam_R_w2c`, as odometry would) to average each pose over its last n views.
+the scene records (scene_camera.json's `cam_R_w2c`, as odometry would) to fuse each pose over its object's views.
 Each GT instance is matched to the nearest pose of its object in its frame. Prints, per setting, ADD(-S)@0.1d and
 Reproj@15px (mean over scenes), and per scene jitter (`tracking/jitter.py`), drift and recovery
 (`tracking/stream_scores.py`), the median and mean frame time and the share of frames processed, as one JSON line;

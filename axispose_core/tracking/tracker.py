@@ -36,7 +36,7 @@ from typing import Protocol
 import numpy as np
 
 from axispose_core.tracking.filter import FilterConfig, PoseFilter
-from axispose_core.tracking.views import ObjectViews, Remembered, View, in_fixed_frame
+from axispose_core.tracking.views import ObjectViews, Remembered, View, in_camera, in_fixed_frame
 
 Box = tuple[float, float, float, float]
 """(x, y, w, h) in image pixels."""
@@ -278,6 +278,7 @@ class Tracker:
         camera's pose in a fixed frame (4x4, camera to fixed), and `view_window`, poses fused over their objects'
         views, tracks followed from their poses in that frame and objects no track holds looked for there."""
         self._start_frame(stamp, K)
+        camera = np.asarray(camera, float) if camera is not None and np.all(np.isfinite(camera)) else None
         held = {tr.obj_id for tr in self.tracks}
         out = self._follow(follow, K, stamp, camera) + self._recall(follow, K, stamp, camera, held) if follow is not None else []
         followed = {pose.track_id for pose in out}
@@ -305,12 +306,11 @@ class Tracker:
         next pose may be in another fixed frame)."""
         if self.config.view_window <= 0:
             return poses
-        if camera is None or not np.all(np.isfinite(camera)):
+        if camera is None:
             self._views.forget()
             for tr in self.tracks:
                 tr.fixed = None
             return poses
-        camera = np.asarray(camera, float)
         self._views.window, self._views.gate = self.config.view_window, self.config.view_gate
         self._views.age(self._frame)
         out = []
@@ -324,32 +324,33 @@ class Tracker:
             self._count("views_gated", int(gated > 0))
             if (tr := self._track(pose.track_id)) is not None:
                 tr.fixed = (R, t)
-            out.append(replace(pose, R=camera[:3, :3].T @ R, t=camera[:3, :3].T @ (t - camera[:3, 3])))
+            R, t = in_camera(camera, R, t)
+            out.append(replace(pose, R=R, t=t))
         return out
 
     def _recall(self, follow: Follower, K: np.ndarray, stamp: float, camera: np.ndarray | None, held: set[int]) -> list[TrackedPose]:
         """The objects no track holds (nor `held` at the frame's start: one just lost is not looked for where it
         was lost), followed from where their views put them: one whose contour holds there starts a track
         (`tracks_recalled`), so an object back in view is posed before the localiser finds it."""
-        if self.config.view_window <= 0 or camera is None or not np.all(np.isfinite(camera)):
+        if self.config.view_window <= 0 or camera is None:
             return []
-        remembered = self._views.remembered(np.asarray(camera, float), self._frame, held | {tr.obj_id for tr in self.tracks})
-        remembered = [r for r in remembered if _in_view(K, _remembered_box(r, K)) and self._recall_due.get(r.obj_id, 0) <= self._frame]
-        if not remembered:
+        remembered = self._views.remembered(camera, self._frame, held | {tr.obj_id for tr in self.tracks})
+        due = [(r, _remembered_box(r, K)) for r in remembered if self._recall_due.get(r.obj_id, 0) <= self._frame]
+        due = [(r, box) for r, box in due if _in_view(K, box)]
+        if not due:
             return []
-        results = follow([r.latest.measurement for r in remembered], [(r.R, r.t, r.covariance) for r in remembered])
+        results = follow([r.latest.measurement for r, _ in due], [(r.R, r.t, r.covariance) for r, _ in due])
         out = []
-        for r, m in zip(remembered, results, strict=True):
+        for (r, box), m in zip(due, results, strict=True):
             if m.ok and self._holds(m):
                 self._recall_due.pop(r.obj_id, None)
-                out.append(self._recalled(r, m, K, stamp))
+                out.append(self._recalled(r, box, m, K, stamp))
             else:  # not there: looked for there again after a localiser's period
                 self._recall_due[r.obj_id] = self._frame + max(1, self.config.redetect_period)
         return out
 
-    def _recalled(self, r: Remembered, m: Measurement, K: np.ndarray, stamp: float) -> TrackedPose:
-        """A track started by the contour found where the object's views put it."""
-        box = _remembered_box(r, K)
+    def _recalled(self, r: Remembered, box: Box, m: Measurement, K: np.ndarray, stamp: float) -> TrackedPose:
+        """A track started by the contour found where the object's views put it (in `box`)."""
         tr = self._start_track(Crop(r.obj_id, box, r.latest.score), m, self._noise(m), stamp)
         self._count("tracks_recalled")
         return self._output(tr, m, True, K, box)
@@ -387,10 +388,9 @@ class Tracker:
     def _predicted_pose(self, tr: Track, camera: np.ndarray | None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Where a track is looked for on this frame (R, t, covariance): its pose in the fixed frame brought into the
         camera where views are kept and the camera's pose is known, else its filter's prediction."""
-        if tr.fixed is None or self.config.view_window <= 0 or camera is None or not np.all(np.isfinite(camera)):
+        if tr.fixed is None or self.config.view_window <= 0 or camera is None:
             return tr.filter.R, tr.filter.t, tr.filter.covariance
-        R_wc, t_wc = np.asarray(camera, float)[:3, :3], np.asarray(camera, float)[:3, 3]
-        return R_wc.T @ tr.fixed[0], R_wc.T @ (tr.fixed[1] - t_wc), tr.filter.covariance
+        return *in_camera(camera, *tr.fixed), tr.filter.covariance
 
     def _start_frame(self, stamp: float, K: np.ndarray) -> None:
         if self._stamp is not None and stamp < self._stamp:

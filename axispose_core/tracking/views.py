@@ -76,21 +76,21 @@ class ObjectViews:
     def remembered(self, camera: np.ndarray, frame: int, tracked: set[int]) -> list[Remembered]:
         """The objects not in `tracked` (ids) seen before `frame` and not on it, each where its latest view and those
         within `gate` of it put it, in the frame of `camera` (4x4, camera to fixed)."""
-        R_wc, t_wc = camera[:3, :3], camera[:3, 3]
+        R_wc = camera[:3, :3]
         out = []
         for obj_id, views in self._views.items():
             latest = views[-1]
             if obj_id in tracked or latest.frame >= frame:
                 continue
             near = self._near(views, latest)
-            t = R_wc.T @ (_fused_position(near) - t_wc)
+            R, t = in_camera(camera, _mean_rotation(near), _fused_position(near))
             if t[2] <= 0:
                 continue
             information = np.sum([v.information for v in near], axis=0)
             covariance = np.zeros((6, 6))
             covariance[:3, :3] = R_wc.T @ np.linalg.pinv(information) @ R_wc
             covariance[3:, 3:] = np.eye(3) * np.deg2rad(self.gate[1]) ** 2
-            out.append(Remembered(obj_id, R_wc.T @ _mean_rotation(near), t, covariance, latest))
+            out.append(Remembered(obj_id, R, t, covariance, latest))
         return out
 
     def _near(self, views: list[View], here: View) -> list[View]:
@@ -108,6 +108,12 @@ def in_fixed_frame(camera: np.ndarray, R: np.ndarray, t: np.ndarray, covariance:
     """A camera-frame pose and its translation's covariance (3x3) in the fixed frame: (R, t, information)."""
     R_wc, t_wc = camera[:3, :3], camera[:3, 3]
     return R_wc @ R, R_wc @ t + t_wc, R_wc @ np.linalg.pinv(covariance) @ R_wc.T
+
+
+def in_camera(camera: np.ndarray, R: np.ndarray, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """A fixed-frame pose in the frame of `camera` (4x4, camera to fixed)."""
+    R_wc, t_wc = camera[:3, :3], camera[:3, 3]
+    return R_wc.T @ R, R_wc.T @ (t - t_wc)
 
 
 def _mean_rotation(views: list[View]) -> np.ndarray:
