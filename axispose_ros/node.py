@@ -240,6 +240,7 @@ class AxisPoseNode(Node):
 
     def destroy_node(self) -> None:
         self.worker.stop()
+        self.poser.stop()
         super().destroy_node()
 
 

@@ -118,6 +118,12 @@ SPECS = (
         "publish each still object's pose fused from its views over the last n frames (0: off)",
         ints=(0, 1000),
     ),
+    Spec(
+        "background_detection",
+        False,
+        "with tracking, follow and view_window, on frames with the camera's pose: the localiser and the AGM on a thread "
+        "of their own, every frame only followed (their poses join the views, from where the objects are followed)",
+    ),
     Spec("latency_budget", 2.0, "median latency (s) over which /diagnostics warns; at start", floats=(0.01, 60.0), at_start=True),
 )
 AT_START = frozenset(s.name for s in SPECS if s.at_start)
@@ -152,6 +158,7 @@ class NodeSettings:
     warm_steps: int
     track_timeout: float
     view_window: int
+    background_detection: bool
     latency_budget: float
     object_scales: Mapping[str, float] = field(default_factory=dict)
     """`object_scales.<name>` by name (0: not set)."""

@@ -1,7 +1,8 @@
 """From a frame to the poses the node publishes: the boxes of fresh ROIs, else what the localiser finds (each posed
 on its own, rescored by the checkpoint's verifier where it has one: `Estimator.find`); or, with `tracking`, every
 object followed by a `Tracker` (crops from predicted poses, the localiser only where due, filtered poses with their
-filter's covariance and a track id)."""
+filter's covariance and a track id), the localiser and the AGM on a thread of their own where the frames are only
+followed (`background_detection`: `background.py`)."""
 
 from __future__ import annotations
 
@@ -13,6 +14,7 @@ import numpy as np
 
 from axispose_core.estimator import EstimateOptions, Estimator, Found, PoseEstimate
 from axispose_core.tracking.tracker import Crop, Sighting, Tracker, TrackingConfig
+from axispose_ros.background import BackgroundFinder, Search
 from axispose_ros.params import NodeSettings
 
 Box = tuple[float, float, float, float]
@@ -38,6 +40,14 @@ class FramePoser:
         self.estimator, self.published, self.count = estimator, published, count
         self.tracker = Tracker(TrackingConfig())
         self._reported: dict[str, int] = {}
+        self._finder: BackgroundFinder | None = None
+        self._since_search = 0
+        """Frames since the background's last search was offered."""
+
+    def stop(self) -> None:
+        """End the background's thread, if it has one."""
+        if self._finder is not None:
+            self._finder.stop()
 
     def pose(
         self, rgb: np.ndarray, K: np.ndarray, stamp: float, rois: Sequence[tuple[int, Box]], s: NodeSettings, cancelled: Callable[[], bool],
@@ -55,8 +65,8 @@ class FramePoser:
         if rois or self.estimator.localiser is None:
             return _each(list(rois), [1.0] * len(rois), estimate)
 
-        def find() -> Found:
-            found = self.estimator.find(rgb, K, s.score_threshold, options, cancelled, objects=self.published)
+        def find(cancel: Callable[[], bool] = cancelled) -> Found:
+            found = self.estimator.find(rgb, K, s.score_threshold, options, cancel, objects=self.published)
             self._count_refined(found.poses)
             if found.dropped:
                 self.count("verifier_dropped", found.dropped)
@@ -91,6 +101,8 @@ class FramePoser:
             def follow(last: list, predicted: list) -> list[PoseEstimate]:
                 return self._count_refined(self.estimator.follow(rgb, K, last, predicted, options))
 
+            if s.background_detection and s.view_window > 0 and camera_pose is not None:
+                return self._in_background(K, stamp, camera_pose, s, find, estimate, follow)
         return self._tracked(stamp, K, dets, estimate, s.warm_strength > 0, follow, s.score_threshold, camera_pose)
 
     def _tracked(self, stamp: float, K: np.ndarray, detect, estimate, warm: bool, follow, threshold: float, camera_pose=None) -> Posed:
@@ -116,6 +128,24 @@ class FramePoser:
             self.count(f"tracking_{key}", n)
         estimates = [dataclasses.replace(tp.measurement, R=tp.R, t=tp.t, covariance=tp.covariance) for tp in tracked]
         return Posed(estimates, [tp.score for tp in tracked], [tp.box for tp in tracked], [tp.track_id for tp in tracked])
+
+    def _in_background(self, K: np.ndarray, stamp: float, camera_pose: np.ndarray, s: NodeSettings, find, estimate, follow) -> Posed:
+        """Tracking with the localiser and the AGM on a thread of their own: what they found on earlier frames joins
+        the objects' views, this frame is followed (its objects recalled from their views), and it is searched next
+        where the last search is done and `redetect_period` frames have passed since it was offered, or where
+        nothing is tracked. A search from before a reset (stamps going back, other intrinsics) is left out."""
+        if self._finder is None:
+            self._finder = BackgroundFinder(max(1, s.num_threads - 1), lambda err: self.count("background_failed", 1))
+        for search, found in self._finder.collect():
+            if search.stamp <= stamp and np.allclose(search.K, K):
+                self.tracker.observe(search.camera, [(d, p) for d, p in zip(found.detections, found.poses, strict=True) if p.ok])
+        posed = self._tracked(stamp, K, None, estimate, False, follow, s.score_threshold, camera_pose)
+        self._since_search += 1
+        if self._finder.idle() and (self._since_search >= s.redetect_period or not self.tracker.tracks):
+            self._finder.offer(Search(stamp, np.array(K, float), np.array(camera_pose, float), find))
+            self._since_search = 0
+            self.count("background_searches", 1)
+        return posed
 
     def _count_refined(self, estimates: list[PoseEstimate]) -> list[PoseEstimate]:
         """Count what the contour refiner did with each pose it saw (`refine_refined`, `refine_kept_<reason>`)."""

@@ -7,7 +7,10 @@ tracks by their contours (`Estimator.follow`), the AGM posing only new and lost 
 without contour refinement; `"warm": true` starts tracked samples from their predictions (`--warm-strength`, one
 step); `"live": true` feeds the frames at `--fps` in real time, the newest taken whenever the last is done (the
 node's latest-frame-wins), and scores only those it took; `"view_window": n` gives the tracker the camera's pose
-the scene records (scene_camera.json's `cam_R_w2c`, as odometry would) to fuse each pose over its object's views.
+the scene records (scene_camera.json's `cam_R_w2c`, as odometry would) to fuse each pose over its object's views;
+`"background": true` runs the node's own poser (`axispose_ros.posing.FramePoser`, `background_detection`: the
+localiser and the AGM on a thread of their own) on frames delivered in real time at `--fps`, the newest taken
+whenever the last is done, with the node's defaults but for the setting's `redetect_period` and `view_window`.
 Each GT instance is matched to the nearest pose of its object in its frame. Prints, per setting, ADD(-S)@0.1d and
 Reproj@15px (mean over scenes), and per scene jitter (`tracking/jitter.py`), drift and recovery
 (`tracking/stream_scores.py`), the median and mean frame time and the share of frames processed, as one JSON line;
@@ -27,6 +30,7 @@ from pathlib import Path
 
 import numpy as np
 import torch
+from rclpy.parameter import Parameter
 
 from axispose_core.data.bop import BopScene, model_path
 from axispose_core.data.meshes import load_ply
@@ -36,6 +40,8 @@ from axispose_core.tracking.filter import FilterConfig
 from axispose_core.tracking.jitter import PosePair, jitter
 from axispose_core.tracking.stream_scores import Seen, drift, recovery
 from axispose_core.tracking.tracker import Sighting, Tracker, TrackingConfig
+from axispose_ros.params import SPECS, NodeSettings
+from axispose_ros.posing import FramePoser
 
 Pose = tuple[int, np.ndarray, np.ndarray]
 
@@ -52,6 +58,8 @@ class Bench:
         """One setting on one scene: its scores, jitter, frame time and the tracker's counts. With `"live": true`
         the frames come at `fps` whatever the time each takes, and the newest one is taken when the last is done
         (the node's latest-frame-wins): only those are posed and scored (`processed`, their share)."""
+        if setting.get("background", False):
+            return self._background(setting, scene)
         tracker = self._tracker(setting) if setting.get("tracking", True) else None
         rows, pairs, times = [], [], []
         options = dataclasses.replace(self.options, refine=setting.get("refine", True))
@@ -66,19 +74,52 @@ class Bench:
             times.append(time.perf_counter() - start)
             free = max(free, k / self.fps) + times[-1]
             due = int(np.floor(free * self.fps))  # the newest frame by the time this one is done
-            visible = {id(g): info.visib_fract for g, info in scene.instances(im)}
-            for g in scene.gt[im]:
-                if g.obj_id not in self.specs:
-                    continue
-                pose = _nearest(poses, g.obj_id, g.t)
-                s = instance_scores(self.specs[g.obj_id], self.points[g.obj_id], K, g.R, g.t, pose, self.syms.get(g.obj_id, ()))
-                rows.append(Seen(k, g.obj_id, visible.get(id(g), 1.0), s["add_0.1d"], s["reproj_15px"]))
-                if pose is not None:
-                    pairs.append(PosePair(k, g.obj_id, *pose, g.R, g.t))
+            self._score(scene, k, im, poses, rows, pairs)
+        return self._summary(rows, pairs, times, len(scene.image_ids), tracker.counts if tracker else {})
+
+    def _background(self, setting: dict, scene: BopScene) -> dict:
+        """The node's poser with `background_detection`, frames delivered at `fps` in real time (frame k at k / fps
+        after the first), the newest one taken whenever the last is done."""
+        defaults = {spec.name: spec.default for spec in SPECS if not isinstance(spec.default, Parameter.Type)}
+        chosen = {"redetect_period": setting.get("redetect_period", 5), "view_window": setting.get("view_window", 80)}
+        settings = NodeSettings(**defaults | chosen | {"checkpoint": "", "objects": (), "tracking": True, "follow": True,
+                                                       "background_detection": True, "ddim_steps": self.options.steps,
+                                                       "num_threads": torch.get_num_threads()})  # fmt: skip
+        counts: dict[str, int] = {}
+        poser = FramePoser(self.est, {i: str(i) for i in self.specs}, lambda key, n: counts.__setitem__(key, counts.get(key, 0) + n))
+        rows, pairs, times, k = [], [], [], 0
+        start = time.perf_counter()
+        try:
+            while k < len(scene.image_ids):
+                im = scene.image_ids[k]
+                time.sleep(max(0.0, start + k / self.fps - time.perf_counter()))
+                began = time.perf_counter()
+                posed = poser.pose(scene.rgb(im), scene.cameras[im], k / self.fps, [], settings, lambda: False, _camera_to_world(scene, im))
+                times.append(time.perf_counter() - began)
+                poses = [(e.obj_id, e.R, e.t) for e in posed.estimates if e.ok]
+                self._score(scene, k, im, poses, rows, pairs)
+                k = max(k + 1, int(np.floor((time.perf_counter() - start) * self.fps)))  # the newest frame by now
+        finally:
+            poser.stop()
+        return self._summary(rows, pairs, times, len(scene.image_ids), counts)
+
+    def _score(self, scene: BopScene, k: int, im: int, poses: list[Pose], rows: list[Seen], pairs: list[PosePair]) -> None:
+        """Each GT instance of frame `k` (image `im`) against the nearest pose of its object."""
+        K = scene.cameras[im]
+        visible = {id(g): info.visib_fract for g, info in scene.instances(im)}
+        for g in scene.gt[im]:
+            if g.obj_id not in self.specs:
+                continue
+            pose = _nearest(poses, g.obj_id, g.t)
+            s = instance_scores(self.specs[g.obj_id], self.points[g.obj_id], K, g.R, g.t, pose, self.syms.get(g.obj_id, ()))
+            rows.append(Seen(k, g.obj_id, visible.get(id(g), 1.0), s["add_0.1d"], s["reproj_15px"]))
+            if pose is not None:
+                pairs.append(PosePair(k, g.obj_id, *pose, g.R, g.t))
+
+    def _summary(self, rows: list[Seen], pairs: list[PosePair], times: list[float], frames: int, counts: dict) -> dict:
         return {"add": float(np.mean([r.add for r in rows])), "rp15": float(np.mean([r.rp15 for r in rows])), **jitter(pairs, self.syms),
                 **drift(rows), **recovery(rows), "frame_ms": 1000 * float(np.median(times[1:])),
-                "frame_ms_mean": 1000 * float(np.mean(times[1:])), "processed": len(times) / len(scene.image_ids),
-                "counts": tracker.counts if tracker else {}}  # fmt: skip
+                "frame_ms_mean": 1000 * float(np.mean(times[1:])), "processed": len(times) / frames, "counts": counts}  # fmt: skip
 
     def _tracker(self, setting: dict) -> Tracker:
         fields = {k: v for k, v in setting.items() if k in TrackingConfig.__dataclass_fields__ and k != "filter"}

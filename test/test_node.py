@@ -447,10 +447,12 @@ def test_with_a_refiner_every_pose_is_counted_and_bad_input_is_answered_as_befor
         h.close()
 
 
-def test_following_tracks_by_their_contours_runs_the_frames_and_counts_them(tmp_path, lmo_dir):
+@pytest.mark.parametrize("background", [False, True])
+def test_following_tracks_by_their_contours_runs_the_frames_and_counts_them(tmp_path, lmo_dir, background):
     """`tracking` with `follow` (and `view_window`, the camera's pose on camera_odom) on a checkpoint with a localiser
     and a refiner: every frame ends in frames_processed, each counted as followed or estimated by the tracker; an
-    odometry message that is no pose is counted; nothing fails."""
+    odometry message that is no pose is counted; nothing fails. With `background_detection` the localiser and the
+    AGM search frames on a thread of their own (the node stops it)."""
     reader = load_reader(SHIPPED_READER)
     cfg = EstimatorConfig(agm=TINY_AGM, reader=reader.config, objects=tuple(lmo_objects()[:2]), ddim_steps=1)
     localiser = Localiser(LocaliserConfig(obj_ids=(1, 5), input_size=(160, 128), trunk=ResidualBNConfig(widths=(8, 16, 24, 32))))
@@ -459,7 +461,7 @@ def test_following_tracks_by_their_contours_runs_the_frames_and_counts_them(tmp_
     path = tmp_path / "follow.safetensors"
     est = Estimator(cfg, AxisGenerator(cfg.agm), reader).with_localiser(localiser)
     est.with_refiner(refiner_meshes(lmo_dir / "models", [1, 5])).save(path)
-    h = Harness(path, score_threshold=0.0, tracking=True, follow=True, view_window=5)
+    h = Harness(path, score_threshold=0.0, tracking=True, follow=True, view_window=5, background_detection=background)
     from nav_msgs.msg import Odometry
 
     odom = h.peer.create_publisher(Odometry, "camera_odom", 50)
@@ -475,9 +477,11 @@ def test_following_tracks_by_their_contours_runs_the_frames_and_counts_them(tmp_
         counts = h.node.counters()
         assert counts.get("tracking_frames_estimated", 0) + counts.get("tracking_frames_followed", 0) == 3
         assert counts["camera_odom_invalid"] == 1 and h.node.camera_poses.at(3.0, 0.01)[0, 3] == pytest.approx(0.03)
-        assert "dropped_error" not in counts
+        assert "dropped_error" not in counts and "background_failed" not in counts
+        assert (counts.get("background_searches", 0) > 0) == background
     finally:
         h.close()
+    assert h.node.poser._finder is None or not h.node.poser._finder.alive()
 
 
 @pytest.fixture(scope="module")

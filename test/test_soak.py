@@ -45,7 +45,7 @@ def test_the_soak_starts_the_node_with_its_own_parameters_as_asked():
     """Each `-p name:=value` the soak gives the node is one of the node's parameters, of its type; tracking and
     following reach it as asked."""
     specs = {spec.name: spec for spec in SPECS}
-    for opts in (SoakOptions(), SoakOptions(tracking=True, follow=True, view_window=80)):
+    for opts in (SoakOptions(), SoakOptions(tracking=True, follow=True, view_window=80, background_detection=True)):
         cmd = node_command("model.safetensors", opts)
         params = dict(cmd[i + 1].split(":=", 1) for i, a in enumerate(cmd) if a == "-p")
         assert set(params) <= set(specs), set(params) - set(specs)
@@ -54,5 +54,6 @@ def test_the_soak_starts_the_node_with_its_own_parameters_as_asked():
                 assert value in ("true", "false")
             elif isinstance(specs[name].default, int):
                 int(value)
-        assert params["tracking"] == params["follow"] == str(opts.follow).lower() and int(params["view_window"]) == opts.view_window
+        assert params["tracking"] == params["follow"] == params["background_detection"] == str(opts.follow).lower()
+        assert int(params["view_window"]) == opts.view_window
         assert "camera_odom:=/soak/camera_odom" in cmd

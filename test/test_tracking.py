@@ -666,6 +666,50 @@ def test_an_object_back_in_view_is_followed_from_where_its_views_put_it():
     assert tries == [6] and tracker.counts["tracks_recalled"] == 1  # not found at 6: not looked for there until 16
 
 
+def test_poses_found_elsewhere_join_the_views_and_the_objects_are_followed_from_there():
+    """The localiser and the AGM on a thread of their own: their poses of an earlier frame, at that frame's camera
+    pose (`observe`), join the objects' views, and `step` without a localiser follows the objects from there on a
+    frame the camera has since moved: each starts a track (`tracks_recalled`), nothing is detected or posed on this
+    thread. A track whose contour is lost ends (nothing here can pose it again); observed again, its object is looked
+    for at once. Nothing joins without views or a finite camera pose."""
+    scene = _scene()
+    tracker = Tracker(TrackingConfig(redetect_period=10, view_window=30))
+    moved = np.eye(4)
+    moved[:3, 3] = [0.02, 0.0, 0.0]  # the camera 2 cm to the right since the searched frame (at the identity)
+    truth = {o: (R, t - moved[:3, 3]) for o, (R, t) in scene.poses.items()}
+
+    def follow(last: list, predicted: list) -> list[Followed]:
+        # the contour's basin: it finds an object from within a millimetre, unless the object is hidden
+        out = []
+        for _, t, _ in predicted:
+            o = min(truth, key=lambda o: np.linalg.norm(truth[o][1] - t))
+            found = np.linalg.norm(truth[o][1] - t) < 1e-3 and o not in scene.hidden
+            out.append(Followed(True, *truth[o], COV, 0.9 if found else 0.3))
+        return out
+
+    def found(*objs: int) -> list:
+        return [(Det(o, 0.9, scene.box(o)), Pose(True, *scene.poses[o], COV)) for o in objs]
+
+    def step(k: int) -> list:
+        return tracker.step(k / 30, K, None, scene.estimate, follow, camera=moved)
+
+    assert tracker.observe(np.eye(4), found(1, 5)) == 2
+    poses = step(0)
+    assert {p.obj_id for p in poses} == {1, 5} and tracker.counts["tracks_recalled"] == 2
+    for p in poses:
+        np.testing.assert_allclose(p.t, truth[p.obj_id][1], atol=1e-6)
+    scene.hidden = {5}
+    assert {p.obj_id for p in step(1)} == {1} and tracker.counts["ended_unfollowable"] == 1
+    assert {p.obj_id for p in step(2)} == {1}  # looked for where its views put it: not there
+    scene.hidden = set()
+    assert {p.obj_id for p in step(3)} == {1}  # not looked for again before a localiser's period...
+    tracker.observe(np.eye(4), found(5))
+    assert {p.obj_id for p in step(4)} == {1, 5} and tracker.counts["tracks_recalled"] == 3  # ...unless found again
+    assert scene.detect_calls == 0 and scene.crops == []
+    assert tracker.observe(np.full((4, 4), np.nan), found(1)) == 0
+    assert Tracker(TrackingConfig(view_window=0)).observe(np.eye(4), found(1)) == 0
+
+
 def test_a_track_is_looked_for_where_the_cameras_own_motion_moved_it():
     """With views and the camera's pose a still object is followed from its pose in the fixed frame brought into the
     camera: a camera that pans back and forth (8 degrees a frame) loses no contour, where the filter's constant

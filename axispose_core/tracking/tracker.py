@@ -24,7 +24,9 @@ the camera's intrinsics change.
 
 With the camera's pose in a fixed frame (odometry) and `view_window`, each measured pose is published fused with its
 object's other views in that frame (`views.ObjectViews`), and, when following, an object no track holds is followed
-from where its views put it: a contour that holds there starts its track without the localiser or the AGM.
+from where its views put it: a contour that holds there starts its track without the localiser or the AGM. So the
+localiser and the AGM can run elsewhere (a thread of their own, on an earlier frame): `observe` adds their poses to
+the views, and `step` without `detect` only follows and recalls.
 """
 
 from __future__ import annotations
@@ -268,21 +270,22 @@ class Tracker:
         self,
         stamp: float,
         K: np.ndarray,
-        detect: Callable[[], Sequence[Detected]],
+        detect: Callable[[], Sequence[Detected]] | None,
         estimate: Callable[[list[Crop]], Sequence[Measurement]],
         follow: Follower | None = None,
         camera: np.ndarray | None = None,
     ) -> list[TrackedPose]:
         """One frame: resets and timeouts, prediction, the tracks followed by their contours (with `follow`), the
-        localiser where due, one estimator batch (of the crops without a pose), the updates; with `camera`, the
-        camera's pose in a fixed frame (4x4, camera to fixed), and `view_window`, poses fused over their objects'
-        views, tracks followed from their poses in that frame and objects no track holds looked for there."""
+        localiser where due (never without `detect`: a lost track then ends), one estimator batch (of the crops
+        without a pose), the updates; with `camera`, the camera's pose in a fixed frame (4x4, camera to fixed), and
+        `view_window`, poses fused over their objects' views, tracks followed from their poses in that frame and
+        objects no track holds looked for there."""
         self._start_frame(stamp, K)
         camera = np.asarray(camera, float) if camera is not None and np.all(np.isfinite(camera)) else None
         held = {tr.obj_id for tr in self.tracks}
         out = self._follow(follow, K, stamp, camera) + self._recall(follow, K, stamp, camera, held) if follow is not None else []
         followed = {pose.track_id for pose in out}
-        detecting = self._detection_due(following=follow is not None)
+        detecting = detect is not None and self._detection_due(following=follow is not None)
         crops = self._track_crops(K, every=detecting, skip=followed)
         if detecting:
             crops = self._with_detections(crops, detect(), [tr for tr in self.tracks if tr.id in followed], K)
@@ -299,6 +302,26 @@ class Tracker:
         poses = self._over_views([pose for pose in out if pose is not None], camera)
         self._frame += 1
         return poses
+
+    def observe(self, camera: np.ndarray, posed: Sequence[tuple[Detected, Measurement]]) -> int:
+        """Poses made elsewhere on an earlier frame whose camera pose (4x4, camera to fixed) was `camera` (the
+        localiser and the AGM on a thread of their own): each joins its object's views, from where the next `step`
+        follows an object no track holds (at once, however recently it was not found there). Returns how many
+        joined (none without `view_window`, a finite camera pose, or an `ok` pose)."""
+        camera = np.asarray(camera, float)
+        if self.config.view_window <= 0 or camera.shape != (4, 4) or not np.all(np.isfinite(camera)):
+            return 0
+        self._views.window, self._views.gate = self.config.view_window, self.config.view_gate
+        joined = 0
+        for d, m in posed:
+            if not m.ok:
+                continue
+            R, t, information = in_fixed_frame(camera, m.R, m.t, self._noise(m)[:3, :3])
+            self._views.add(d.obj_id, View(R, t, information, float(m.t[2]), self._frame - 1, m, tuple(d.box), d.score))
+            self._recall_due.pop(d.obj_id, None)
+            joined += 1
+        self._count("views_observed", joined)
+        return joined
 
     def _over_views(self, poses: list[TrackedPose], camera: np.ndarray | None) -> list[TrackedPose]:
         """Each measured track's pose fused from its object's views in the camera's fixed frame that agree with
