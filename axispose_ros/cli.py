@@ -16,7 +16,7 @@ from axispose_core.cli import main as core_main
 REPLAY_PARAMS = {
     "steps": "ddim_steps", "hypotheses": "hypotheses", "guidance": "guidance_scale", "precision": "precision", "tracking": "tracking",
     "refine": "refine", "follow": "follow", "redetect_period": "redetect_period", "measure_every": "measure_every",
-    "view_window": "view_window", "background_detection": "background_detection",
+    "view_window": "view_window", "background_detection": "background_detection", "follow_passes": "follow_passes",
 }  # fmt: skip
 """`replay`'s options that set the node's parameter of that name ("on" / "off": True / False)."""
 
@@ -88,7 +88,8 @@ def _soak(args: argparse.Namespace) -> int:
     from axispose_ros.soak import SoakOptions, soak
 
     opts = SoakOptions(seconds=args.minutes * 60, rate=args.rate, tracking=args.tracking == "on", follow=args.follow == "on",
-                       view_window=args.view_window, background_detection=args.background_detection == "on", faults=not args.no_faults,
+                       view_window=args.view_window, background_detection=args.background_detection == "on",
+                       follow_passes=args.follow_passes, faults=not args.no_faults,
                        precision=args.precision, threads=args.threads)  # fmt: skip
     try:
         r = soak(args.bag, args.checkpoint or SHIPPED_ESTIMATOR, opts, args.out)
@@ -145,6 +146,7 @@ def _add_ros_commands(add_parser: AddParser) -> None:
     rp.add_argument("--redetect-period", type=int, default=None, help="redetect_period parameter of the node (with tracking)")
     rp.add_argument("--measure-every", type=int, default=None, help="measure_every parameter of the node (with tracking)")
     rp.add_argument("--view-window", type=int, default=None, help="view_window parameter of the node (with tracking and odometry)")
+    rp.add_argument("--follow-passes", type=int, default=None, help="follow_passes parameter of the node (with follow)")
     rp.add_argument("--background-detection", choices=["on", "off"], default=None,
                     help="background_detection parameter of the node (with follow and view_window)")  # fmt: skip
     rp.add_argument("--threads", type=int, default=2)
@@ -159,6 +161,7 @@ def _add_ros_commands(add_parser: AddParser) -> None:
     sk.add_argument("--tracking", choices=["on", "off"], default="off")
     sk.add_argument("--follow", choices=["on", "off"], default="off", help="follow parameter of the node (with tracking)")
     sk.add_argument("--view-window", type=int, default=0, help="view_window parameter of the node (with tracking and the bag's odometry)")
+    sk.add_argument("--follow-passes", type=int, default=0, help="follow_passes parameter of the node (with follow)")
     sk.add_argument("--background-detection", choices=["on", "off"], default="off",
                     help="background_detection parameter of the node (with follow and view_window)")  # fmt: skip
     sk.add_argument("--no-faults", action="store_true", help="the stream alone")

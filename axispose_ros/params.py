@@ -93,6 +93,13 @@ SPECS = (
         "with tracking and a refiner, follow each track by its contour on every frame, the AGM posing only new and "
         "lost objects: a fraction of the time per frame, steadier poses",
     ),
+    Spec(
+        "follow_passes",
+        0,
+        "with follow, correspondence passes per followed object: the last n of the checkpoint's following schedule "
+        "(0: all): fewer make a frame cheaper and reach less far",
+        ints=(0, 16),
+    ),
     Spec("redetect_period", 5, "with tracking, run the localiser on every n-th frame (and when a track is lost)", ints=(1, 1000)),
     Spec(
         "measure_every",
@@ -152,6 +159,7 @@ class NodeSettings:
     marker_lifetime: float
     tracking: bool
     follow: bool
+    follow_passes: int
     redetect_period: int
     measure_every: int
     warm_strength: float

@@ -57,7 +57,7 @@ class FramePoser:
         `camera_pose`, the camera's pose in a fixed frame at this frame, averaged over views: `view_window`)."""
         options = EstimateOptions(steps=s.ddim_steps, guidance_scale=s.guidance_scale, scales=s.scales(self.published),
                                   hypotheses=s.hypotheses, warm_steps=s.warm_steps, warm_strength=max(s.warm_strength, 1e-3),
-                                  max_boxes=s.batch_boxes, refine=s.refine)  # fmt: skip
+                                  max_boxes=s.batch_boxes, refine=s.refine, follow_passes=s.follow_passes)  # fmt: skip
 
         def estimate(boxes: list[tuple[int, Box]], priors: list | None = None) -> list[PoseEstimate]:
             return self._count_refined(self.estimator.estimate(rgb, K, boxes, options=options, cancelled=cancelled, priors=priors))

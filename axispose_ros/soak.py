@@ -63,6 +63,8 @@ class SoakOptions:
     """With tracking: the node's `view_window` (the bag's camera odometry is played on `camera_odom` either way)."""
     background_detection: bool = False
     """With follow and view_window: the node's `background_detection`."""
+    follow_passes: int = 0
+    """With follow: the node's `follow_passes`."""
     faults: bool = True
     precision: str = "float32"
     threads: int = 2
@@ -123,7 +125,7 @@ def node_command(checkpoint: str, opts: SoakOptions) -> list[str]:
     """The node's command line: its parameters from the options, its topics remapped to the soak's."""
     params = {"checkpoint": checkpoint, "precision": opts.precision, "num_threads": opts.threads, "warmup_boxes": opts.warmup_boxes,
               "tracking": str(opts.tracking).lower(), "follow": str(opts.follow).lower(), "view_window": opts.view_window,
-              "background_detection": str(opts.background_detection).lower()}  # fmt: skip
+              "background_detection": str(opts.background_detection).lower(), "follow_passes": opts.follow_passes}  # fmt: skip
     return [sys.executable, "-m", "axispose_ros.node", "--ros-args", *[a for k, v in params.items() for a in ("-p", f"{k}:={v}")],
             "-r", f"image:={IMAGE_TOPIC}", "-r", f"camera_info:={INFO_TOPIC}", "-r", f"camera_odom:={ODOM_TOPIC}"]  # fmt: skip
 

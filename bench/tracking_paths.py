@@ -10,7 +10,8 @@ node's latest-frame-wins), and scores only those it took; `"view_window": n` giv
 the scene records (scene_camera.json's `cam_R_w2c`, as odometry would) to fuse each pose over its object's views;
 `"background": true` runs the node's own poser (`axispose_ros.posing.FramePoser`, `background_detection`: the
 localiser and the AGM on a thread of their own) on frames delivered in real time at `--fps`, the newest taken
-whenever the last is done, with the node's defaults but for the setting's `redetect_period` and `view_window`.
+whenever the last is done, with the node's defaults but for the setting's `redetect_period`, `view_window` and
+`follow_passes` (`"follow_passes": n` follows with the last n passes of the refiner's schedule, in any setting).
 Each GT instance is matched to the nearest pose of its object in its frame. Prints, per setting, ADD(-S)@0.1d and
 Reproj@15px (mean over scenes), and per scene jitter (`tracking/jitter.py`), drift and recovery
 (`tracking/stream_scores.py`), the median and mean frame time and the share of frames processed, as one JSON line;
@@ -62,7 +63,7 @@ class Bench:
             return self._background(setting, scene)
         tracker = self._tracker(setting) if setting.get("tracking", True) else None
         rows, pairs, times = [], [], []
-        options = dataclasses.replace(self.options, refine=setting.get("refine", True))
+        options = dataclasses.replace(self.options, refine=setting.get("refine", True), follow_passes=setting.get("follow_passes", 0))
         live, free, due = setting.get("live", False), 0.0, 0
         cameras = [_camera_to_world(scene, im) for im in scene.image_ids]
         for k, im in enumerate(scene.image_ids):
@@ -81,7 +82,7 @@ class Bench:
         """The node's poser with `background_detection`, frames delivered at `fps` in real time (frame k at k / fps
         after the first), the newest one taken whenever the last is done."""
         defaults = {spec.name: spec.default for spec in SPECS if not isinstance(spec.default, Parameter.Type)}
-        chosen = {"redetect_period": setting.get("redetect_period", 5), "view_window": setting.get("view_window", 80)}
+        chosen = {k: setting.get(k, default) for k, default in (("redetect_period", 5), ("view_window", 80), ("follow_passes", 0))}
         settings = NodeSettings(**defaults | chosen | {"checkpoint": "", "objects": (), "tracking": True, "follow": True,
                                                        "background_detection": True, "ddim_steps": self.options.steps,
                                                        "num_threads": torch.get_num_threads()})  # fmt: skip

@@ -265,6 +265,19 @@ def test_a_tracked_object_is_followed_with_the_colours_it_learned(lmo_dir, meshe
     assert not np.array_equal(out.colours.foreground, first.colours.foreground)  # this frame's colours blended in
     with pytest.raises(ValueError, match="colour histograms for"):
         refiner.refine(image, K, [Start(8, first.R, first.t)], colours=[])
+    # `passes`: the schedule's last n only, as a refiner whose following schedule is those n; the start's rotation
+    # moved (the last passes' reach) so that one pass stops short of where two and three go
+    start = Start(8, moved(first.R, first.t, 13, 1.0, 0.0, 0.0)[0], first.t, PRIOR)
+    results = []
+    for n in (1, 2):
+        cfg = dataclasses.replace(refiner.config, track_scales=refiner.config.track_scales[-n:], track_sigmas=refiner.config.track_sigmas[-n:])
+        short = ContourRefiner(cfg, meshes).refine(image, K, [start], colours=[first.colours])[0]
+        results.append(refiner.refine(image, K, [start], colours=[first.colours], passes=n)[0])
+        np.testing.assert_array_equal(results[-1].R, short.R)
+        np.testing.assert_array_equal(results[-1].t, short.t)
+    assert not np.array_equal(results[0].R, results[1].R)
+    with pytest.raises(ValueError, match="passes"):
+        refiner.refine(image, K, [start], colours=[first.colours], passes=-1)
 
 
 def test_the_estimator_follows_its_poses_by_their_contours(tmp_path, lmo_dir):
@@ -282,3 +295,7 @@ def test_the_estimator_follows_its_poses_by_their_contours(tmp_path, lmo_dir):
     assert out.ok and out.refined and out.colours is not None and abs(out.t[2] / t[2] - 1) < 0.005
     lost = est.follow(np.full_like(image, 90), K, [out], [(R, t, PRIOR)])[0]
     assert not lost.ok and lost.refine_kept and lost.reason.startswith("contour")
+    one = est.follow(image, K, [out], [(R, t * 1.01, PRIOR)], EstimateOptions(follow_passes=1))[0]
+    assert one.ok and not np.array_equal(one.t, est.follow(image, K, [out], [(R, t * 1.01, PRIOR)])[0].t)  # fewer passes
+    with pytest.raises(ValueError, match="follow_passes"):
+        EstimateOptions(follow_passes=-1)

@@ -143,12 +143,15 @@ class ContourRefiner:
             self.model(obj_id)
 
     def refine(
-        self, image_rgb: np.ndarray, K: np.ndarray, starts: Sequence[Start], colours: Sequence[ColourHistograms | None] | None = None
-    ) -> list[Refinement]:
+        self, image_rgb: np.ndarray, K: np.ndarray, starts: Sequence[Start], colours: Sequence[ColourHistograms | None] | None = None,
+        passes: int = 0,
+    ) -> list[Refinement]:  # fmt: skip
         """Each start refined on the image (H,W,3 uint8 RGB) seen through K; one Refinement per start, in order.
         `colours`, per start, what it learned on earlier frames (a track's, `Refinement.colours`): such a start is
-        followed (`track_scales`, a short schedule from a near pose) and its colours blended with this frame's; the
-        others take the whole schedule (`scales`)."""
+        followed (`track_scales`, a short schedule from a near pose; with `passes`, its last `passes` only) and its
+        colours blended with this frame's; the others take the whole schedule (`scales`)."""
+        if passes < 0:
+            raise ValueError(f"passes must be >= 0, got {passes}")
         cfg = self.config
         colours = list(colours) if colours is not None else [None] * len(starts)
         if len(colours) != len(starts):
@@ -165,7 +168,7 @@ class ContourRefiner:
                 kept[i] = "invalid"
             elif K[0, 0] * self.diameters[s.obj_id] * s.scale / s.t[2] < cfg.min_size:
                 kept[i] = "small"
-            states.append(None if i in kept else self._state(s, colours[i]))
+            states.append(None if i in kept else self._state(s, colours[i], passes))
         for k in range(max(len(cfg.scales), len(cfg.track_scales))):
             live = [s for s in states if s is not None and not s.reason and k < len(s.schedule[0])]
             masks = self._occluders(live, K, shape)
@@ -177,11 +180,11 @@ class ContourRefiner:
             out.append(self._finish(start, s, bins, K, kept.get(i, "")))
         return out
 
-    def _state(self, s: Start, colours: ColourHistograms | None) -> _State:
+    def _state(self, s: Start, colours: ColourHistograms | None, passes: int = 0) -> _State:
         info = _information(s.covariance) if self.config.prior else None
         cfg = self.config
         learned = colours.copy() if colours is not None else ColourHistograms.empty(cfg.histogram_bins)
-        schedule = (cfg.track_scales, cfg.track_sigmas) if colours is not None else (cfg.scales, cfg.sigmas)
+        schedule = (cfg.track_scales[-passes:], cfg.track_sigmas[-passes:]) if colours is not None else (cfg.scales, cfg.sigmas)
         return _State(s, self.model(s.obj_id), self.diameters[s.obj_id] * s.scale, np.asarray(s.R, float), np.asarray(s.t, float),
                       np.zeros((6, 6)) if info is None else info, learned, schedule, carried=colours is not None)  # fmt: skip
 
