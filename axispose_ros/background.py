@@ -1,63 +1,193 @@
-"""The localiser and the AGM on a thread of their own, for tracking with the camera's pose: a frame that only follows
-its objects by their contours (a few ms each) is not held up by the AGM's 100-200 ms, so the node keeps up with a
-camera stream. What they find on a frame comes back with that frame's camera pose, and joins the objects' views in
-the fixed frame (`Tracker.observe`), from where the tracker follows them on the frame at hand."""
+"""The localiser and the AGM in a process of their own, for tracking with the camera's pose: a frame that only follows
+its objects by their contours (a few ms each) is not held up by the AGM's 100-300 ms, so the node keeps up with a
+camera stream. A process, not a thread: the search's Python and NumPy work (decoding, the TBM, refining what it
+found) would otherwise take turns with the following's for the interpreter's lock. It runs at a lower CPU priority,
+so the frames come first and the search takes the time left. What it finds on a frame comes back with that frame's
+camera pose and joins the objects' views in the fixed frame (`Tracker.observe`), from where the tracker follows them
+on the frame at hand."""
 
 from __future__ import annotations
 
-import threading
+import multiprocessing
+import os
+import signal
+import time
 from collections.abc import Callable
 from dataclasses import dataclass
+from multiprocessing.connection import Connection
 
 import numpy as np
 
-from axispose_core.estimator import Found
-from axispose_ros.worker import InferenceWorker
+from axispose_core.estimator import EstimateOptions, Estimator, Found
+
+READY = "ready"
+"""What the process sends once its checkpoint is loaded (or failed to load)."""
 
 
 @dataclass(frozen=True)
 class Search:
-    """One frame for the background: its stamp, intrinsics and camera pose (4x4, camera to fixed), and the call that
-    finds and poses its objects (given the thread's `cancelled`)."""
+    """One frame to search: its stamp, intrinsics, camera pose (4x4, camera to fixed) and image, and how (the least
+    published score, the estimate options, the objects to look for)."""
 
     stamp: float
     K: np.ndarray
     camera: np.ndarray
-    find: Callable[[Callable[[], bool]], Found]
+    rgb: np.ndarray
+    threshold: float
+    options: EstimateOptions
+    objects: tuple[int, ...]
+
+
+@dataclass(frozen=True)
+class Searcher:
+    """What the search process loads (checkpoint, device, the AGM's precision) and how it runs: OpenMP `threads`, and
+    `nice` added to its CPU niceness."""
+
+    checkpoint: str
+    device: str = "cpu"
+    precision: str = "float32"
+    threads: int = 1
+    nice: int = 10
 
 
 class BackgroundFinder:
-    """Runs `Search.find` on a thread of its own (an `InferenceWorker`, `threads` OpenMP threads) for the newest
-    search offered; `collect` hands over what the finished ones found. A search that fails goes to `on_error`."""
+    """`Searcher`'s process, fed one `Search` at a time: one offered while another runs waits (the newest replaces
+    an older one waiting), and `collect` hands over the finished ones with what they found. A search that fails, or
+    a process that ended (it is started again on the next search), goes to `on_error`."""
 
-    def __init__(self, threads: int, on_error: Callable[[Exception], None]) -> None:
+    def __init__(self, searcher: Searcher, on_error: Callable[[Exception], None]) -> None:
+        self._searcher, self._on_error = searcher, on_error
+        self._process: multiprocessing.process.BaseProcess | None = None
+        self._conn: Connection | None = None
+        self._running: Search | None = None
+        """Sent to the process, not answered yet."""
+        self._waiting: Search | None = None
         self._done: list[tuple[Search, Found]] = []
-        self._lock = threading.Lock()
-        self._worker: InferenceWorker[Search] = InferenceWorker(self._run, lambda: None, on_error, threads, name="axispose_background")
-        self._worker.start()
+        self._ready = False
+        self._start()
 
     def offer(self, search: Search) -> None:
-        """Search this frame next (replacing one offered that has not started)."""
-        self._worker.submit(search)
+        """Search this frame as soon as the process is free (replacing one offered that has not started)."""
+        self._poll()
+        if self._running is None:
+            self._send(search)
+        else:
+            self._waiting = search
 
     def idle(self) -> bool:
-        """No search waits or runs."""
-        return self._worker.idle()
-
-    def alive(self) -> bool:
-        return self._worker.alive()
+        """No search runs or waits."""
+        self._poll()
+        return self._running is None and self._waiting is None
 
     def collect(self) -> list[tuple[Search, Found]]:
         """The searches finished since the last call, oldest first, with what they found."""
-        with self._lock:
-            done, self._done = self._done, []
+        self._poll()
+        done, self._done = self._done, []
         return done
 
-    def stop(self) -> None:
-        """Cancel the search in progress (at its next DDIM step) and end the thread."""
-        self._worker.stop()
+    def alive(self) -> bool:
+        return self._process is not None and self._process.is_alive()
 
-    def _run(self, search: Search) -> None:
-        found = search.find(self._worker.cancelled)
-        with self._lock:
-            self._done.append((search, found))
+    def wait_ready(self, timeout: float) -> bool:
+        """Wait up to `timeout` s for the process to have loaded its checkpoint (or failed to); whether it has."""
+        end = time.monotonic() + timeout
+        while True:
+            self._poll()
+            if self._ready or time.monotonic() >= end:
+                return self._ready
+            time.sleep(0.01)
+
+    def stop(self, timeout: float = 5.0) -> None:
+        """End the process (after the search it runs, within `timeout` s; then it is terminated)."""
+        if self._process is None:
+            return
+        try:
+            self._conn.send(None)
+        except (OSError, ValueError):  # the process has gone already
+            pass
+        self._process.join(timeout)
+        if self._process.is_alive():
+            self._process.terminate()
+            self._process.join(timeout)
+        self._conn.close()
+        self._process, self._running, self._waiting = None, None, None
+
+    def _start(self) -> None:
+        context = multiprocessing.get_context("spawn")  # never fork a process with ROS and OpenMP threads running
+        self._conn, theirs = context.Pipe()
+        self._process = context.Process(target=_serve, args=(theirs, self._searcher), name="axispose_background", daemon=True)
+        self._process.start()
+        theirs.close()
+
+    def _send(self, search: Search) -> None:
+        if not self.alive():
+            self._on_error(RuntimeError("the background search process had ended: started again"))
+            self._conn.close()
+            self._ready = False
+            self._start()
+        self._conn.send(search)
+        self._running = search
+
+    def _poll(self) -> None:
+        """Take what the process sent (that it is ready; the running search's answer), and send the waiting search."""
+        try:
+            while self._conn.poll():
+                self._answer(self._conn.recv())
+            if self._running is not None and not self.alive():
+                raise EOFError("the background search process ended")
+        except (EOFError, OSError) as err:
+            if self._running is not None:
+                self._answer(RuntimeError(f"background search: {err}"))
+
+    def _answer(self, answer: object) -> None:
+        if answer == READY:
+            self._ready = True
+            return
+        if isinstance(answer, Exception):
+            self._on_error(answer)
+        elif self._running is not None:
+            self._done.append((self._running, answer))
+        self._running = None
+        if self._waiting is not None:
+            search, self._waiting = self._waiting, None
+            self._send(search)
+
+
+def _serve(conn: Connection, searcher: Searcher) -> None:
+    """The search process: load the estimator, then answer each search with what it found, or with the error that
+    stopped it (every search with the loading error if the checkpoint did not load), until told to stop."""
+    import torch
+
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # the node's Ctrl-C is the node's to handle: it stops this
+    try:
+        os.nice(searcher.nice)
+    except OSError:
+        pass
+    torch.set_num_threads(searcher.threads)
+    estimator, failed = None, None
+    try:
+        estimator = Estimator.load(searcher.checkpoint, searcher.device)
+        estimator.set_precision(searcher.precision)
+    except Exception as err:  # answered to every search: the node counts them
+        failed = RuntimeError(f"background search: the checkpoint did not load: {err}")
+    try:
+        conn.send(READY)
+    except (OSError, ValueError):
+        return
+    while True:
+        try:
+            search = conn.recv()
+        except (EOFError, OSError):  # the node has gone
+            return
+        if search is None:
+            return
+        try:
+            if failed is not None:
+                raise failed
+            answer = estimator.find(search.rgb, search.K, search.threshold, search.options, objects=search.objects)
+        except Exception as err:
+            answer = err if isinstance(err, RuntimeError) else RuntimeError(f"background search failed: {err!r}")
+        try:
+            conn.send(answer)
+        except (OSError, ValueError):
+            return

@@ -220,7 +220,7 @@ class AxisPoseNode(Node):
         if outside:
             self.stats.add("roi_outside", outside)
         stamp = stamp_seconds(frame.image.header)
-        camera_pose = self.camera_poses.at(stamp, s.sync_slop) if s.tracking and s.view_window > 0 else None
+        camera_pose = self.camera_poses.wait(stamp, s.sync_slop) if s.tracking and s.view_window > 0 else None
         posed = self.poser.pose(rgb, camera.K, stamp, rois, s, self.worker.cancelled, camera_pose)
         refused = self.outputs.publish(frame.image.header, posed, self.estimator, rgb, camera.K, s.marker_lifetime)
         if refused:

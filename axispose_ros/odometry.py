@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import bisect
 import threading
+import time
 from collections.abc import Callable
 
 import numpy as np
@@ -15,6 +16,8 @@ from axispose_ros.conversions import stamp_seconds
 
 KEEP_S = 2.0
 """Seconds of poses kept behind the newest: frames wait for inference far less."""
+WAIT_S = 0.1
+"""Longest a frame waits for the odometry of its stamp (an image and its odometry arrive in either order)."""
 
 
 def pose_matrix(position, orientation) -> np.ndarray | None:
@@ -36,7 +39,7 @@ class CameraPoses:
     def __init__(self, invalid: Callable[[], None] = lambda: None) -> None:
         self._stamps: list[float] = []
         self._poses: list[np.ndarray] = []
-        self._lock = threading.Lock()
+        self._lock = threading.Condition()
         self._invalid = invalid
 
     def on_message(self, msg) -> None:
@@ -55,12 +58,30 @@ class CameraPoses:
             self._poses.insert(k, pose)
             drop = bisect.bisect_left(self._stamps, self._stamps[-1] - KEEP_S)
             del self._stamps[:drop], self._poses[:drop]
+            self._lock.notify_all()
 
     def at(self, stamp: float, slop: float) -> np.ndarray | None:
         """The pose whose stamp is nearest `stamp`, within `slop` seconds; None without one."""
         with self._lock:
-            if not self._stamps:
-                return None
-            k = bisect.bisect(self._stamps, stamp)
-            near = min((i for i in (k - 1, k) if 0 <= i < len(self._stamps)), key=lambda i: abs(self._stamps[i] - stamp))
-            return self._poses[near].copy() if abs(self._stamps[near] - stamp) <= slop else None
+            return self._nearest(stamp, slop)
+
+    def wait(self, stamp: float, slop: float, timeout: float = WAIT_S) -> np.ndarray | None:
+        """`at(stamp, slop)`, waiting up to `timeout` s for it while odometry comes (a pose within KEEP_S before
+        `stamp`) and none after `stamp + slop` has come yet: a frame taken before its odometry's callback ran is
+        not posed without it."""
+        end = time.monotonic() + timeout
+        with self._lock:
+            while True:
+                pose = self._nearest(stamp, slop)
+                coming = bool(self._stamps) and stamp - KEEP_S <= self._stamps[-1] <= stamp + slop
+                left = end - time.monotonic()
+                if pose is not None or not coming or left <= 0:
+                    return pose
+                self._lock.wait(left)
+
+    def _nearest(self, stamp: float, slop: float) -> np.ndarray | None:
+        if not self._stamps:
+            return None
+        k = bisect.bisect(self._stamps, stamp)
+        near = min((i for i in (k - 1, k) if 0 <= i < len(self._stamps)), key=lambda i: abs(self._stamps[i] - stamp))
+        return self._poses[near].copy() if abs(self._stamps[near] - stamp) <= slop else None

@@ -128,7 +128,7 @@ SPECS = (
     Spec(
         "background_detection",
         False,
-        "with tracking, follow and view_window, on frames with the camera's pose: the localiser and the AGM on a thread "
+        "with tracking, follow and view_window, on frames with the camera's pose: the localiser and the AGM in a process "
         "of their own, every frame only followed (their poses join the views, from where the objects are followed)",
     ),
     Spec("latency_budget", 2.0, "median latency (s) over which /diagnostics warns; at start", floats=(0.01, 60.0), at_start=True),

@@ -1,7 +1,7 @@
 """From a frame to the poses the node publishes: the boxes of fresh ROIs, else what the localiser finds (each posed
 on its own, rescored by the checkpoint's verifier where it has one: `Estimator.find`); or, with `tracking`, every
 object followed by a `Tracker` (crops from predicted poses, the localiser only where due, filtered poses with their
-filter's covariance and a track id), the localiser and the AGM on a thread of their own where the frames are only
+filter's covariance and a track id), the localiser and the AGM in a process of their own where the frames are only
 followed (`background_detection`: `background.py`)."""
 
 from __future__ import annotations
@@ -14,7 +14,7 @@ import numpy as np
 
 from axispose_core.estimator import EstimateOptions, Estimator, Found, PoseEstimate
 from axispose_core.tracking.tracker import Crop, Sighting, Tracker, TrackingConfig
-from axispose_ros.background import BackgroundFinder, Search
+from axispose_ros.background import BackgroundFinder, Search, Searcher
 from axispose_ros.params import NodeSettings
 
 Box = tuple[float, float, float, float]
@@ -65,12 +65,8 @@ class FramePoser:
         if rois or self.estimator.localiser is None:
             return _each(list(rois), [1.0] * len(rois), estimate)
 
-        def find(cancel: Callable[[], bool] = cancelled) -> Found:
-            found = self.estimator.find(rgb, K, s.score_threshold, options, cancel, objects=self.published)
-            self._count_refined(found.poses)
-            if found.dropped:
-                self.count("verifier_dropped", found.dropped)
-            return found
+        def find() -> Found:
+            return self._counted(self.estimator.find(rgb, K, s.score_threshold, options, cancelled, objects=self.published))
 
         if not s.tracking:
             if self.tracker.tracks:
@@ -102,7 +98,10 @@ class FramePoser:
                 return self._count_refined(self.estimator.follow(rgb, K, last, predicted, options))
 
             if s.background_detection and s.view_window > 0 and camera_pose is not None:
-                return self._in_background(K, stamp, camera_pose, s, find, estimate, follow)
+                search = Search(
+                    stamp, np.array(K, float), np.array(camera_pose, float), rgb, s.score_threshold, options, tuple(self.published)
+                )
+                return self._in_background(search, s, estimate, follow)
         return self._tracked(stamp, K, dets, estimate, s.warm_strength > 0, follow, s.score_threshold, camera_pose)
 
     def _tracked(self, stamp: float, K: np.ndarray, detect, estimate, warm: bool, follow, threshold: float, camera_pose=None) -> Posed:
@@ -129,23 +128,40 @@ class FramePoser:
         estimates = [dataclasses.replace(tp.measurement, R=tp.R, t=tp.t, covariance=tp.covariance) for tp in tracked]
         return Posed(estimates, [tp.score for tp in tracked], [tp.box for tp in tracked], [tp.track_id for tp in tracked])
 
-    def _in_background(self, K: np.ndarray, stamp: float, camera_pose: np.ndarray, s: NodeSettings, find, estimate, follow) -> Posed:
-        """Tracking with the localiser and the AGM on a thread of their own: what they found on earlier frames joins
-        the objects' views, this frame is followed (its objects recalled from their views), and it is searched next
-        where the last search is done and `redetect_period` frames have passed since it was offered, or where
-        nothing is tracked. A search from before a reset (stamps going back, other intrinsics) is left out."""
-        if self._finder is None:
-            self._finder = BackgroundFinder(max(1, s.num_threads - 1), lambda err: self.count("background_failed", 1))
-        for search, found in self._finder.collect():
-            if search.stamp <= stamp and np.allclose(search.K, K):
-                self.tracker.observe(search.camera, [(d, p) for d, p in zip(found.detections, found.poses, strict=True) if p.ok])
-        posed = self._tracked(stamp, K, None, estimate, False, follow, s.score_threshold, camera_pose)
+    def _in_background(self, search: Search, s: NodeSettings, estimate, follow) -> Posed:
+        """Tracking with the localiser and the AGM in a process of their own (`background.py`): what they found on
+        earlier frames joins the objects' views, this frame is followed (its objects recalled from their views), and
+        it is searched next where the last search is done and `redetect_period` frames have passed since one was
+        offered, or where nothing is tracked. A search from before a reset (stamps going back, other intrinsics) is
+        left out."""
+        self.start_background(s)
+        for earlier, found in self._finder.collect():
+            found = self._counted(found)
+            if earlier.stamp <= search.stamp and np.allclose(earlier.K, search.K):
+                self.tracker.observe(earlier.camera, [(d, p) for d, p in zip(found.detections, found.poses, strict=True) if p.ok])
+        posed = self._tracked(search.stamp, search.K, None, estimate, False, follow, s.score_threshold, search.camera)
         self._since_search += 1
         if self._finder.idle() and (self._since_search >= s.redetect_period or not self.tracker.tracks):
-            self._finder.offer(Search(stamp, np.array(K, float), np.array(camera_pose, float), find))
+            self._finder.offer(search)
             self._since_search = 0
             self.count("background_searches", 1)
         return posed
+
+    def start_background(self, s: NodeSettings, wait: float = 0.0) -> None:
+        """Start the search process of `background_detection` now (else the first frame that needs it does), and
+        wait up to `wait` s for it to load its checkpoint."""
+        if self._finder is None:
+            precision = "bfloat16" if self.estimator.bf16 else "float32"
+            searcher = Searcher(s.checkpoint, str(self.estimator.device), precision, max(1, s.num_threads - 1))
+            self._finder = BackgroundFinder(searcher, lambda err: self.count("background_failed", 1))
+        self._finder.wait_ready(wait)
+
+    def _counted(self, found: Found) -> Found:
+        """What the localiser found and posed, its refinements and the verifier's drops counted."""
+        self._count_refined(found.poses)
+        if found.dropped:
+            self.count("verifier_dropped", found.dropped)
+        return found
 
     def _count_refined(self, estimates: list[PoseEstimate]) -> list[PoseEstimate]:
         """Count what the contour refiner did with each pose it saw (`refine_refined`, `refine_kept_<reason>`)."""

@@ -135,10 +135,30 @@ def _node_process(checkpoint: str, opts: SoakOptions, env: dict, log_path: Path)
 
 
 def _rss_mb(pid: int) -> float:
-    for line in Path(f"/proc/{pid}/status").read_text().splitlines():
-        if line.startswith("VmRSS:"):
-            return int(line.split()[1]) / 1024
+    """Resident memory (MB) of the node and the processes it started (its background search, `background.py`)."""
+    return sum(_own_rss_mb(p) for p in [pid, *_descendants(pid)])
+
+
+def _own_rss_mb(pid: int) -> float:
+    try:
+        for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+            if line.startswith("VmRSS:"):
+                return int(line.split()[1]) / 1024
+    except OSError:  # it ended in between
+        return 0.0
     return float("nan")
+
+
+def _descendants(pid: int) -> list[int]:
+    children = []
+    for stat in Path("/proc").glob("[0-9]*/stat"):
+        try:
+            parent = int(stat.read_text().rsplit(")", 1)[1].split()[1])
+        except (OSError, IndexError, ValueError):
+            continue
+        if parent == pid:
+            children.append(int(stat.parent.name))
+    return children + [d for c in children for d in _descendants(c)]
 
 
 class _Camera:

@@ -9,7 +9,7 @@ step); `"live": true` feeds the frames at `--fps` in real time, the newest taken
 node's latest-frame-wins), and scores only those it took; `"view_window": n` gives the tracker the camera's pose
 the scene records (scene_camera.json's `cam_R_w2c`, as odometry would) to fuse each pose over its object's views;
 `"background": true` runs the node's own poser (`axispose_ros.posing.FramePoser`, `background_detection`: the
-localiser and the AGM on a thread of their own) on frames delivered in real time at `--fps`, the newest taken
+localiser and the AGM in a process of their own) on frames delivered in real time at `--fps`, the newest taken
 whenever the last is done, with the node's defaults but for the setting's `redetect_period`, `view_window` and
 `follow_passes` (`"follow_passes": n` follows with the last n passes of the refiner's schedule, in any setting).
 Each GT instance is matched to the nearest pose of its object in its frame. Prints, per setting, ADD(-S)@0.1d and
@@ -49,7 +49,7 @@ Pose = tuple[int, np.ndarray, np.ndarray]
 
 class Bench:
     def __init__(self, checkpoint: str, models: str, threshold: float, options: EstimateOptions, fps: float) -> None:
-        self.est = Estimator.load(checkpoint)
+        self.est, self.checkpoint = Estimator.load(checkpoint), checkpoint
         self.specs = {o.obj_id: o for o in self.est.config.objects}
         self.points = {i: load_ply(model_path(models, i)).vertices for i in self.specs}
         self.syms = object_symmetries(self.specs.values(), self.points)
@@ -83,11 +83,12 @@ class Bench:
         after the first), the newest one taken whenever the last is done."""
         defaults = {spec.name: spec.default for spec in SPECS if not isinstance(spec.default, Parameter.Type)}
         chosen = {k: setting.get(k, default) for k, default in (("redetect_period", 5), ("view_window", 80), ("follow_passes", 0))}
-        settings = NodeSettings(**defaults | chosen | {"checkpoint": "", "objects": (), "tracking": True, "follow": True,
+        settings = NodeSettings(**defaults | chosen | {"checkpoint": self.checkpoint, "objects": (), "tracking": True, "follow": True,
                                                        "background_detection": True, "ddim_steps": self.options.steps,
                                                        "num_threads": torch.get_num_threads()})  # fmt: skip
         counts: dict[str, int] = {}
         poser = FramePoser(self.est, {i: str(i) for i in self.specs}, lambda key, n: counts.__setitem__(key, counts.get(key, 0) + n))
+        poser.start_background(settings, wait=120.0)  # the search process loaded before the first frame comes
         rows, pairs, times, k = [], [], [], 0
         start = time.perf_counter()
         try:

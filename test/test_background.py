@@ -1,52 +1,81 @@
-"""The node's background search thread: the newest frame offered, what it found handed back once, failures counted."""
+"""The node's background search process: the newest frame offered, what it found handed back once, failures counted."""
 
-import threading
 import time
 
 import numpy as np
+import pytest
 
-from axispose_core.estimator import Found
-from axispose_ros.background import BackgroundFinder, Search
+from axispose_core.estimator import EstimateOptions
+from axispose_core.lmo import LMO_K
+from axispose_ros.background import BackgroundFinder, Search, Searcher
 
 
-def _wait(condition, timeout: float = 5.0) -> bool:
+@pytest.fixture(scope="module")
+def checkpoint(tmp_path_factory):
+    """The tiny estimator with an untrained localiser of ape and can: at threshold 0 it finds both."""
+    from conftest import save_tiny_estimator
+
+    from axispose_core.estimator import Estimator
+    from axispose_core.localiser.model import Localiser, LocaliserConfig
+    from axispose_core.trunks.residual import ResidualBNConfig
+
+    path = save_tiny_estimator(tmp_path_factory.mktemp("bg") / "tiny.safetensors")
+    localiser = Localiser(LocaliserConfig(obj_ids=(1, 5), input_size=(160, 128), trunk=ResidualBNConfig(widths=(8, 16, 24, 32))))
+    Estimator.load(path).with_localiser(localiser).save(path)
+    return path
+
+
+def _search(stamp: float, K=LMO_K) -> Search:
+    rgb = np.random.default_rng(0).integers(0, 255, (480, 640, 3), dtype=np.uint8)
+    return Search(stamp, np.asarray(K, float), np.eye(4), rgb, 0.0, EstimateOptions(steps=1), (1, 5))
+
+
+def _wait(condition, timeout: float = 60.0) -> bool:
     end = time.monotonic() + timeout
     while not condition() and time.monotonic() < end:
-        time.sleep(0.005)
+        time.sleep(0.01)
     return condition()
 
 
-def test_the_background_searches_the_newest_frame_offered_and_hands_back_what_it_found():
+def test_the_background_searches_the_newest_frame_offered_and_hands_back_what_it_found(checkpoint):
     """While a search runs, frames offered replace each other (the newest is searched next); `collect` hands over
-    each finished search once, oldest first; a search that fails goes to `on_error` and the thread goes on; `stop`
-    ends it."""
-    release, started, errors = threading.Event(), [], []
-
-    def search(stamp: float, fail: bool = False) -> Search:
-        def find(cancelled) -> Found:
-            started.append(stamp)
-            if stamp == 0.0:
-                release.wait(5.0)
-            if fail:
-                raise RuntimeError("localiser failed")
-            return Found([], [])
-
-        return Search(stamp, np.eye(3), np.eye(4), find)
-
-    finder = BackgroundFinder(1, errors.append)
+    each finished search once, oldest first, with the localiser's objects posed; a search that fails goes to
+    `on_error` and the process goes on; `stop` ends it."""
+    errors = []
+    finder = BackgroundFinder(Searcher(str(checkpoint)), errors.append)
     try:
-        finder.offer(search(0.0))
-        assert _wait(lambda: started == [0.0])
-        finder.offer(search(1.0))
-        finder.offer(search(2.0))  # replaces 1.0, which had not started
-        assert not finder.idle() and finder.collect() == []
-        release.set()
+        for stamp in (1.0, 2.0, 3.0):  # 2.0 waits while 1.0 runs, and 3.0 replaces it
+            finder.offer(_search(stamp))
+        assert not finder.idle()
         assert _wait(finder.idle)
-        assert [s.stamp for s, _ in finder.collect()] == [0.0, 2.0] and started == [0.0, 2.0]
+        done = finder.collect()
+        assert [s.stamp for s, _ in done] == [1.0, 3.0] and errors == []
+        assert all({d.obj_id for d in found.detections} == {1, 5} and len(found.poses) == len(found.detections) for _, found in done)
         assert finder.collect() == []
-        finder.offer(search(3.0, fail=True))
-        assert _wait(lambda: len(errors) == 1 and finder.idle())
-        assert isinstance(errors[0], RuntimeError) and finder.collect() == [] and finder.alive()
+        finder.offer(_search(4.0, K=np.zeros((3, 3))))  # no intrinsics: the estimator refuses the frame
+        assert _wait(finder.idle) and len(errors) == 1 and finder.collect() == [] and finder.alive()
     finally:
         finder.stop()
     assert not finder.alive()
+
+
+def test_a_search_process_that_cannot_load_or_ended_is_counted_not_a_crash(checkpoint, tmp_path):
+    """A checkpoint the process cannot load answers every search with that error; a process that ended is started
+    again on the next search (its end an error too)."""
+    errors: list[Exception] = []
+    finder = BackgroundFinder(Searcher(str(tmp_path / "missing.safetensors")), errors.append)
+    try:
+        finder.offer(_search(1.0))
+        assert _wait(finder.idle) and len(errors) == 1 and "did not load" in str(errors[0])
+    finally:
+        finder.stop()
+    errors.clear()
+    finder = BackgroundFinder(Searcher(str(checkpoint)), errors.append)
+    try:
+        finder._process.kill()
+        finder._process.join(10)
+        finder.offer(_search(1.0))
+        assert _wait(finder.idle) and [s.stamp for s, _ in finder.collect()] == [1.0]
+        assert len(errors) == 1 and "ended" in str(errors[0]) and finder.alive()
+    finally:
+        finder.stop()

@@ -452,7 +452,7 @@ def test_following_tracks_by_their_contours_runs_the_frames_and_counts_them(tmp_
     """`tracking` with `follow` (and `view_window`, the camera's pose on camera_odom) on a checkpoint with a localiser
     and a refiner: every frame ends in frames_processed, each counted as followed or estimated by the tracker; an
     odometry message that is no pose is counted; nothing fails. With `background_detection` the localiser and the
-    AGM search frames on a thread of their own (the node stops it)."""
+    AGM search frames in a process of their own (the node stops it)."""
     reader = load_reader(SHIPPED_READER)
     cfg = EstimatorConfig(agm=TINY_AGM, reader=reader.config, objects=tuple(lmo_objects()[:2]), ddim_steps=1)
     localiser = Localiser(LocaliserConfig(obj_ids=(1, 5), input_size=(160, 128), trunk=ResidualBNConfig(widths=(8, 16, 24, 32))))

@@ -48,3 +48,24 @@ def test_an_odometry_message_is_added_at_its_stamp_and_a_non_pose_reported():
     poses.on_message(message(4, 1.0))
     poses.on_message(message(5, 0.0))
     assert poses.at(4.5, 0.01)[0, 3] == 0.5 and poses.at(5.5, 0.01) is None and invalid == [1]
+
+
+def test_a_frame_waits_for_the_odometry_of_its_stamp_while_odometry_comes():
+    """An image may be taken before its odometry's callback ran: `wait` returns the pose once it comes; at once with
+    no odometry at all, or with odometry past the frame already (none will come for it); after `timeout` if it does
+    not come."""
+    import threading
+    import time
+
+    poses = CameraPoses()
+    assert poses.wait(10.0, 0.01, timeout=5.0) is None  # no odometry: no wait
+    poses.add(9.9, np.eye(4))
+    T = np.eye(4)
+    T[0, 3] = 1.0
+    later = threading.Timer(0.05, poses.add, (10.0, T))
+    start = time.monotonic()
+    later.start()
+    assert poses.wait(10.0, 0.01, timeout=5.0)[0, 3] == 1.0 and time.monotonic() - start < 2.0
+    assert poses.wait(9.95, 0.01, timeout=5.0) is None and time.monotonic() - start < 2.0  # odometry is past it
+    start = time.monotonic()
+    assert poses.wait(10.1, 0.01, timeout=0.1) is None and 0.09 <= time.monotonic() - start < 2.0

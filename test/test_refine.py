@@ -270,7 +270,8 @@ def test_a_tracked_object_is_followed_with_the_colours_it_learned(lmo_dir, meshe
     start = Start(8, moved(first.R, first.t, 13, 1.0, 0.0, 0.0)[0], first.t, PRIOR)
     results = []
     for n in (1, 2):
-        cfg = dataclasses.replace(refiner.config, track_scales=refiner.config.track_scales[-n:], track_sigmas=refiner.config.track_sigmas[-n:])
+        cfg = refiner.config
+        cfg = dataclasses.replace(cfg, track_scales=cfg.track_scales[-n:], track_sigmas=cfg.track_sigmas[-n:])
         short = ContourRefiner(cfg, meshes).refine(image, K, [start], colours=[first.colours])[0]
         results.append(refiner.refine(image, K, [start], colours=[first.colours], passes=n)[0])
         np.testing.assert_array_equal(results[-1].R, short.R)

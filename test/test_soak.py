@@ -57,3 +57,25 @@ def test_the_soak_starts_the_node_with_its_own_parameters_as_asked():
         assert params["tracking"] == params["follow"] == params["background_detection"] == str(opts.follow).lower()
         assert int(params["view_window"]) == opts.view_window
         assert "camera_odom:=/soak/camera_odom" in cmd
+
+
+def test_the_soak_counts_the_memory_of_the_processes_the_node_started():
+    """The node's RSS includes its children's (the background search runs in one): a child holding 200 MB adds
+    them."""
+    import os
+    import subprocess
+    import sys
+    import time
+
+    from axispose_ros.soak import _rss_mb
+
+    alone = _rss_mb(os.getpid())
+    child = subprocess.Popen([sys.executable, "-c", "import sys, time; x = bytearray(200_000_000); x[::4096] = b'1' * len(x[::4096]); "
+                              "print('held', flush=True); time.sleep(60)"], stdout=subprocess.PIPE)  # fmt: skip
+    try:
+        assert child.stdout.readline().strip() == b"held"
+        time.sleep(0.1)
+        assert _rss_mb(os.getpid()) - alone > 150
+    finally:
+        child.kill()
+        child.wait()

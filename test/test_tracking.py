@@ -667,7 +667,7 @@ def test_an_object_back_in_view_is_followed_from_where_its_views_put_it():
 
 
 def test_poses_found_elsewhere_join_the_views_and_the_objects_are_followed_from_there():
-    """The localiser and the AGM on a thread of their own: their poses of an earlier frame, at that frame's camera
+    """The localiser and the AGM elsewhere (a process of their own): their poses of an earlier frame, at that frame's camera
     pose (`observe`), join the objects' views, and `step` without a localiser follows the objects from there on a
     frame the camera has since moved: each starts a track (`tracks_recalled`), nothing is detected or posed on this
     thread. A track whose contour is lost ends (nothing here can pose it again); observed again, its object is looked

@@ -25,7 +25,7 @@ the camera's intrinsics change.
 With the camera's pose in a fixed frame (odometry) and `view_window`, each measured pose is published fused with its
 object's other views in that frame (`views.ObjectViews`), and, when following, an object no track holds is followed
 from where its views put it: a contour that holds there starts its track without the localiser or the AGM. So the
-localiser and the AGM can run elsewhere (a thread of their own, on an earlier frame): `observe` adds their poses to
+localiser and the AGM can run elsewhere (a process of their own, on an earlier frame): `observe` adds their poses to
 the views, and `step` without `detect` only follows and recalls.
 """
 
@@ -305,7 +305,7 @@ class Tracker:
 
     def observe(self, camera: np.ndarray, posed: Sequence[tuple[Detected, Measurement]]) -> int:
         """Poses made elsewhere on an earlier frame whose camera pose (4x4, camera to fixed) was `camera` (the
-        localiser and the AGM on a thread of their own): each joins its object's views, from where the next `step`
+        localiser and the AGM in a process of their own): each joins its object's views, from where the next `step`
         follows an object no track holds (at once, however recently it was not found there). Returns how many
         joined (none without `view_window`, a finite camera pose, or an `ok` pose)."""
         camera = np.asarray(camera, float)
