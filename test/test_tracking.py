@@ -666,6 +666,44 @@ def test_an_object_back_in_view_is_followed_from_where_its_views_put_it():
     assert tries == [6] and tracker.counts["tracks_recalled"] == 1  # not found at 6: not looked for there until 16
 
 
+def test_an_object_its_contour_cannot_tell_yet_is_looked_for_again_next_frame():
+    """A recall whose contour says nothing (too few of its lines in view: an object coming in at the border) is no
+    evidence that the object is not there: it is looked for again on the next frame, not after a localiser's period
+    as where its contour disagrees."""
+    scene = _scene()
+    tracker = Tracker(TrackingConfig(redetect_period=10, view_window=30))
+    asked: list[int] = []
+    verdict = {5: 0.9}
+
+    def follow(last: list, predicted: list) -> list[Followed]:
+        out = []
+        for _, t, _ in predicted:
+            o = min(scene.poses, key=lambda o: np.linalg.norm(scene.poses[o][1] - t))
+            asked.append(o)
+            seen = np.isfinite(verdict.get(o, 0.9))
+            out.append(Followed(seen, *scene.poses[o], COV, verdict.get(o, 0.9)))
+        return out
+
+    def step(k: int) -> list:
+        return tracker.step(k / 30, K, scene.detect, scene.estimate, follow, camera=np.eye(4))
+
+    for k in range(3):
+        step(k)
+    verdict[5] = 0.3
+    step(3)  # its contour lost: the track ends
+    verdict[5] = float("nan")  # at the border: nothing to tell
+    asked.clear()
+    for k in range(4, 7):
+        step(k)
+    assert asked.count(5) == 3  # looked for on every frame
+    verdict[5], scene.hidden = 0.3, {5}  # seen, and not there (nor does the localiser find it)
+    step(7)
+    asked.clear()
+    for k in range(8, 12):
+        step(k)
+    assert asked.count(5) == 0  # not before the period
+
+
 def test_poses_found_elsewhere_join_the_views_and_the_objects_are_followed_from_there():
     """The localiser and the AGM elsewhere (a process of their own): their poses of an earlier frame, at that frame's camera
     pose (`observe`), join the objects' views, and `step` without a localiser follows the objects from there on a

@@ -215,6 +215,13 @@ def _in_view(K: np.ndarray, box: Box) -> bool:
     return bool(x + w > 0 and x < 2 * K[0, 2] and y + h > 0 and y < 2 * K[1, 2])
 
 
+def _unseen(m: Measurement) -> bool:
+    """A follower's pose that says nothing of whether its contour agrees (too few lines in view, too small): no
+    evidence that the object is not there."""
+    agreement = getattr(m, "contour_agreement", None)
+    return not m.ok and (agreement is None or not np.isfinite(agreement))
+
+
 def _posed(d: Detected) -> Measurement | None:
     return d.measurement if isinstance(d, Sighting) else None
 
@@ -368,6 +375,8 @@ class Tracker:
             if m.ok and self._holds(m):
                 self._recall_due.pop(r.obj_id, None)
                 out.append(self._recalled(r, box, m, K, stamp))
+            elif _unseen(m):  # too little of its contour in view to tell (at the border): looked for again next frame
+                self._recall_due[r.obj_id] = self._frame + 1
             else:  # not there: looked for there again after a localiser's period
                 self._recall_due[r.obj_id] = self._frame + max(1, self.config.redetect_period)
         return out
