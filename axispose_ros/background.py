@@ -125,7 +125,11 @@ class BackgroundFinder:
             self._conn.close()
             self._ready = False
             self._start()
-        self._conn.send(search)
+        try:
+            self._conn.send(search)
+        except (OSError, ValueError) as err:  # it ended just now: the next search starts it again
+            self._on_error(RuntimeError(f"background search: {err}"))
+            return
         self._running = search
 
     def _poll(self) -> None:
