@@ -45,7 +45,7 @@ class FramePoser:
         """Frames since the background's last search was offered."""
 
     def stop(self) -> None:
-        """End the background's thread, if it has one."""
+        """End the search process of `background_detection`, if it has one."""
         if self._finder is not None:
             self._finder.stop()
 

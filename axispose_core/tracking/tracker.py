@@ -318,13 +318,11 @@ class Tracker:
         camera = np.asarray(camera, float)
         if self.config.view_window <= 0 or camera.shape != (4, 4) or not np.all(np.isfinite(camera)):
             return 0
-        self._views.window, self._views.gate = self.config.view_window, self.config.view_gate
         joined = 0
         for d, m in posed:
             if not m.ok:
                 continue
-            R, t, information = in_fixed_frame(camera, m.R, m.t, self._noise(m)[:3, :3])
-            self._views.add(d.obj_id, View(R, t, information, float(m.t[2]), self._frame - 1, m, tuple(d.box), d.score))
+            self._add_view(camera, d.obj_id, m, d.box, d.score, self._frame - 1)
             self._recall_due.pop(d.obj_id, None)
             joined += 1
         self._count("views_observed", joined)
@@ -348,15 +346,22 @@ class Tracker:
             if not pose.measured:
                 out.append(pose)
                 continue
-            m = pose.measurement
-            R, t, information = in_fixed_frame(camera, m.R, m.t, self._noise(m)[:3, :3])
-            R, t, gated = self._views.add(pose.obj_id, View(R, t, information, float(m.t[2]), self._frame, m, pose.box, pose.score))
+            R, t, gated = self._add_view(camera, pose.obj_id, pose.measurement, pose.box, pose.score, self._frame)
             self._count("views_gated", int(gated > 0))
             if (tr := self._track(pose.track_id)) is not None:
                 tr.fixed = (R, t)
             R, t = in_camera(camera, R, t)
             out.append(replace(pose, R=R, t=t))
         return out
+
+    def _add_view(
+        self, camera: np.ndarray, obj_id: int, m: Measurement, box: Box, score: float, frame: int
+    ) -> tuple[np.ndarray, np.ndarray, int]:
+        """A measurement made on `frame` from `camera` into its object's views in the fixed frame: the fused pose
+        there (R, t), and how many of the object's views the gate left out."""
+        self._views.window, self._views.gate = self.config.view_window, self.config.view_gate
+        R, t, information = in_fixed_frame(camera, m.R, m.t, self._noise(m)[:3, :3])
+        return self._views.add(obj_id, View(R, t, information, float(m.t[2]), frame, m, tuple(box), score))
 
     def _recall(self, follow: Follower, K: np.ndarray, stamp: float, camera: np.ndarray | None, held: set[int]) -> list[TrackedPose]:
         """The objects no track holds (nor `held` at the frame's start: one just lost is not looked for where it
