@@ -14,8 +14,10 @@ whenever the last is done, with the node's defaults but for the setting's `redet
 `follow_passes` (`"follow_passes": n` follows with the last n passes of the refiner's schedule, in any setting).
 Each GT instance is matched to the nearest pose of its object in its frame. Prints, per setting, ADD(-S)@0.1d and
 Reproj@15px (mean over scenes), and per scene jitter (`tracking/jitter.py`), drift and recovery
-(`tracking/stream_scores.py`), the median and mean frame time and the share of frames processed, as one JSON line;
-`--out` writes them all.
+(`tracking/stream_scores.py`; an instance's visibility counts the part of it outside the image as unseen), the median
+and mean frame time and the share of frames processed, as one JSON line; `--out` writes them all.
+`--there-and-back` plays each scene forward and then backward, so that its last frames are its first ones and drift
+compares the same views.
 
     python bench/tracking_paths.py --scene V777/000000 --scene V778/000000 \\
         --setting '{"tracking": false}' --setting '{}' --setting '{"warm": true}'
@@ -39,7 +41,7 @@ from axispose_core.estimator import SHIPPED_ESTIMATOR, EstimateOptions, Estimato
 from axispose_core.evaluate import instance_scores, object_symmetries
 from axispose_core.tracking.filter import FilterConfig
 from axispose_core.tracking.jitter import PosePair, jitter
-from axispose_core.tracking.stream_scores import Seen, drift, recovery
+from axispose_core.tracking.stream_scores import Seen, drift, recovery, visibility
 from axispose_core.tracking.tracker import Sighting, Tracker, TrackingConfig
 from axispose_ros.params import SPECS, NodeSettings
 from axispose_ros.posing import FramePoser
@@ -48,12 +50,19 @@ Pose = tuple[int, np.ndarray, np.ndarray]
 
 
 class Bench:
-    def __init__(self, checkpoint: str, models: str, threshold: float, options: EstimateOptions, fps: float) -> None:
+    def __init__(self, checkpoint: str, models: str, threshold: float, options: EstimateOptions, fps: float,
+                 there_and_back: bool = False) -> None:  # fmt: skip
         self.est, self.checkpoint = Estimator.load(checkpoint), checkpoint
         self.specs = {o.obj_id: o for o in self.est.config.objects}
         self.points = {i: load_ply(model_path(models, i)).vertices for i in self.specs}
         self.syms = object_symmetries(self.specs.values(), self.points)
-        self.threshold, self.options, self.fps = threshold, options, fps
+        self.threshold, self.options, self.fps, self.there_and_back = threshold, options, fps, there_and_back
+
+    def _frames(self, scene: BopScene) -> list[int]:
+        """The scene's images in the order played: forward, and with `there_and_back` back again (the last image
+        once), so that the stream ends on the views it began with and drift compares like with like."""
+        ids = list(scene.image_ids)
+        return ids + ids[-2::-1] if self.there_and_back else ids
 
     def scene(self, setting: dict, scene: BopScene) -> dict:
         """One setting on one scene: its scores, jitter, frame time and the tracker's counts. With `"live": true`
@@ -65,8 +74,9 @@ class Bench:
         rows, pairs, times = [], [], []
         options = dataclasses.replace(self.options, refine=setting.get("refine", True), follow_passes=setting.get("follow_passes", 0))
         live, free, due = setting.get("live", False), 0.0, 0
-        cameras = [_camera_to_world(scene, im) for im in scene.image_ids]
-        for k, im in enumerate(scene.image_ids):
+        frames = self._frames(scene)
+        cameras = [_camera_to_world(scene, im) for im in frames]
+        for k, im in enumerate(frames):
             if live and k < due:
                 continue
             rgb, K = scene.rgb(im), scene.cameras[im]
@@ -75,8 +85,8 @@ class Bench:
             times.append(time.perf_counter() - start)
             free = max(free, k / self.fps) + times[-1]
             due = int(np.floor(free * self.fps))  # the newest frame by the time this one is done
-            self._score(scene, k, im, poses, rows, pairs)
-        return self._summary(rows, pairs, times, len(scene.image_ids), tracker.counts if tracker else {})
+            self._score(scene, k, im, rgb.shape[:2], poses, rows, pairs)
+        return self._summary(rows, pairs, times, len(frames), tracker.counts if tracker else {})
 
     def _background(self, setting: dict, scene: BopScene) -> dict:
         """The node's poser with `background_detection`, frames delivered at `fps` in real time (frame k at k / fps
@@ -92,21 +102,23 @@ class Bench:
         rows, pairs, times, k = [], [], [], 0
         start = time.perf_counter()
         try:
-            while k < len(scene.image_ids):
-                im = scene.image_ids[k]
+            frames = self._frames(scene)
+            while k < len(frames):
+                im = frames[k]
                 time.sleep(max(0.0, start + k / self.fps - time.perf_counter()))
-                began = time.perf_counter()
-                posed = poser.pose(scene.rgb(im), scene.cameras[im], k / self.fps, [], settings, lambda: False, _camera_to_world(scene, im))
+                rgb, began = scene.rgb(im), time.perf_counter()
+                posed = poser.pose(rgb, scene.cameras[im], k / self.fps, [], settings, lambda: False, _camera_to_world(scene, im))
                 times.append(time.perf_counter() - began)
                 poses = [(e.obj_id, e.R, e.t) for e in posed.estimates if e.ok]
-                self._score(scene, k, im, poses, rows, pairs)
+                self._score(scene, k, im, rgb.shape[:2], poses, rows, pairs)
                 k = max(k + 1, int(np.floor((time.perf_counter() - start) * self.fps)))  # the newest frame by now
         finally:
             poser.stop()
-        return self._summary(rows, pairs, times, len(scene.image_ids), counts)
+        return self._summary(rows, pairs, times, len(frames), counts)
 
-    def _score(self, scene: BopScene, k: int, im: int, poses: list[Pose], rows: list[Seen], pairs: list[PosePair]) -> None:
-        """Each GT instance of frame `k` (image `im`) against the nearest pose of its object."""
+    def _score(self, scene: BopScene, k: int, im: int, size: tuple[int, int], poses: list[Pose], rows: list[Seen],
+               pairs: list[PosePair]) -> None:  # fmt: skip
+        """Each GT instance of frame `k` (image `im`, of `size`) against the nearest pose of its object."""
         K = scene.cameras[im]
         visible = {id(g): info.visib_fract for g, info in scene.instances(im)}
         for g in scene.gt[im]:
@@ -114,7 +126,8 @@ class Bench:
                 continue
             pose = _nearest(poses, g.obj_id, g.t)
             s = instance_scores(self.specs[g.obj_id], self.points[g.obj_id], K, g.R, g.t, pose, self.syms.get(g.obj_id, ()))
-            rows.append(Seen(k, g.obj_id, visible.get(id(g), 1.0), s["add_0.1d"], s["reproj_15px"]))
+            seen = visibility(visible.get(id(g), 1.0), K, g.R, g.t, self.points[g.obj_id], size)
+            rows.append(Seen(k, g.obj_id, seen, s["add_0.1d"], s["reproj_15px"]))
             if pose is not None:
                 pairs.append(PosePair(k, g.obj_id, *pose, g.R, g.t))
 
@@ -189,11 +202,12 @@ def main() -> None:
     ap.add_argument("--warm-strength", type=float, default=0.5)
     ap.add_argument("--threshold", type=float, default=0.3)
     ap.add_argument("--threads", type=int, default=2)
+    ap.add_argument("--there-and-back", action="store_true", help="play each scene forward, then backward (drift on the same views)")
     ap.add_argument("--out", type=Path)
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
     options = EstimateOptions(steps=args.steps, warm_steps=1, warm_strength=args.warm_strength, max_boxes=8)
-    bench = Bench(args.checkpoint, args.models, args.threshold, options, args.fps)
+    bench = Bench(args.checkpoint, args.models, args.threshold, options, args.fps, args.there_and_back)
     scenes = [BopScene(Path(s)) for s in args.scene]
     rows = []
     for setting in [json.loads(s) for s in args.setting or ["{}"]]:

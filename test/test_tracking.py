@@ -317,6 +317,20 @@ def test_recovery_counts_frames_from_an_objects_return_to_its_first_right_pose()
     assert scores["add_first"] == pytest.approx(20 / 30) and scores["add_last"] == pytest.approx(10 / 30)
 
 
+def test_visibility_counts_the_part_of_an_object_outside_the_image_as_unseen():
+    """A cube whose centre projects onto the right border is half seen; one inside is seen as its mask says; one
+    just past the border or behind the camera not at all."""
+    from axispose_core.tracking.stream_scores import visibility
+
+    grid = np.stack(np.meshgrid(*[np.linspace(-0.05, 0.05, 11)] * 3), -1).reshape(-1, 3)
+    K, size, eye = np.array([[500.0, 0, 320], [0, 500, 240], [0, 0, 1]]), (480, 640), np.eye(3)
+    at = lambda u: np.array([(u - 320) / 500, 0.0, 1.0])  # noqa: E731 - the centre projected to column u at 1 m
+    assert visibility(0.8, K, eye, at(320), grid, size) == pytest.approx(0.8)
+    assert visibility(1.0, K, eye, at(640), grid, size) == pytest.approx(0.5, abs=0.05)
+    assert visibility(1.0, K, eye, at(700), grid, size) == 0.0
+    assert visibility(1.0, K, eye, np.array([0.0, 0.0, -1.0]), grid, size) == 0.0
+
+
 def test_jitter_measures_the_error_change_not_the_motion():
     from axispose_core.tracking.jitter import PosePair, jitter
 

@@ -12,13 +12,25 @@ import numpy as np
 
 @dataclass(frozen=True)
 class Seen:
-    """One GT instance on one frame: how visible, and whether its pose passed."""
+    """One GT instance on one frame: how visible (`visibility`), and whether its pose passed."""
 
     frame: int
     obj_id: int
     visib: float
     add: float
     rp15: float
+
+
+def visibility(visib_fract: float, K: np.ndarray, R: np.ndarray, t: np.ndarray, points: np.ndarray, size: tuple[int, int]) -> float:
+    """The share of an object the camera sees: BOP's `visib_fract` (visible pixels of its mask), which counts only
+    the part inside the image, times the share of its model points (N x 3, m) that project inside the image of
+    `size` (height, width), so that an object coming in at the border is not seen whole from its first pixel."""
+    cam = points @ np.asarray(R, float).T + np.asarray(t, float).reshape(1, 3)
+    front = cam[:, 2] > 1e-6
+    uv = cam[front] @ np.asarray(K, float).T
+    uv = uv[:, :2] / uv[:, 2:]
+    inside = (uv[:, 0] >= 0) & (uv[:, 0] < size[1]) & (uv[:, 1] >= 0) & (uv[:, 1] < size[0])
+    return float(visib_fract) * float(inside.sum()) / max(len(points), 1)
 
 
 def drift(rows: list[Seen], window: int = 100) -> dict[str, float]:
