@@ -11,7 +11,9 @@ the scene records (scene_camera.json's `cam_R_w2c`, as odometry would) to fuse e
 `"background": true` runs the node's own poser (`axispose_ros.posing.FramePoser`, `background_detection`: the
 localiser and the AGM in a process of their own) on frames delivered in real time at `--fps`, the newest taken
 whenever the last is done, with the node's defaults but for the setting's `redetect_period`, `view_window` and
-`follow_passes` (`"follow_passes": n` follows with the last n passes of the refiner's schedule, in any setting).
+`follow_passes` (`"follow_passes": n` follows with the last n passes of the refiner's schedule, in any setting);
+`"search_delay": n` does as the node's poser with `background_detection` does, lock-step, each search's result coming
+n frames after the frame it searched (the same run every time, unlike real time).
 Each GT instance is matched to the nearest pose of its object in its frame. Prints, per setting, ADD(-S)@0.1d and
 Reproj@15px (mean over scenes), and per scene jitter (`tracking/jitter.py`), drift and recovery
 (`tracking/stream_scores.py`; an instance's visibility counts the part of it outside the image as unseen), the median
@@ -27,6 +29,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import functools
 import json
 import time
 from pathlib import Path
@@ -70,6 +73,8 @@ class Bench:
         (the node's latest-frame-wins): only those are posed and scored (`processed`, their share)."""
         if setting.get("background", False):
             return self._background(setting, scene)
+        if "search_delay" in setting:
+            return self._delayed_search(setting, scene)
         tracker = self._tracker(setting) if setting.get("tracking", True) else None
         rows, pairs, times = [], [], []
         options = dataclasses.replace(self.options, refine=setting.get("refine", True), follow_passes=setting.get("follow_passes", 0))
@@ -115,6 +120,32 @@ class Bench:
         finally:
             poser.stop()
         return self._summary(rows, pairs, times, len(frames), counts)
+
+    def _delayed_search(self, setting: dict, scene: BopScene) -> dict:
+        """`background_detection` without wall time: every frame followed (lock-step), and the localiser and the AGM
+        (`Estimator.find`) searching a frame as the node's poser offers one (where no search is out and
+        `redetect_period` frames have passed, or nothing is tracked), what they found observed `search_delay`
+        frames later: the same run every time, for choosing between designs (live runs differ by the machine's
+        timing)."""
+        setting = {"follow": True, "view_window": 80} | setting
+        tracker, delay = self._tracker(setting), max(1, int(setting["search_delay"]))
+        options = dataclasses.replace(self.options, follow_passes=setting.get("follow_passes", 0))
+        rows, pairs, times, out, since = [], [], [], None, 0
+        frames = self._frames(scene)
+        for k, im in enumerate(frames):
+            rgb, K, camera = scene.rgb(im), scene.cameras[im], _camera_to_world(scene, im)
+            start = time.perf_counter()
+            if out is not None and out[0] + delay <= k:
+                tracker.observe(out[1], [(d, p) for d, p in zip(out[2].detections, out[2].poses, strict=True) if p.ok])
+                out = None
+            follow = functools.partial(self.est.follow, rgb, K, options=options)
+            tracked = tracker.step(k / self.fps, K, None, lambda crops: [], follow, camera)
+            times.append(time.perf_counter() - start)
+            since += 1
+            if out is None and (since >= tracker.config.redetect_period or not tracker.tracks):
+                out, since = (k, camera, self.est.find(rgb, K, self.threshold, options)), 0
+            self._score(scene, k, im, rgb.shape[:2], [(p.obj_id, p.R, p.t) for p in tracked], rows, pairs)
+        return self._summary(rows, pairs, times, len(frames), tracker.counts)
 
     def _score(self, scene: BopScene, k: int, im: int, size: tuple[int, int], poses: list[Pose], rows: list[Seen],
                pairs: list[PosePair]) -> None:  # fmt: skip
