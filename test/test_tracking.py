@@ -762,6 +762,57 @@ def test_poses_found_elsewhere_join_the_views_and_the_objects_are_followed_from_
     assert Tracker(TrackingConfig(view_window=0)).observe(np.eye(4), found(1)) == 0
 
 
+def test_an_object_posed_elsewhere_starts_its_track_once_whatever_its_contour_says():
+    """A pose found elsewhere (`observe`) starts its object's track on the next frame even where the contour only
+    half agrees (the object partly hidden), as the AGM's pose of a detection would; the contour then ends it, and
+    the views alone (no new pose) do not start it again."""
+    scene = _scene()
+    tracker = Tracker(TrackingConfig(redetect_period=10, view_window=30))
+
+    def follow(last: list, predicted: list) -> list[Followed]:
+        objs = [min(scene.poses, key=lambda o: np.linalg.norm(scene.poses[o][1] - t)) for _, t, _ in predicted]
+        return [Followed(True, *scene.poses[o], COV, 0.6 if o == 5 else 0.9) for o in objs]
+
+    def step(k: int) -> set[int]:
+        return {p.obj_id for p in tracker.step(k / 30, K, None, scene.estimate, follow, camera=np.eye(4))}
+
+    tracker.observe(np.eye(4), [(Det(o, 0.9, scene.box(o)), Pose(True, *scene.poses[o], COV)) for o in (1, 5)])
+    assert step(0) == {1, 5} and tracker.counts["recalled_unconfirmed"] == 1
+    assert step(1) == {1} and tracker.counts["ended_unfollowable"] == 1
+    assert step(2) == step(3) == {1} and tracker.counts["tracks_recalled"] == 2
+
+
+def test_a_track_on_a_wrong_pose_gives_way_to_a_pose_found_elsewhere_that_agrees_more():
+    """A track its contour holds at a wrong pose (flipped 180 degrees, agreement 0.75) is followed beside the pose
+    found elsewhere for its object (`observe`): it goes on from that pose, its id kept (`tracks_corrected`), where
+    that pose agrees more (0.9); not where it agrees less, nor where two poses were found for the object (two
+    instances)."""
+    scene = _scene()
+    flipped = Rotation.from_euler("z", 180, degrees=True).as_matrix()
+    truth = scene.poses[1]
+
+    def run(found: list, right: float) -> tuple[Tracker, list]:
+        tracker = Tracker(TrackingConfig(redetect_period=10, view_window=30))
+
+        def follow(last: list, predicted: list) -> list[Followed]:
+            return [Followed(True, R, t, COV, right if _rot_deg(R, truth[0]) < 1 else 0.75) for R, t, _ in predicted]
+
+        def step(k: int) -> list:
+            return tracker.step(k / 30, K, None, scene.estimate, follow, camera=np.eye(4))
+
+        tracker.observe(np.eye(4), [(Det(1, 0.9, scene.box(1)), Pose(True, flipped, truth[1], COV))])
+        first = step(0)  # the wrong pose starts the track
+        tracker.observe(np.eye(4), [(Det(1, 0.9, scene.box(1)), Pose(True, *p, COV)) for p in found])
+        return tracker, first + step(1) + step(2)
+
+    tracker, poses = run([truth], right=0.9)
+    assert tracker.counts["tracks_corrected"] == 1 and len({p.track_id for p in poses}) == 1
+    assert _rot_deg(poses[0].R, truth[0]) > 170 and _rot_deg(poses[-1].R, truth[0]) < 1
+    for found, right in (([truth], 0.72), ([truth, (flipped, truth[1] + 0.3)], 0.9)):
+        tracker, poses = run(found, right)
+        assert "tracks_corrected" not in tracker.counts and _rot_deg(poses[-1].R, truth[0]) > 170
+
+
 def test_a_track_is_looked_for_where_the_cameras_own_motion_moved_it():
     """With views and the camera's pose a still object is followed from its pose in the fixed frame brought into the
     camera: a camera that pans back and forth (8 degrees a frame) loses no contour, where the filter's constant

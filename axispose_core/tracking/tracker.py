@@ -38,7 +38,7 @@ from typing import Protocol
 import numpy as np
 
 from axispose_core.tracking.filter import FilterConfig, PoseFilter
-from axispose_core.tracking.views import ObjectViews, Remembered, View, in_camera, in_fixed_frame
+from axispose_core.tracking.views import ObjectViews, Remembered, View, apart, in_camera, in_fixed_frame
 
 Box = tuple[float, float, float, float]
 """(x, y, w, h) in image pixels."""
@@ -222,6 +222,12 @@ def _unseen(m: Measurement) -> bool:
     return not m.ok and (agreement is None or not np.isfinite(agreement))
 
 
+def _agreement(m: Measurement, otherwise: float) -> float:
+    """The pose's contour agreement; `otherwise` where it is lost or has none."""
+    agreement = getattr(m, "contour_agreement", None)
+    return float(agreement) if m.ok and agreement is not None and np.isfinite(agreement) else otherwise
+
+
 def _posed(d: Detected) -> Measurement | None:
     return d.measurement if isinstance(d, Sighting) else None
 
@@ -263,6 +269,12 @@ class Tracker:
         """Each object's measurements over the last `view_window` frames, in the camera's fixed frame."""
         self._recall_due: dict[int, int] = {}
         """The frame from which an object not found where its views put it is looked for there again."""
+        self._observed: set[int] = set()
+        """Objects posed elsewhere (`observe`) since the last recall: their next recall starts a track whatever its
+        contour's agreement, as the AGM's pose of a detection starts one on the frame it is posed."""
+        self._challengers: dict[int, tuple[np.ndarray, np.ndarray, Measurement]] = {}
+        """Per track id, its object's pose found elsewhere (`observe`) away from the track's: (R, t) in the fixed
+        frame and the pose, followed beside the track on the next frame."""
 
     def reset(self, reason: str) -> None:
         """End every track (counted as `reset_<reason>`) and forget every view."""
@@ -272,6 +284,8 @@ class Tracker:
         self._frame = 0
         self._views.forget()
         self._recall_due = {}
+        self._observed = set()
+        self._challengers = {}
 
     def step(
         self,
@@ -318,15 +332,24 @@ class Tracker:
         camera = np.asarray(camera, float)
         if self.config.view_window <= 0 or camera.shape != (4, 4) or not np.all(np.isfinite(camera)):
             return 0
-        joined = 0
+        posed = [(d, m) for d, m in posed if m.ok]
+        self._challenge(camera, posed)
         for d, m in posed:
-            if not m.ok:
-                continue
             self._add_view(camera, d.obj_id, m, d.box, d.score, self._frame - 1)
             self._recall_due.pop(d.obj_id, None)
-            joined += 1
-        self._count("views_observed", joined)
-        return joined
+            self._observed.add(d.obj_id)
+        self._count("views_observed", len(posed))
+        return len(posed)
+
+    def _challenge(self, camera: np.ndarray, posed: Sequence[tuple[Detected, Measurement]]) -> None:
+        """A track whose object was posed elsewhere beyond `view_gate` of the track's pose (once: two poses of it may
+        be two instances) is challenged: the next frame follows that pose beside the track's, and the one whose
+        contour agrees more goes on (`_settle`), so a track stuck on a wrong pose its contour half agrees with is
+        put right by the AGM's next pose of its object."""
+        for tr in self.tracks:
+            found = [in_fixed_frame(camera, m.R, m.t, np.eye(3))[:2] + (m,) for d, m in posed if d.obj_id == tr.obj_id]
+            if tr.fixed is not None and len(found) == 1 and apart(self.config.view_gate, tr.fixed, found[0][:2], float(tr.filter.t[2])):
+                self._challengers[tr.id] = found[0]
 
     def _over_views(self, poses: list[TrackedPose], camera: np.ndarray | None) -> list[TrackedPose]:
         """Each measured track's pose fused from its object's views in the camera's fixed frame that agree with
@@ -366,7 +389,10 @@ class Tracker:
     def _recall(self, follow: Follower, K: np.ndarray, stamp: float, camera: np.ndarray | None, held: set[int]) -> list[TrackedPose]:
         """The objects no track holds (nor `held` at the frame's start: one just lost is not looked for where it
         was lost), followed from where their views put them: one whose contour holds there starts a track
-        (`tracks_recalled`), so an object back in view is posed before the localiser finds it."""
+        (`tracks_recalled`), so an object back in view is posed before the localiser finds it; so does one posed
+        elsewhere since the last recall (`observe`) whose contour does not agree (`recalled_unconfirmed`: partly
+        hidden, say): its track ends when its contour is lost, as one the AGM started would."""
+        observed, self._observed = self._observed, set()
         if self.config.view_window <= 0 or camera is None:
             return []
         remembered = self._views.remembered(camera, self._frame, held | {tr.obj_id for tr in self.tracks})
@@ -377,8 +403,9 @@ class Tracker:
         results = follow([r.latest.measurement for r, _ in due], [(r.R, r.t, r.covariance) for r, _ in due])
         out = []
         for (r, box), m in zip(due, results, strict=True):
-            if m.ok and self._holds(m):
+            if m.ok and (self._holds(m) or r.obj_id in observed):
                 self._recall_due.pop(r.obj_id, None)
+                self._count("recalled_unconfirmed", int(not self._holds(m)))
                 out.append(self._recalled(r, box, m, K, stamp))
             elif _unseen(m):  # too little of its contour in view to tell (at the border): looked for again next frame
                 self._recall_due[r.obj_id] = self._frame + 1
@@ -401,11 +428,17 @@ class Tracker:
         for tr in self.tracks:
             tr.lost = tr.misses > 0
         tracks = [tr for tr in self.tracks if tr.last is not None and not tr.lost]
+        challengers, self._challengers = self._challengers, {}
         if not tracks:
             return []
-        results = follow([tr.last for tr in tracks], [self._predicted_pose(tr, camera) for tr in tracks])
-        if len(results) != len(tracks):
-            raise ValueError(f"the follower gave {len(results)} poses for {len(tracks)} tracks")
+        challenged = [tr for tr in tracks if tr.id in challengers and camera is not None]
+        lasts = [tr.last for tr in tracks] + [challengers[tr.id][2] for tr in challenged]
+        predicted = [self._predicted_pose(tr, camera) for tr in tracks]
+        predicted += [(*in_camera(camera, *challengers[tr.id][:2]), self._noise(challengers[tr.id][2])) for tr in challenged]
+        results = list(follow(lasts, predicted))
+        if len(results) != len(lasts):
+            raise ValueError(f"the follower gave {len(results)} poses for {len(lasts)} tracks")
+        results = self._settle(tracks, results[: len(tracks)], dict(zip([tr.id for tr in challenged], results[len(tracks) :], strict=True)))
         out, unfollowable = [], set()
         holding = [m.ok and self._holds(m) for m in results]
         jumped = not any(holding)  # frames far apart, or the camera jumped
@@ -421,6 +454,19 @@ class Tracker:
                 self._count("contour_lost")
         self._end("unfollowable", lambda tr: tr.id in unfollowable, look=False)
         return [pose for pose in out if pose is not None]
+
+    def _settle(self, tracks: list[Track], own: list[Measurement], challengers: dict[int, Measurement]) -> list[Measurement]:
+        """Each track's pose on this frame: its own, or its challenger's where that holds and agrees more with the
+        image (then the track starts again there, `tracks_corrected`, and is judged by its contour as a new one)."""
+        out = []
+        for tr, m in zip(tracks, own, strict=True):
+            other = challengers.get(tr.id)
+            if other is not None and other.ok and self._holds(other) and _agreement(other, np.nan) > _agreement(m, -np.inf):
+                tr.filter = PoseFilter.start(self.config.filter, other.R, other.t, self._noise(other))
+                tr.held, tr.fixed, m = 0, None, other
+                self._count("tracks_corrected")
+            out.append(m)
+        return out
 
     def _predicted_pose(self, tr: Track, camera: np.ndarray | None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Where a track is looked for on this frame (R, t, covariance): its pose in the fixed frame brought into the

@@ -104,6 +104,12 @@ class ObjectViews:
         return [v for v, ok in zip(views, near, strict=True) if ok]
 
 
+def apart(gate: tuple[float, float], a: tuple[np.ndarray, np.ndarray], b: tuple[np.ndarray, np.ndarray], depth: float) -> bool:
+    """Two poses (R, t) further apart than `gate` (translation as a fraction of `depth`, rotation in degrees)."""
+    cos = (np.trace(a[0].T @ b[0]) - 1) / 2
+    return bool(np.linalg.norm(a[1] - b[1]) > gate[0] * depth or cos < np.cos(np.radians(gate[1])))
+
+
 def in_fixed_frame(camera: np.ndarray, R: np.ndarray, t: np.ndarray, covariance: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """A camera-frame pose and its translation's covariance (3x3) in the fixed frame: (R, t, information)."""
     R_wc, t_wc = camera[:3, :3], camera[:3, 3]
