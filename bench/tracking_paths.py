@@ -12,8 +12,8 @@ the scene records (scene_camera.json's `cam_R_w2c`, as odometry would) to fuse e
 localiser and the AGM in a process of their own) on frames delivered in real time at `--fps`, the newest taken
 whenever the last is done, with the node's defaults but for the setting's `redetect_period`, `view_window` and
 `follow_passes` (`"follow_passes": n` follows with the last n passes of the refiner's schedule, in any setting);
-`"search_delay": n` does as the node's poser with `background_detection` does, lock-step, each search's result coming
-n frames after the frame it searched (the same run every time, unlike real time).
+`"search_delay": n` runs that poser lock-step, its search in this process, each search's result coming n frames after
+the frame it searched (the same run every time, unlike real time); `[a, b]`: after a + b x the boxes it posed seconds.
 Each GT instance is matched to the nearest pose of its object in its frame. Prints, per setting, ADD(-S)@0.1d and
 Reproj@15px (mean over scenes), and per scene jitter (`tracking/jitter.py`), drift and recovery
 (`tracking/stream_scores.py`; an instance's visibility counts the part of it outside the image as unseen), the median
@@ -29,9 +29,9 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import functools
 import json
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -40,12 +40,13 @@ from rclpy.parameter import Parameter
 
 from axispose_core.data.bop import BopScene, model_path
 from axispose_core.data.meshes import load_ply
-from axispose_core.estimator import SHIPPED_ESTIMATOR, EstimateOptions, Estimator
+from axispose_core.estimator import SHIPPED_ESTIMATOR, EstimateOptions, Estimator, Found
 from axispose_core.evaluate import instance_scores, object_symmetries
 from axispose_core.tracking.filter import FilterConfig
 from axispose_core.tracking.jitter import PosePair, jitter
 from axispose_core.tracking.stream_scores import Seen, drift, recovery, visibility
 from axispose_core.tracking.tracker import Sighting, Tracker, TrackingConfig
+from axispose_ros.background import Search
 from axispose_ros.params import SPECS, NodeSettings
 from axispose_ros.posing import FramePoser
 
@@ -96,13 +97,7 @@ class Bench:
     def _background(self, setting: dict, scene: BopScene) -> dict:
         """The node's poser with `background_detection`, frames delivered at `fps` in real time (frame k at k / fps
         after the first), the newest one taken whenever the last is done."""
-        defaults = {spec.name: spec.default for spec in SPECS if not isinstance(spec.default, Parameter.Type)}
-        chosen = {k: setting.get(k, default) for k, default in (("redetect_period", 5), ("view_window", 80), ("follow_passes", 0))}
-        settings = NodeSettings(**defaults | chosen | {"checkpoint": self.checkpoint, "objects": (), "tracking": True, "follow": True,
-                                                       "background_detection": True, "ddim_steps": self.options.steps,
-                                                       "num_threads": torch.get_num_threads()})  # fmt: skip
-        counts: dict[str, int] = {}
-        poser = FramePoser(self.est, {i: str(i) for i in self.specs}, lambda key, n: counts.__setitem__(key, counts.get(key, 0) + n))
+        poser, settings, counts = self._poser(setting)
         poser.start_background(settings, wait=120.0)  # the search process loaded before the first frame comes
         rows, pairs, times, k = [], [], [], 0
         start = time.perf_counter()
@@ -122,30 +117,36 @@ class Bench:
         return self._summary(rows, pairs, times, len(frames), counts)
 
     def _delayed_search(self, setting: dict, scene: BopScene) -> dict:
-        """`background_detection` without wall time: every frame followed (lock-step), and the localiser and the AGM
-        (`Estimator.find`) searching a frame as the node's poser offers one (where no search is out and
-        `redetect_period` frames have passed, or nothing is tracked), what they found observed `search_delay`
-        frames later: the same run every time, for choosing between designs (live runs differ by the machine's
-        timing)."""
-        setting = {"follow": True, "view_window": 80} | setting
-        tracker, delay = self._tracker(setting), max(1, int(setting["search_delay"]))
-        options = dataclasses.replace(self.options, follow_passes=setting.get("follow_passes", 0))
-        rows, pairs, times, out, since = [], [], [], None, 0
+        """The node's poser with `background_detection`, lock-step, its search done in this process and handed over
+        `search_delay` frames after the frame searched: the same run every time, for choosing between designs (live
+        runs differ by the machine's timing)."""
+        poser, settings, counts = self._poser(setting)
+        delay = setting["search_delay"]
+        if isinstance(delay, list):  # seconds per search and per box posed, in frames
+            a, b = delay
+            poser._finder = _DelayedFinder(self.est, lambda boxes: max(1, int(np.ceil(self.fps * (a + b * boxes)))))
+        else:
+            poser._finder = _DelayedFinder(self.est, lambda boxes: max(1, int(delay)))
+        rows, pairs, times = [], [], []
         frames = self._frames(scene)
         for k, im in enumerate(frames):
-            rgb, K, camera = scene.rgb(im), scene.cameras[im], _camera_to_world(scene, im)
-            start = time.perf_counter()
-            if out is not None and out[0] + delay <= k:
-                tracker.observe(out[1], [(d, p) for d, p in zip(out[2].detections, out[2].poses, strict=True) if p.ok])
-                out = None
-            follow = functools.partial(self.est.follow, rgb, K, options=options)
-            tracked = tracker.step(k / self.fps, K, None, lambda crops: [], follow, camera)
+            rgb, start = scene.rgb(im), time.perf_counter()
+            posed = poser.pose(rgb, scene.cameras[im], k / self.fps, [], settings, lambda: False, _camera_to_world(scene, im))
             times.append(time.perf_counter() - start)
-            since += 1
-            if out is None and (since >= tracker.config.redetect_period or not tracker.tracks):
-                out, since = (k, camera, self.est.find(rgb, K, self.threshold, options)), 0
-            self._score(scene, k, im, rgb.shape[:2], [(p.obj_id, p.R, p.t) for p in tracked], rows, pairs)
-        return self._summary(rows, pairs, times, len(frames), tracker.counts)
+            self._score(scene, k, im, rgb.shape[:2], [(e.obj_id, e.R, e.t) for e in posed.estimates if e.ok], rows, pairs)
+        return self._summary(rows, pairs, times, len(frames), counts)
+
+    def _poser(self, setting: dict) -> tuple[FramePoser, NodeSettings, dict[str, int]]:
+        """The node's poser and settings for background detection: its defaults but for the setting's
+        `redetect_period`, `view_window` and `follow_passes`; and the counts it reports."""
+        defaults = {spec.name: spec.default for spec in SPECS if not isinstance(spec.default, Parameter.Type)}
+        chosen = {k: setting.get(k, default) for k, default in (("redetect_period", 5), ("view_window", 80), ("follow_passes", 0))}
+        settings = NodeSettings(**defaults | chosen | {"checkpoint": self.checkpoint, "objects": (), "tracking": True, "follow": True,
+                                                       "background_detection": True, "ddim_steps": self.options.steps,
+                                                       "num_threads": torch.get_num_threads()})  # fmt: skip
+        counts: dict[str, int] = {}
+        poser = FramePoser(self.est, {i: str(i) for i in self.specs}, lambda key, n: counts.__setitem__(key, counts.get(key, 0) + n))
+        return poser, settings, counts
 
     def _score(self, scene: BopScene, k: int, im: int, size: tuple[int, int], poses: list[Pose], rows: list[Seen],
                pairs: list[PosePair]) -> None:  # fmt: skip
@@ -201,6 +202,38 @@ class Bench:
 
         tracked = tracker.step(stamp, K, detect, measure, follow if following else None, camera)
         return [(p.obj_id, p.R, p.t) for p in tracked]
+
+
+class _DelayedFinder:
+    """`BackgroundFinder` as `FramePoser` uses it, in this process and counted in frames: a search offered is done
+    at once (`Estimator.find`) and handed over by the n-th `collect` after it (the poser collects once a frame), n
+    the `delay` of the boxes it posed."""
+
+    def __init__(self, est: Estimator, delay: Callable[[int], int]) -> None:
+        self.est, self.delay = est, delay
+        self._out: list | None = None
+
+    def offer(self, search: Search) -> None:
+        found = self.est.find(search.rgb, search.K, search.threshold, search.options, objects=search.objects)
+        self._out = [search, found, self.delay(len(found.detections) + found.dropped)]
+
+    def idle(self) -> bool:
+        return self._out is None
+
+    def collect(self) -> list[tuple[Search, Found]]:
+        if self._out is None:
+            return []
+        self._out[2] -= 1
+        if self._out[2] > 0:
+            return []
+        done, self._out = (self._out[0], self._out[1]), None
+        return [done]
+
+    def wait_ready(self, timeout: float = 0.0) -> bool:
+        return True
+
+    def stop(self) -> None:
+        self._out = None
 
 
 def _camera_to_world(scene: BopScene, im_id: int) -> np.ndarray | None:
