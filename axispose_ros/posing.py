@@ -43,6 +43,9 @@ class FramePoser:
         self._finder: BackgroundFinder | None = None
         self._since_search = 0
         """Frames since the background's last search was offered."""
+        self._searches = 0
+        self._checked: dict[int, int] = {}
+        """Per tracked object, the search that last looked for it (`_searched_objects`)."""
 
     def stop(self) -> None:
         """End the search process of `background_detection`, if it has one."""
@@ -142,10 +145,22 @@ class FramePoser:
         posed = self._tracked(search.stamp, search.K, None, estimate, False, follow, s.score_threshold, search.camera)
         self._since_search += 1
         if self._finder.idle() and (self._since_search >= s.redetect_period or not self.tracker.tracks):
-            self._finder.offer(search)
+            self._finder.offer(dataclasses.replace(search, objects=self._searched_objects(search.objects)))
             self._since_search = 0
             self.count("background_searches", 1)
         return posed
+
+    def _searched_objects(self, objects: tuple[int, ...]) -> tuple[int, ...]:
+        """What a search looks for: the objects no track holds, and of the tracked ones the one looked for longest
+        ago (a fresh pose to check its track against). Posing each box found is most of a search's time: searching
+        for fewer objects brings back sooner an object that comes back into view."""
+        held = {tr.obj_id for tr in self.tracker.tracks}
+        self._checked = {o: n for o, n in self._checked.items() if o in held}
+        checked = min((o for o in objects if o in held), key=lambda o: self._checked.get(o, -1), default=None)
+        self._searches += 1
+        if checked is not None:
+            self._checked[checked] = self._searches
+        return tuple(o for o in objects if o not in held or o == checked)
 
     def start_background(self, s: NodeSettings, wait: float = 0.0) -> None:
         """Start the search process of `background_detection` now (else the first frame that needs it does), and

@@ -79,3 +79,20 @@ def test_a_search_process_that_cannot_load_or_ended_is_counted_not_a_crash(check
         assert len(errors) == 1 and "ended" in str(errors[0]) and finder.alive()
     finally:
         finder.stop()
+
+
+def test_a_search_looks_for_the_untracked_objects_and_one_tracked_object_in_turn():
+    """Posing the boxes found is most of a search: it looks for the objects no track holds, and for one tracked
+    object each time, the one looked for longest ago (its track checked against a fresh pose)."""
+    from types import SimpleNamespace
+
+    from axispose_ros.posing import FramePoser
+
+    poser = FramePoser(None, {1: "ape", 5: "can", 6: "cat", 8: "driller"}, lambda key, n: None)
+    poser.tracker.tracks = [SimpleNamespace(obj_id=1), SimpleNamespace(obj_id=5)]
+    looked = [poser._searched_objects((1, 5, 6, 8)) for _ in range(4)]
+    assert looked == [(1, 6, 8), (5, 6, 8), (1, 6, 8), (5, 6, 8)]
+    poser.tracker.tracks = [SimpleNamespace(obj_id=5), SimpleNamespace(obj_id=8)]  # 1 lost, 8 found
+    assert poser._searched_objects((1, 5, 6, 8)) == (1, 6, 8)  # 8 never looked for since it is tracked
+    poser.tracker.tracks = []
+    assert poser._searched_objects((1, 5, 6, 8)) == (1, 5, 6, 8)
