@@ -26,7 +26,9 @@ With the camera's pose in a fixed frame (odometry) and `view_window`, each measu
 object's other views in that frame (`views.ObjectViews`), and, when following, an object no track holds is followed
 from where its views put it: a contour that holds there starts its track without the localiser or the AGM. So the
 localiser and the AGM can run elsewhere (a process of their own, on an earlier frame): `observe` adds their poses to
-the views, and `step` without `detect` only follows and recalls.
+the views (an object so posed is tracked from there on the next frame, as a detection the AGM posed would be, and a
+track away from such a pose of its object goes on from whichever of the two its contour agrees with more), and `step`
+without `detect` only follows and recalls.
 """
 
 from __future__ import annotations
