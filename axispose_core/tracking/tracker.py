@@ -267,7 +267,7 @@ class Tracker:
         self._K: np.ndarray | None = None
         self._lost = False
         """A track ended: look for its object on the next frame."""
-        self._views = ObjectViews(config.view_window, config.view_gate)
+        self._views = ObjectViews()
         """Each object's measurements over the last `view_window` frames, in the camera's fixed frame."""
         self._recall_due: dict[int, int] = {}
         """The frame from which an object not found where its views put it is looked for there again."""
@@ -364,8 +364,7 @@ class Tracker:
             for tr in self.tracks:
                 tr.fixed = None
             return poses
-        self._views.window, self._views.gate = self.config.view_window, self.config.view_gate
-        self._views.age(self._frame)
+        self._views.age(self._frame, self.config.view_window)
         out = []
         for pose in poses:
             if not pose.measured:
@@ -384,9 +383,8 @@ class Tracker:
     ) -> tuple[np.ndarray, np.ndarray, int]:
         """A measurement made on `frame` from `camera` into its object's views in the fixed frame: the fused pose
         there (R, t), and how many of the object's views the gate left out."""
-        self._views.window, self._views.gate = self.config.view_window, self.config.view_gate
         R, t, information = in_fixed_frame(camera, m.R, m.t, self._noise(m)[:3, :3])
-        return self._views.add(obj_id, View(R, t, information, float(m.t[2]), frame, m, tuple(box), score))
+        return self._views.add(obj_id, View(R, t, information, float(m.t[2]), frame, m, tuple(box), score), self.config.view_gate)
 
     def _recall(self, follow: Follower, K: np.ndarray, stamp: float, camera: np.ndarray | None, held: set[int]) -> list[TrackedPose]:
         """The objects no track holds (nor `held` at the frame's start: one just lost is not looked for where it
@@ -397,7 +395,7 @@ class Tracker:
         observed, self._observed = self._observed, set()
         if self.config.view_window <= 0 or camera is None:
             return []
-        remembered = self._views.remembered(camera, self._frame, held | {tr.obj_id for tr in self.tracks})
+        remembered = self._views.remembered(camera, self._frame, held | {tr.obj_id for tr in self.tracks}, self.config.view_gate)
         due = [(r, _remembered_box(r, K)) for r in remembered if self._recall_due.get(r.obj_id, 0) <= self._frame]
         due = [(r, box) for r, box in due if _in_view(K, box)]
         if not due:

@@ -43,37 +43,37 @@ class Remembered:
 
 
 class ObjectViews:
-    """Views per object id over the last `window` frames; `gate` (translation as a fraction of the depth, rotation in
-    degrees): views further than this from a measurement are not the same object at rest (another instance, the
-    object moved, a symmetric twin, a wrong pose) and are left out of its fusion."""
+    """Views per object id; `gate` (translation as a fraction of the depth, rotation in degrees): views further than
+    this from a measurement are not the same object at rest (another instance, the object moved, a symmetric twin, a
+    wrong pose) and are left out of its fusion. Window and gate are the caller's on each call (its settings may
+    change between frames)."""
 
-    def __init__(self, window: int, gate: tuple[float, float]) -> None:
-        self.window, self.gate = window, gate
+    def __init__(self) -> None:
         self._views: dict[int, list[View]] = {}
 
     def forget(self) -> None:
         self._views = {}
 
-    def age(self, frame: int) -> None:
+    def age(self, frame: int, window: int) -> None:
         """Forget the views made `window` frames or more before `frame`."""
         for obj_id, views in list(self._views.items()):
-            kept = [v for v in views if v.frame > frame - self.window]
+            kept = [v for v in views if v.frame > frame - window]
             if kept:
                 self._views[obj_id] = kept
             else:
                 del self._views[obj_id]
 
-    def add(self, obj_id: int, view: View) -> tuple[np.ndarray, np.ndarray, int]:
+    def add(self, obj_id: int, view: View, gate: tuple[float, float]) -> tuple[np.ndarray, np.ndarray, int]:
         """Add a view; its object's views within `gate` of it, fused: (R, t) in the fixed frame, and how many of
         the object's views the gate left out."""
         views = self._views.setdefault(obj_id, [])
-        near = self._near(views, view) + [view]
+        near = _near(views, view, gate) + [view]
         if views:
             views[-1] = replace(views[-1], measurement=None)  # its images and histograms: memory for the latest only
         views.append(view)
         return _mean_rotation(near), _fused_position(near), len(views) - len(near)
 
-    def remembered(self, camera: np.ndarray, frame: int, tracked: set[int]) -> list[Remembered]:
+    def remembered(self, camera: np.ndarray, frame: int, tracked: set[int], gate: tuple[float, float]) -> list[Remembered]:
         """The objects not in `tracked` (ids) seen before `frame` and not on it, each where its latest view and those
         within `gate` of it put it, in the frame of `camera` (4x4, camera to fixed)."""
         R_wc = camera[:3, :3]
@@ -82,26 +82,27 @@ class ObjectViews:
             latest = views[-1]
             if obj_id in tracked or latest.frame >= frame:
                 continue
-            near = self._near(views, latest)
+            near = _near(views, latest, gate)
             R, t = in_camera(camera, _mean_rotation(near), _fused_position(near))
             if t[2] <= 0:
                 continue
             information = np.sum([v.information for v in near], axis=0)
             covariance = np.zeros((6, 6))
             covariance[:3, :3] = R_wc.T @ np.linalg.pinv(information) @ R_wc
-            covariance[3:, 3:] = np.eye(3) * np.deg2rad(self.gate[1]) ** 2
+            covariance[3:, 3:] = np.eye(3) * np.deg2rad(gate[1]) ** 2
             out.append(Remembered(obj_id, R, t, covariance, latest))
         return out
 
-    def _near(self, views: list[View], here: View) -> list[View]:
-        """The views within `gate` of `here`."""
-        if not views:
-            return []
-        shift, turn = self.gate
-        t = np.array([v.t for v in views])
-        cos = (np.einsum("nij,ij->n", np.array([v.R for v in views]), here.R) - 1) / 2  # trace(R_v^T R_here)
-        near = (np.linalg.norm(t - here.t, axis=1) <= shift * here.depth) & (cos >= np.cos(np.radians(turn)))
-        return [v for v, ok in zip(views, near, strict=True) if ok]
+
+def _near(views: list[View], here: View, gate: tuple[float, float]) -> list[View]:
+    """The views within `gate` of `here`."""
+    if not views:
+        return []
+    shift, turn = gate
+    t = np.array([v.t for v in views])
+    cos = (np.einsum("nij,ij->n", np.array([v.R for v in views]), here.R) - 1) / 2  # trace(R_v^T R_here)
+    near = (np.linalg.norm(t - here.t, axis=1) <= shift * here.depth) & (cos >= np.cos(np.radians(turn)))
+    return [v for v, ok in zip(views, near, strict=True) if ok]
 
 
 def apart(gate: tuple[float, float], a: tuple[np.ndarray, np.ndarray], b: tuple[np.ndarray, np.ndarray], depth: float) -> bool:
