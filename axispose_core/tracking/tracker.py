@@ -348,10 +348,13 @@ class Tracker:
         be two instances) is challenged: the next frame follows that pose beside the track's, and the one whose
         contour agrees more goes on (`_settle`), so a track stuck on a wrong pose its contour half agrees with is
         put right by the AGM's next pose of its object."""
+        found: dict[int, list[tuple[np.ndarray, np.ndarray, Measurement]]] = {}
+        for d, m in posed:
+            found.setdefault(d.obj_id, []).append((*in_fixed_frame(camera, m.R, m.t, np.eye(3))[:2], m))
         for tr in self.tracks:
-            found = [in_fixed_frame(camera, m.R, m.t, np.eye(3))[:2] + (m,) for d, m in posed if d.obj_id == tr.obj_id]
-            if tr.fixed is not None and len(found) == 1 and apart(self.config.view_gate, tr.fixed, found[0][:2], float(tr.filter.t[2])):
-                self._challengers[tr.id] = found[0]
+            mine = found.get(tr.obj_id, [])
+            if tr.fixed is not None and len(mine) == 1 and apart(self.config.view_gate, tr.fixed, mine[0][:2], float(tr.filter.t[2])):
+                self._challengers[tr.id] = mine[0]
 
     def _over_views(self, poses: list[TrackedPose], camera: np.ndarray | None) -> list[TrackedPose]:
         """Each measured track's pose fused from its object's views in the camera's fixed frame that agree with
@@ -461,7 +464,7 @@ class Tracker:
         out = []
         for tr, m in zip(tracks, own, strict=True):
             other = challengers.get(tr.id)
-            if other is not None and other.ok and self._holds(other) and _agreement(other, np.nan) > _agreement(m, -np.inf):
+            if other is not None and self._holds(other) and _agreement(other, np.nan) > _agreement(m, -np.inf):
                 tr.filter = PoseFilter.start(self.config.filter, other.R, other.t, self._noise(other))
                 tr.held, tr.fixed, m = 0, None, other
                 self._count("tracks_corrected")

@@ -94,21 +94,24 @@ class ObjectViews:
         return out
 
 
+def _within(gate: tuple[float, float], Rs: np.ndarray, ts: np.ndarray, R: np.ndarray, t: np.ndarray, depth: float) -> np.ndarray:
+    """Which of the poses (Rs N x 3 x 3, ts N x 3) lie within `gate` of (R, t): translation as a fraction of `depth`,
+    rotation in degrees."""
+    cos = (np.einsum("nij,ij->n", Rs, R) - 1) / 2  # trace(R_n^T R)
+    return (np.linalg.norm(ts - t, axis=1) <= gate[0] * depth) & (cos >= np.cos(np.radians(gate[1])))
+
+
 def _near(views: list[View], here: View, gate: tuple[float, float]) -> list[View]:
     """The views within `gate` of `here`."""
     if not views:
         return []
-    shift, turn = gate
-    t = np.array([v.t for v in views])
-    cos = (np.einsum("nij,ij->n", np.array([v.R for v in views]), here.R) - 1) / 2  # trace(R_v^T R_here)
-    near = (np.linalg.norm(t - here.t, axis=1) <= shift * here.depth) & (cos >= np.cos(np.radians(turn)))
+    near = _within(gate, np.array([v.R for v in views]), np.array([v.t for v in views]), here.R, here.t, here.depth)
     return [v for v, ok in zip(views, near, strict=True) if ok]
 
 
 def apart(gate: tuple[float, float], a: tuple[np.ndarray, np.ndarray], b: tuple[np.ndarray, np.ndarray], depth: float) -> bool:
     """Two poses (R, t) further apart than `gate` (translation as a fraction of `depth`, rotation in degrees)."""
-    cos = (np.trace(a[0].T @ b[0]) - 1) / 2
-    return bool(np.linalg.norm(a[1] - b[1]) > gate[0] * depth or cos < np.cos(np.radians(gate[1])))
+    return not _within(gate, a[0][None], np.asarray(a[1])[None], b[0], b[1], depth)[0]
 
 
 def in_fixed_frame(camera: np.ndarray, R: np.ndarray, t: np.ndarray, covariance: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
