@@ -72,10 +72,8 @@ class Bench:
         """One setting on one scene: its scores, jitter, frame time and the tracker's counts. With `"live": true`
         the frames come at `fps` whatever the time each takes, and the newest one is taken when the last is done
         (the node's latest-frame-wins): only those are posed and scored (`processed`, their share)."""
-        if setting.get("background", False):
+        if setting.get("background", False) or "search_delay" in setting:
             return self._background(setting, scene)
-        if "search_delay" in setting:
-            return self._delayed_search(setting, scene)
         tracker = self._tracker(setting) if setting.get("tracking", True) else None
         rows, pairs, times = [], [], []
         options = dataclasses.replace(self.options, refine=setting.get("refine", True), follow_passes=setting.get("follow_passes", 0))
@@ -95,45 +93,30 @@ class Bench:
         return self._summary(rows, pairs, times, len(frames), tracker.counts if tracker else {})
 
     def _background(self, setting: dict, scene: BopScene) -> dict:
-        """The node's poser with `background_detection`, frames delivered at `fps` in real time (frame k at k / fps
-        after the first), the newest one taken whenever the last is done."""
+        """The node's poser with `background_detection`: frames delivered at `fps` in real time (frame k at k / fps
+        after the first), the newest one taken whenever the last is done; or, with `search_delay`, every frame in
+        turn, the search done in this process and handed over that many frames after the frame searched (the same
+        run every time, for choosing between designs: live runs differ by the machine's timing)."""
         poser, settings, counts = self._poser(setting)
-        poser.start_background(settings, wait=120.0)  # the search process loaded before the first frame comes
+        live = "search_delay" not in setting
+        if live:
+            poser.start_background(settings, wait=120.0)  # the search process loaded before the first frame comes
+        else:
+            poser._finder = _DelayedFinder(self.est, _frames_late(setting["search_delay"], self.fps))
         rows, pairs, times, k = [], [], [], 0
-        start = time.perf_counter()
+        frames, start = self._frames(scene), time.perf_counter()
         try:
-            frames = self._frames(scene)
             while k < len(frames):
                 im = frames[k]
-                time.sleep(max(0.0, start + k / self.fps - time.perf_counter()))
+                if live:
+                    time.sleep(max(0.0, start + k / self.fps - time.perf_counter()))
                 rgb, began = scene.rgb(im), time.perf_counter()
                 posed = poser.pose(rgb, scene.cameras[im], k / self.fps, [], settings, lambda: False, _camera_to_world(scene, im))
                 times.append(time.perf_counter() - began)
-                poses = [(e.obj_id, e.R, e.t) for e in posed.estimates if e.ok]
-                self._score(scene, k, im, rgb.shape[:2], poses, rows, pairs)
-                k = max(k + 1, int(np.floor((time.perf_counter() - start) * self.fps)))  # the newest frame by now
+                self._score(scene, k, im, rgb.shape[:2], [(e.obj_id, e.R, e.t) for e in posed.estimates if e.ok], rows, pairs)
+                k = max(k + 1, int(np.floor((time.perf_counter() - start) * self.fps))) if live else k + 1  # live: the newest frame by now
         finally:
             poser.stop()
-        return self._summary(rows, pairs, times, len(frames), counts)
-
-    def _delayed_search(self, setting: dict, scene: BopScene) -> dict:
-        """The node's poser with `background_detection`, lock-step, its search done in this process and handed over
-        `search_delay` frames after the frame searched: the same run every time, for choosing between designs (live
-        runs differ by the machine's timing)."""
-        poser, settings, counts = self._poser(setting)
-        delay = setting["search_delay"]
-        if isinstance(delay, list):  # seconds per search and per box posed, in frames
-            a, b = delay
-            poser._finder = _DelayedFinder(self.est, lambda boxes: max(1, int(np.ceil(self.fps * (a + b * boxes)))))
-        else:
-            poser._finder = _DelayedFinder(self.est, lambda boxes: max(1, int(delay)))
-        rows, pairs, times = [], [], []
-        frames = self._frames(scene)
-        for k, im in enumerate(frames):
-            rgb, start = scene.rgb(im), time.perf_counter()
-            posed = poser.pose(rgb, scene.cameras[im], k / self.fps, [], settings, lambda: False, _camera_to_world(scene, im))
-            times.append(time.perf_counter() - start)
-            self._score(scene, k, im, rgb.shape[:2], [(e.obj_id, e.R, e.t) for e in posed.estimates if e.ok], rows, pairs)
         return self._summary(rows, pairs, times, len(frames), counts)
 
     def _poser(self, setting: dict) -> tuple[FramePoser, NodeSettings, dict[str, int]]:
@@ -204,6 +187,15 @@ class Bench:
         return [(p.obj_id, p.R, p.t) for p in tracked]
 
 
+def _frames_late(delay: int | list[float], fps: float) -> Callable[[int], int]:
+    """Frames from a search's frame to the one it is handed to, by the boxes it posed: `delay` frames, or [a, b]: a +
+    b x boxes seconds."""
+    if isinstance(delay, list):
+        a, b = delay
+        return lambda boxes: max(1, int(np.ceil(fps * (a + b * boxes))))
+    return lambda boxes: max(1, int(delay))
+
+
 class _DelayedFinder:
     """`BackgroundFinder` as `FramePoser` uses it, in this process and counted in frames: a search offered is done
     at once (`Estimator.find`) and handed over by the n-th `collect` after it (the poser collects once a frame), n
@@ -211,29 +203,29 @@ class _DelayedFinder:
 
     def __init__(self, est: Estimator, delay: Callable[[int], int]) -> None:
         self.est, self.delay = est, delay
-        self._out: list | None = None
+        self._done: tuple[Search, Found] | None = None
+        self._left = 0
+        """Collects until `_done` is handed over."""
 
     def offer(self, search: Search) -> None:
         found = self.est.find(search.rgb, search.K, search.threshold, search.options, objects=search.objects)
-        self._out = [search, found, self.delay(len(found.detections) + found.dropped)]
+        self._done, self._left = (search, found), self.delay(len(found.detections) + found.dropped)
 
     def idle(self) -> bool:
-        return self._out is None
+        return self._done is None
 
     def collect(self) -> list[tuple[Search, Found]]:
-        if self._out is None:
+        self._left -= 1
+        if self._done is None or self._left > 0:
             return []
-        self._out[2] -= 1
-        if self._out[2] > 0:
-            return []
-        done, self._out = (self._out[0], self._out[1]), None
+        done, self._done = self._done, None
         return [done]
 
     def wait_ready(self, timeout: float = 0.0) -> bool:
         return True
 
     def stop(self) -> None:
-        self._out = None
+        self._done = None
 
 
 def _camera_to_world(scene: BopScene, im_id: int) -> np.ndarray | None:
