@@ -455,9 +455,10 @@ class Followed(Pose):
 
 def test_followed_tracks_are_measured_by_their_contours_and_the_agm_poses_only_the_lost():
     """With a follower every track's pose on every frame is its contour's, the localiser runs every period and poses
-    nothing it already follows; a contour that held for a period and loses its object (low agreement) runs the
-    localiser on the same frame, and the AGM's pose of its detection starts its track again; a restarted track
-    whose contour does not hold ends at once, and nothing is posed for it until the localiser's next period."""
+    nothing it already follows (their contours agree: nothing to check); a contour that held for a period and loses
+    its object (low agreement) runs the localiser on the same frame, and the AGM's pose of its detection starts its
+    track again; a restarted track whose contour does not hold ends at once, and nothing is posed for it until the
+    localiser's next period."""
     scene = _scene()
     tracker = Tracker(TrackingConfig(redetect_period=4))
     asked, agreement = [], {1: 0.9, 5: 0.9}
@@ -811,6 +812,39 @@ def test_a_track_on_a_wrong_pose_gives_way_to_a_pose_found_elsewhere_that_agrees
     for found, right in (([truth], 0.72), ([truth, (flipped, truth[1] + 0.3)], 0.9)):
         tracker, poses = run(found, right)
         assert "tracks_corrected" not in tracker.counts and _rot_deg(poses[-1].R, truth[0]) > 170
+
+
+@pytest.mark.parametrize("camera", [None, np.eye(4)], ids=["camera frame", "fixed frame"])
+def test_a_track_on_a_wrong_pose_is_checked_by_the_agm_when_the_localiser_finds_it(camera):
+    """A track its contour holds at a wrong pose (the AGM's first pose flipped 180 degrees, agreement 0.75): the
+    localiser's next run finds it, the AGM poses that box (the track checked longest ago), and the next frame
+    follows that pose beside the track's; the track goes on from it, its id kept (`tracks_corrected`), where it
+    agrees more (0.9) - not where it agrees less, with views (the fixed frame) or without."""
+    scene = _scene()
+    scene.poses = {1: scene.poses[1]}
+    truth = scene.poses[1]
+
+    def run(right: float) -> tuple[Tracker, list]:
+        tracker = Tracker(TrackingConfig(redetect_period=3, view_window=30 if camera is not None else 0))
+        scene.flip = {1}
+
+        def follow(last: list, predicted: list) -> list[Followed]:
+            return [Followed(True, R, t, COV, right if _rot_deg(R, truth[0]) < 20 else 0.75) for R, t, _ in predicted]
+
+        poses = []
+        for k in range(6):
+            poses += tracker.step(k / 30, K, scene.detect, scene.estimate, follow, camera)
+            scene.flip = set()  # the AGM's later poses are right
+        return tracker, poses
+
+    tracker, poses = run(right=0.9)
+    assert [c.checks for c in scene.crops[-1]] == [poses[0].track_id]  # frame 3: the followed track's box posed
+    assert tracker.counts["tracks_checked_apart"] == 1 and tracker.counts["tracks_corrected"] == 1
+    assert len({p.track_id for p in poses}) == 1 and tracker.counts["tracks_started"] == 1
+    assert _rot_deg(poses[3].R, truth[0]) > 170 and _rot_deg(poses[-1].R, truth[0]) < 20
+    tracker, poses = run(right=0.72)
+    assert tracker.counts["tracks_checked_apart"] == 1 and "tracks_corrected" not in tracker.counts
+    assert _rot_deg(poses[-1].R, truth[0]) > 170
 
 
 def test_a_track_is_looked_for_where_the_cameras_own_motion_moved_it():

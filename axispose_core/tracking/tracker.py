@@ -83,6 +83,10 @@ class TrackingConfig:
     """With contour following: a followed contour that separates the object's colours from its surroundings' less
     than this (0.5: not at all), or that the refiner kept, has lost its object: the AGM poses it from the
     localiser's box on the same frame where its contour had held for `redetect_period` frames, else it ends."""
+    check_below: float = 0.85
+    """With contour following: a followed track whose contour agrees less than this may hold a wrong pose (a
+    contour held at the wrong side of an object): where the localiser finds it, the AGM poses that box too, one
+    such track a frame, to check its pose (`_check`)."""
     view_window: int = 0
     """With the camera's pose in a fixed frame (`step(..., camera=...)`, e.g. from odometry): a track's published
     pose is fused from its object's measurements in that frame over the last n frames (by any of its tracks: an
@@ -141,6 +145,8 @@ class Crop:
     measurement: Measurement | None = None
     detected: bool = False
     """The box is the localiser's on this frame (a caller verifies such poses where it verifies detections)."""
+    checks: int | None = None
+    """The id of the followed track this localiser's box found: its pose checks the track's (`_check`)."""
 
 
 @dataclass
@@ -168,6 +174,8 @@ class Track:
     """Its contour was lost on this frame: the AGM's pose re-initialises it."""
     held: int = 0
     """Frames its contour has held since the AGM last posed it."""
+    checked: int = -1
+    """The frame its pose was last checked against the AGM's pose of a localiser's box (`_check`)."""
     fixed: tuple[np.ndarray, np.ndarray] | None = None
     """Its latest published pose in the camera's fixed frame (`view_window`): where it is followed from next, moved
     into the camera by the camera's own motion (the filter's constant velocity does not know where a hand-held
@@ -197,6 +205,22 @@ class TrackedPose:
 Follower = Callable[[list[Measurement], list[tuple[np.ndarray, np.ndarray, np.ndarray]]], Sequence[Measurement]]
 """(each track's last measurement, its predicted (R, t, covariance)) -> each track's pose on this frame by its contour
 (`Estimator.follow`): `ok` False where the contour was lost; its `contour_agreement` is read where it has one."""
+
+
+@dataclass(frozen=True)
+class Challenger:
+    """A pose of a track's object away from the track's: (R, t) in the camera's fixed frame (`fixed`) or in the
+    camera's frame of the frame it was posed on, and the measurement."""
+
+    R: np.ndarray
+    t: np.ndarray
+    m: Measurement
+    fixed: bool
+
+    def in_camera(self, camera: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
+        """Where it is looked for on this frame (a camera-frame pose where it is taken: frames a 30th of a second
+        apart)."""
+        return in_camera(camera, self.R, self.t) if self.fixed else (self.R, self.t)
 
 
 def _project(K: np.ndarray, t: np.ndarray) -> np.ndarray:
@@ -274,9 +298,9 @@ class Tracker:
         self._observed: set[int] = set()
         """Objects posed elsewhere (`observe`) since the last recall: their next recall starts a track whatever its
         contour's agreement, as the AGM's pose of a detection starts one on the frame it is posed."""
-        self._challengers: dict[int, tuple[np.ndarray, np.ndarray, Measurement]] = {}
-        """Per track id, its object's pose found elsewhere (`observe`) away from the track's: (R, t) in the fixed
-        frame and the pose, followed beside the track on the next frame."""
+        self._challengers: dict[int, Challenger] = {}
+        """Per track id, a pose of its object away from the track's (the AGM's: `observe`, `_check`), followed
+        beside the track on the next frame."""
 
     def reset(self, reason: str) -> None:
         """End every track (counted as `reset_<reason>`) and forget every view."""
@@ -317,7 +341,11 @@ class Tracker:
         measurements = _measurements(crops, estimate)
         if follow is not None:
             self._count("frames_estimated" if crops else "frames_followed")
-        out += [self._measure(crop, m, K, stamp) for crop, m in zip(crops, measurements, strict=True)]
+        for crop, m in zip(crops, measurements, strict=True):
+            if crop.checks is None:
+                out.append(self._measure(crop, m, K, stamp))
+            else:
+                self._check(crop.checks, m, camera)
         cropped = {c.track for c in crops} | followed
         quiet = [tr for tr in self.tracks if tr.id not in cropped and not tr.measured and not tr.lost and tr.last is not None]
         out += [self._predicted(tr, K) for tr in quiet]
@@ -354,7 +382,20 @@ class Tracker:
         for tr in self.tracks:
             mine = found.get(tr.obj_id, [])
             if tr.fixed is not None and len(mine) == 1 and apart(self.config.view_gate, tr.fixed, mine[0][:2], float(tr.filter.t[2])):
-                self._challengers[tr.id] = mine[0]
+                self._challengers[tr.id] = Challenger(*mine[0], fixed=True)
+
+    def _check(self, track_id: int, m: Measurement, camera: np.ndarray | None) -> None:
+        """The AGM's pose of a localiser's box that found a followed track (`_with_detections`): beyond `view_gate`
+        of the track's pose it challenges the track on the next frame (`_settle`), as a pose found elsewhere does -
+        a track its contour holds at a wrong pose is otherwise never posed by the AGM again."""
+        tr = self._track(track_id)
+        if tr is None or not m.ok or not apart(self.config.view_gate, (tr.filter.R, tr.filter.t), (m.R, m.t), float(tr.filter.t[2])):
+            return
+        self._count("tracks_checked_apart")
+        if camera is None:
+            self._challengers[tr.id] = Challenger(m.R, m.t, m, fixed=False)
+        else:
+            self._challengers[tr.id] = Challenger(*in_fixed_frame(camera, m.R, m.t, np.eye(3))[:2], m, fixed=True)
 
     def _over_views(self, poses: list[TrackedPose], camera: np.ndarray | None) -> list[TrackedPose]:
         """Each measured track's pose fused from its object's views in the camera's fixed frame that agree with
@@ -434,10 +475,10 @@ class Tracker:
         challengers, self._challengers = self._challengers, {}
         if not tracks:
             return []
-        challenged = [tr for tr in tracks if tr.id in challengers and camera is not None]
-        lasts = [tr.last for tr in tracks] + [challengers[tr.id][2] for tr in challenged]
+        challenged = [tr for tr in tracks if tr.id in challengers and (camera is not None or not challengers[tr.id].fixed)]
+        lasts = [tr.last for tr in tracks] + [challengers[tr.id].m for tr in challenged]
         predicted = [self._predicted_pose(tr, camera) for tr in tracks]
-        predicted += [(*in_camera(camera, *challengers[tr.id][:2]), self._noise(challengers[tr.id][2])) for tr in challenged]
+        predicted += [(*challengers[tr.id].in_camera(camera), self._noise(challengers[tr.id].m)) for tr in challenged]
         results = list(follow(lasts, predicted))
         if len(results) != len(lasts):
             raise ValueError(f"the follower gave {len(results)} poses for {len(lasts)} tracks")
@@ -520,16 +561,17 @@ class Tracker:
         return due
 
     def _with_detections(self, crops: list[Crop], detections: Sequence[Detected], followed: list[Track], K: np.ndarray) -> list[Crop]:
-        """A detection near a track its contour followed on this frame is that track's (nothing to pose); each
-        other refreshes the box of the nearest track of its object (`match_iou`, `match_distance`) or becomes a new
-        crop; a track no detection found is unseen once more (`max_unseen`)."""
-        detections = list(detections)
+        """A detection near a track its contour followed on this frame is that track's (posed only to check it:
+        `_check_crops`); each other refreshes the box of the nearest track of its object (`match_iou`,
+        `match_distance`) or becomes a new crop; a track no detection found is unseen once more (`max_unseen`)."""
+        detections, found = list(detections), []
         for tr in followed:
             box = self._predicted_box(tr, K)
             near = [(d, j) for j, det in enumerate(detections) if det.obj_id == tr.obj_id and (d := self._match(box, det.box)) is not None]
             tr.unseen = 0 if near else tr.unseen + 1
             if near:
-                detections.pop(min(near)[1])
+                found.append((tr, detections.pop(min(near)[1])))
+        checks = self._check_crops(found)
         crops = list(crops)
         pairs = sorted((d, i, j) for i, c in enumerate(crops) for j, det in enumerate(detections)
                        if c.obj_id == det.obj_id and (d := self._match(c.box, det.box)) is not None)  # fmt: skip
@@ -545,7 +587,17 @@ class Tracker:
             tr = self._track(c.track)
             tr.unseen = 0 if i in taken_c else tr.unseen + 1
         new = [d for j, d in enumerate(detections) if j not in taken_d]
-        return crops + [Crop(d.obj_id, tuple(d.box), d.score, measurement=_posed(d), detected=True) for d in new]
+        return crops + [Crop(d.obj_id, tuple(d.box), d.score, measurement=_posed(d), detected=True) for d in new] + checks
+
+    def _check_crops(self, found: list[tuple[Track, Detected]]) -> list[Crop]:
+        """Of the followed tracks the localiser found, with their detections, the one checked longest ago among
+        those whose contour agrees less than `check_below`: its detection's crop, to be posed by the AGM (`_check`)."""
+        doubtful = [(tr, d) for tr, d in found if _agreement(tr.last, -np.inf) < self.config.check_below]
+        if not doubtful:
+            return []
+        tr, d = min(doubtful, key=lambda f: (f[0].checked, f[0].id))
+        tr.checked = self._frame
+        return [Crop(d.obj_id, tuple(d.box), d.score, detected=True, checks=tr.id)]
 
     def _unfound_dropped(self, crops: list[Crop]) -> list[Crop]:
         """The crops but those of tracks whose contour was lost and that no detection found: where the contour
@@ -580,7 +632,7 @@ class Tracker:
             tr = self._start_track(crop, m, cov, stamp)
             return self._output(tr, m, True, K, crop.box)
         if tr.lost:  # its contour lost it: the AGM's pose starts it again (the next frame's contour judges it)
-            tr.lost, tr.held = False, 0
+            tr.lost, tr.held, tr.checked = False, 0, self._frame
             tr.filter = PoseFilter.start(self.config.filter, m.R, m.t, cov)
             tr.misses, tr.measured, tr.score, tr.last, tr.updated = 0, True, crop.score, m, stamp
             self._count("tracks_reinitialised")
@@ -617,7 +669,7 @@ class Tracker:
 
     def _start_track(self, crop: Crop, m: Measurement, cov: np.ndarray, stamp: float) -> Track:
         tr = Track(self._next_id, crop.obj_id, PoseFilter.start(self.config.filter, m.R, m.t, cov), crop.box,
-                   (np.zeros(2), 1.0), crop.score, stamp, stamp, measured=True, last=m)  # fmt: skip
+                   (np.zeros(2), 1.0), crop.score, stamp, stamp, measured=True, last=m, checked=self._frame)  # fmt: skip
         self._next_id += 1
         self.tracks.append(tr)
         self._count("tracks_started")
