@@ -25,14 +25,21 @@ def _make_bag(args: argparse.Namespace) -> int:
     from axispose_core.objects import objects_from_models
     from axispose_ros.bag import BagOptions, make_bag
 
-    objects = objects_from_models(args.models, args.objects or None)
-    options = BagOptions(storage=args.format, fps=args.fps, limit=args.limit, stamp_by_id=args.stamp_by_id)
-    s = make_bag(args.data, args.out, objects, args.models, options)
+    try:
+        objects = objects_from_models(args.models, args.objects or None)
+        options = BagOptions(storage=args.format, fps=args.fps, limit=args.limit, stamp_by_id=args.stamp_by_id)
+        s = make_bag(args.data, args.out, objects, args.models, options)
+    except (FileExistsError, FileNotFoundError, ValueError) as err:  # an output that exists, data or models missing, a bad option
+        print(f"axispose make-bag: {' '.join(str(err).split())}", file=sys.stderr)
+        return 2
     print(f"wrote {s.path} ({args.format}): {s.frames} frames, {s.instances} GT instances, {s.bytes / 1e6:.1f} MB")
     return 0
 
 
 def _replay(args: argparse.Namespace) -> int:
+    from rclpy.exceptions import ParameterException
+
+    from axispose_core.checkpoint import CheckpointError
     from axispose_core.evaluate import format_table, write_report
     from axispose_ros.bag import BagError
     from axispose_ros.replay import ReplayOptions, replay
@@ -46,12 +53,18 @@ def _replay(args: argparse.Namespace) -> int:
         info_topic=args.camera_info_topic, odom_topic=args.odom_topic, storage=args.format, overlays=args.overlays,
         use_rois=not args.ignore_rois,
     )  # fmt: skip
+    if Path(args.out).exists():
+        print(f"axispose replay: {args.out} exists; rosbag2 writers refuse to overwrite a bag", file=sys.stderr)
+        return 2
     try:
         result = replay(args.bag, args.checkpoint, args.out, options)
     except BagError as err:
         print(f"axispose replay: {err}", file=sys.stderr)
         if Path(args.out).exists():
             print(f"axispose replay: what was recorded until then is in {args.out}", file=sys.stderr)
+        return 2
+    except (CheckpointError, ValueError, ParameterException) as err:  # the node refused to start: checkpoint, parameters
+        print(f"axispose replay: {' '.join(str(err).split())}", file=sys.stderr)
         return 2
     counts = ", ".join(f"{k} {v}" for k, v in sorted(result.counts.items()))
     print(f"replayed {result.frames_published} frames -> {result.out_bag}; node counters: {counts}")

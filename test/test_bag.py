@@ -190,6 +190,22 @@ def test_damaged_bags_give_clear_errors_and_keep_the_output_valid(bag, checkpoin
         bag_topics(tmp_path / "empty")
 
 
+def test_replay_refuses_what_would_not_start_in_one_line(bag, checkpoint, tmp_path, capsys):
+    """An existing output, a missing checkpoint, a parameter out of range: one line on stderr and exit 2, no
+    traceback, and nothing written."""
+    (tmp_path / "exists").mkdir()
+    cases = [
+        (["--checkpoint", str(checkpoint), "--out", str(tmp_path / "exists")], "exists"),
+        (["--checkpoint", str(tmp_path / "missing.safetensors"), "--out", str(tmp_path / "a")], "not found"),
+        (["--checkpoint", str(checkpoint), "--out", str(tmp_path / "b"), "--steps", "0"], "ddim_steps"),
+    ]
+    for args, says in cases:
+        code = main(["replay", str(bag), *args, "--threads", "1"])
+        err = capsys.readouterr().err
+        assert code == 2 and says in err and len(err.strip().splitlines()) == 1 and "Traceback" not in err
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["exists"]
+
+
 def test_make_bag_refuses_bad_arguments(scene, objects, lmo_dir, tmp_path):
     with pytest.raises(ValueError, match="storage"):
         make_bag(scene, tmp_path / "a", objects, lmo_dir / "models_eval", BagOptions(storage="rosbag1"))
@@ -198,6 +214,23 @@ def test_make_bag_refuses_bad_arguments(scene, objects, lmo_dir, tmp_path):
         make_bag(scene, tmp_path / "exists", objects, lmo_dir / "models_eval")
     with pytest.raises(ValueError, match="fps"):
         BagOptions(fps=0.0)
+
+
+def test_make_bag_cli_refuses_bad_arguments_in_one_line(scene, lmo_dir, tmp_path, capsys):
+    """An output that exists, data or models missing, a bad rate: one line on stderr and exit 2, nothing written."""
+    (tmp_path / "exists").mkdir()
+    models = str(lmo_dir / "models_eval")
+    cases = [
+        (["--data", str(scene), "--out", str(tmp_path / "exists"), "--models", models], "exists"),
+        (["--data", str(tmp_path / "none"), "--out", str(tmp_path / "a"), "--models", models], "not found"),
+        (["--data", str(scene), "--out", str(tmp_path / "b"), "--models", str(tmp_path / "none")], "not found"),
+        (["--data", str(scene), "--out", str(tmp_path / "c"), "--models", models, "--fps", "0"], "fps"),
+    ]
+    for args, says in cases:
+        code = main(["make-bag", *args])
+        err = capsys.readouterr().err
+        assert code == 2 and says in err and len(err.strip().splitlines()) == 1 and "Traceback" not in err
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["exists"]
 
 
 def test_a_camera_paths_bag_plays_the_cameras_pose_to_the_node(objects, checkpoint, lmo_dir, tmp_path, monkeypatch):
