@@ -140,13 +140,12 @@ def _rss_mb(pid: int) -> float:
 
 
 def _own_rss_mb(pid: int) -> float:
+    """One process's resident memory (MB): none for one that ended (gone, or a zombie not yet reaped: no VmRSS)."""
     try:
-        for line in Path(f"/proc/{pid}/status").read_text().splitlines():
-            if line.startswith("VmRSS:"):
-                return int(line.split()[1]) / 1024
-    except OSError:  # it ended in between
+        lines = Path(f"/proc/{pid}/status").read_text().splitlines()
+    except OSError:
         return 0.0
-    return float("nan")
+    return next((int(line.split()[1]) / 1024 for line in lines if line.startswith("VmRSS:")), 0.0)
 
 
 def _descendants(pid: int) -> list[int]:
