@@ -218,8 +218,8 @@ class Challenger:
     fixed: bool
 
     def in_camera(self, camera: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
-        """Where it is looked for on this frame (a camera-frame pose where it is taken: frames a 30th of a second
-        apart)."""
+        """Where it is looked for on this frame: a fixed-frame pose moved into `camera`, a camera-frame pose as it
+        is (the frame it was posed on is the one before)."""
         return in_camera(camera, self.R, self.t) if self.fixed else (self.R, self.t)
 
 
