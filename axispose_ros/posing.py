@@ -9,6 +9,7 @@ from __future__ import annotations
 import dataclasses
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
+from typing import Protocol
 
 import numpy as np
 
@@ -18,6 +19,16 @@ from axispose_ros.background import BackgroundFinder, Search, Searcher
 from axispose_ros.params import NodeSettings
 
 Box = tuple[float, float, float, float]
+
+
+class Finder(Protocol):
+    """What `FramePoser` asks of a search beside the frames (`BackgroundFinder`)."""
+
+    def offer(self, search: Search) -> None: ...
+    def idle(self) -> bool: ...
+    def collect(self) -> list[tuple[Search, Found]]: ...
+    def wait_ready(self, timeout: float) -> bool: ...
+    def stop(self) -> None: ...
 
 
 @dataclass(frozen=True)
@@ -36,11 +47,15 @@ class FramePoser:
     counts (`verifier_dropped`, `tracking_<event>`, `pose_refused` of tracked crops, `refine_refined` and
     `refine_kept_<reason>` of every pose the contour refiner saw) goes to `count(key, n)`."""
 
-    def __init__(self, estimator: Estimator, published: dict[int, str], count: Callable[[str, int], None]) -> None:
+    def __init__(
+        self, estimator: Estimator, published: dict[int, str], count: Callable[[str, int], None], finder: Finder | None = None
+    ) -> None:
+        """`finder`: where `background_detection` searches (None: `BackgroundFinder`'s process, started with the first
+        frame that needs it)."""
         self.estimator, self.published, self.count = estimator, published, count
         self.tracker = Tracker(TrackingConfig())
         self._reported: dict[str, int] = {}
-        self._finder: BackgroundFinder | None = None
+        self._finder = finder
         self._since_search = 0
         """Frames since the background's last search was offered."""
         self._searches = 0

@@ -97,12 +97,11 @@ class Bench:
         after the first), the newest one taken whenever the last is done; or, with `search_delay`, every frame in
         turn, the search done in this process and handed over that many frames after the frame searched (the same
         run every time, for choosing between designs: live runs differ by the machine's timing)."""
-        poser, settings, counts = self._poser(setting)
         live = "search_delay" not in setting
+        finder = None if live else _DelayedFinder(self.est, _frames_late(setting["search_delay"], self.fps))
+        poser, settings, counts = self._poser(setting, finder)
         if live:
             poser.start_background(settings, wait=120.0)  # the search process loaded before the first frame comes
-        else:
-            poser._finder = _DelayedFinder(self.est, _frames_late(setting["search_delay"], self.fps))
         rows, pairs, times, k = [], [], [], 0
         frames, start = self._frames(scene), time.perf_counter()
         try:
@@ -119,16 +118,19 @@ class Bench:
             poser.stop()
         return self._summary(rows, pairs, times, len(frames), counts)
 
-    def _poser(self, setting: dict) -> tuple[FramePoser, NodeSettings, dict[str, int]]:
-        """The node's poser and settings for background detection: its defaults but for the setting's
-        `redetect_period`, `view_window` and `follow_passes`; and the counts it reports."""
+    def _poser(self, setting: dict, finder: _DelayedFinder | None = None) -> tuple[FramePoser, NodeSettings, dict[str, int]]:
+        """The node's poser and settings for background detection (searching with `finder`, None: the node's
+        process): its defaults but for the setting's `redetect_period`, `view_window` and `follow_passes`; and the
+        counts it reports."""
         defaults = {spec.name: spec.default for spec in SPECS if not isinstance(spec.default, Parameter.Type)}
         chosen = {k: setting.get(k, default) for k, default in (("redetect_period", 5), ("view_window", 80), ("follow_passes", 0))}
         settings = NodeSettings(**defaults | chosen | {"checkpoint": self.checkpoint, "objects": (), "tracking": True, "follow": True,
                                                        "background_detection": True, "ddim_steps": self.options.steps,
                                                        "num_threads": torch.get_num_threads()})  # fmt: skip
         counts: dict[str, int] = {}
-        poser = FramePoser(self.est, {i: str(i) for i in self.specs}, lambda key, n: counts.__setitem__(key, counts.get(key, 0) + n))
+        poser = FramePoser(
+            self.est, {i: str(i) for i in self.specs}, lambda key, n: counts.__setitem__(key, counts.get(key, 0) + n), finder
+        )
         return poser, settings, counts
 
     def _score(self, scene: BopScene, k: int, im: int, size: tuple[int, int], poses: list[Pose], rows: list[Seen],
