@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import json
 import math
-from collections.abc import Callable, Container, Mapping, Sequence
+from collections.abc import Callable, Container, Iterator, Mapping, Sequence
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
@@ -352,11 +352,35 @@ class Estimator:
         """The localiser's objects (of `objects`, None: all) scoring at least `threshold` (None: the localiser's),
         posed. With a verifier the localiser's detections down to its `min_score` are posed and rescored with their
         poses' variances, and `threshold` applies to that probability; the others are counted as dropped."""
+        return self._posed(image_rgb, K, self._found(image_rgb, threshold, objects), threshold, options, cancelled)
+
+    def find_each(
+        self,
+        image_rgb: np.ndarray,
+        K: np.ndarray,
+        threshold: float | None = None,
+        options: EstimateOptions | None = None,
+        objects: Container[int] | None = None,
+    ) -> Iterator[Found]:
+        """`find`, one detection at a time, the localiser's highest score first: each one's `Found` (kept, or
+        counted as dropped) as soon as it is posed, so that a caller uses the likeliest objects before the others
+        are posed."""
+        for d in sorted(self._found(image_rgb, threshold, objects), key=lambda d: -d.score):
+            yield self._posed(image_rgb, K, [d], threshold, options, None)
+
+    def _found(self, image_rgb: np.ndarray, threshold: float | None, objects: Container[int] | None) -> list[Detection]:
+        """The localiser's detections of `objects` to pose: down to the verifier's `min_score` where there is one."""
         verifier = self.config.verifier
         floor = threshold if verifier is None else verifier.min_score
-        dets = [d for d in self.detect(image_rgb, floor) if objects is None or d.obj_id in objects]
+        return [d for d in self.detect(image_rgb, floor) if objects is None or d.obj_id in objects]
+
+    def _posed(
+        self, image_rgb: np.ndarray, K: np.ndarray, dets: list[Detection], threshold: float | None, options: EstimateOptions | None,
+        cancelled: Callable[[], bool] | None,
+    ) -> Found:  # fmt: skip
+        """The detections posed, and rescored by the verifier where there is one (those below `threshold` dropped)."""
         poses = self.estimate(image_rgb, K, [(d.obj_id, d.box) for d in dets], options=options, cancelled=cancelled)
-        if verifier is None:
+        if self.config.verifier is None:
             return Found(dets, poses)
         scores, least = self._rescored([d.score for d in dets], poses, threshold)
         keep = [k for k, s in enumerate(scores) if s >= least]

@@ -22,6 +22,8 @@ from axispose_core.estimator import EstimateOptions, Estimator, Found
 
 READY = "ready"
 """What the process sends once its checkpoint is loaded (or failed to load)."""
+DONE = "done"
+"""What the process sends after a search's last detection."""
 
 
 @dataclass(frozen=True)
@@ -52,8 +54,9 @@ class Searcher:
 
 class BackgroundFinder:
     """`Searcher`'s process, fed one `Search` at a time: one offered while another runs waits (the newest replaces
-    an older one waiting), and `collect` hands over the finished ones with what they found. A search that fails, or
-    a process that ended (it is started again on the next search), goes to `on_error`."""
+    an older one waiting), and `collect` hands over what each found, a detection at a time as it is posed (the
+    localiser's likeliest first), then the search with None once it is done (every search offered ends so). A
+    search that fails, or a process that ended (it is started again on the next search), goes to `on_error`."""
 
     def __init__(self, searcher: Searcher, on_error: Callable[[Exception], None]) -> None:
         self._searcher, self._on_error = searcher, on_error
@@ -62,7 +65,7 @@ class BackgroundFinder:
         self._running: Search | None = None
         """Sent to the process, not answered yet."""
         self._waiting: Search | None = None
-        self._done: list[tuple[Search, Found]] = []
+        self._done: list[tuple[Search, Found | None]] = []
         self._ready = False
         self._start()
 
@@ -79,8 +82,9 @@ class BackgroundFinder:
         self._poll()
         return self._running is None and self._waiting is None
 
-    def collect(self) -> list[tuple[Search, Found]]:
-        """The searches finished since the last call, oldest first, with what they found."""
+    def collect(self) -> list[tuple[Search, Found | None]]:
+        """What the searches found since the last call, in the order found: (search, one detection's `Found`), and
+        (search, None) where the search is done."""
         self._poll()
         done, self._done = self._done, []
         return done
@@ -147,10 +151,13 @@ class BackgroundFinder:
         if answer == READY:
             self._ready = True
             return
-        if isinstance(answer, Exception):
-            self._on_error(answer)
-        elif self._running is not None:
+        if isinstance(answer, Found) and self._running is not None:  # one detection: the search goes on
             self._done.append((self._running, answer))
+            return
+        if isinstance(answer, Exception):  # the search ends with what it found before
+            self._on_error(answer)
+        if self._running is not None:
+            self._done.append((self._running, None))
         self._running = None
         if self._waiting is not None:
             search, self._waiting = self._waiting, None
@@ -158,8 +165,9 @@ class BackgroundFinder:
 
 
 def _serve(conn: Connection, searcher: Searcher) -> None:
-    """The search process: load the estimator, then answer each search with what it found, or with the error that
-    stopped it (every search with the loading error if the checkpoint did not load), until told to stop."""
+    """The search process: load the estimator, then answer each search with what it found, a detection at a time
+    and then `DONE`, or with the error that stopped it (every search with the loading error if the checkpoint did
+    not load), until told to stop."""
     import torch
 
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # the node's Ctrl-C is the node's to handle: it stops this
@@ -174,9 +182,7 @@ def _serve(conn: Connection, searcher: Searcher) -> None:
         estimator.set_precision(searcher.precision)
     except Exception as err:  # answered to every search: the node counts them
         failed = RuntimeError(f"background search: the checkpoint did not load: {err}")
-    try:
-        conn.send(READY)
-    except (OSError, ValueError):
+    if not _sent(conn, READY):
         return
     while True:
         try:
@@ -188,10 +194,20 @@ def _serve(conn: Connection, searcher: Searcher) -> None:
         try:
             if failed is not None:
                 raise failed
-            answer = estimator.find(search.rgb, search.K, search.threshold, search.options, objects=search.objects)
+            for found in estimator.find_each(search.rgb, search.K, search.threshold, search.options, objects=search.objects):
+                if not _sent(conn, found):
+                    return
+            answer = DONE
         except Exception as err:
             answer = err if isinstance(err, RuntimeError) else RuntimeError(f"background search failed: {err!r}")
-        try:
-            conn.send(answer)
-        except (OSError, ValueError):
+        if not _sent(conn, answer):
             return
+
+
+def _sent(conn: Connection, message: object) -> bool:
+    """Send `message` to the node; False where the node has gone."""
+    try:
+        conn.send(message)
+    except (OSError, ValueError):
+        return False
+    return True

@@ -14,6 +14,7 @@ from typing import Protocol
 import numpy as np
 
 from axispose_core.estimator import EstimateOptions, Estimator, Found, PoseEstimate
+from axispose_core.localiser.decode import Detection
 from axispose_core.tracking.tracker import Crop, Sighting, Tracker, TrackingConfig
 from axispose_ros.background import BackgroundFinder, Search, Searcher
 from axispose_ros.params import NodeSettings
@@ -26,7 +27,7 @@ class Finder(Protocol):
 
     def offer(self, search: Search) -> None: ...
     def idle(self) -> bool: ...
-    def collect(self) -> list[tuple[Search, Found]]: ...
+    def collect(self) -> list[tuple[Search, Found | None]]: ...
     def wait_ready(self, timeout: float) -> bool: ...
     def stop(self) -> None: ...
 
@@ -61,6 +62,8 @@ class FramePoser:
         self._searches = 0
         self._checked: dict[int, int] = {}
         """Per tracked object, the search that last looked for it (`_searched_objects`)."""
+        self._search_posed: list[tuple[Detection, PoseEstimate]] = []
+        """What the running search has posed so far (its detections come one at a time)."""
 
     def stop(self) -> None:
         """End the search process of `background_detection`, if it has one."""
@@ -148,15 +151,11 @@ class FramePoser:
 
     def _in_background(self, search: Search, s: NodeSettings, estimate, follow) -> Posed:
         """Tracking with the localiser and the AGM in a process of their own (`background.py`): what they found on
-        earlier frames joins the objects' views, this frame is followed (its objects recalled from their views), and
-        it is searched next where the last search is done and `redetect_period` frames have passed since one was
-        offered, or where nothing is tracked. A search from before a reset (stamps going back, other intrinsics) is
-        left out."""
+        earlier frames joins the objects' views (`_take_found`), this frame is followed (its objects recalled from
+        their views), and it is searched next where the last search is done and `redetect_period` frames have
+        passed since one was offered, or where nothing is tracked."""
         self.start_background(s)
-        for earlier, found in self._finder.collect():
-            found = self._counted(found)
-            if earlier.stamp <= search.stamp and np.allclose(earlier.K, search.K):
-                self.tracker.observe(earlier.camera, [(d, p) for d, p in zip(found.detections, found.poses, strict=True) if p.ok])
+        self._take_found(search)
         posed = self._tracked(search.stamp, search.K, None, estimate, False, follow, s.score_threshold, search.camera)
         self._since_search += 1
         if self._finder.idle() and (self._since_search >= s.redetect_period or not self.tracker.tracks):
@@ -164,6 +163,24 @@ class FramePoser:
             self._since_search = 0
             self.count("background_searches", 1)
         return posed
+
+    def _take_found(self, now: Search) -> None:
+        """What the search process found since the last frame joins the objects' views as it comes (a search's
+        detections one at a time, the likeliest first); once a search is done, all its poses challenge the tracks
+        away from them (`Tracker.challenge`: two poses of an object are two instances, and challenge none). A search
+        from before a reset (stamps going back, other intrinsics) is left out."""
+        for earlier, found in self._finder.collect():
+            current = earlier.stamp <= now.stamp and np.allclose(earlier.K, now.K)
+            if found is None:
+                posed, self._search_posed = self._search_posed, []
+                if current:
+                    self.tracker.challenge(earlier.camera, posed)
+                continue
+            found = self._counted(found)
+            posed = [(d, p) for d, p in zip(found.detections, found.poses, strict=True) if p.ok]
+            self._search_posed += posed
+            if current:
+                self.tracker.observe(earlier.camera, posed)
 
     def _searched_objects(self, objects: tuple[int, ...]) -> tuple[int, ...]:
         """What a search looks for: the objects no track holds, and of the tracked ones the one looked for longest

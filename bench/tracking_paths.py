@@ -200,34 +200,34 @@ def _frames_late(delay: int | list[float], fps: float) -> Callable[[int], int]:
 
 class _DelayedFinder:
     """`BackgroundFinder` as `FramePoser` uses it, in this process and counted in frames: a search offered is done
-    at once (`Estimator.find`) and handed over by the n-th `collect` after it (the poser collects once a frame), n
-    the `delay` of the boxes it posed."""
+    at once (`Estimator.find_each`), its k-th detection handed over by the n-th `collect` after it (the poser
+    collects once a frame), n the `delay` of k boxes, and its end with its last detection."""
 
     def __init__(self, est: Estimator, delay: Callable[[int], int]) -> None:
         self.est, self.delay = est, delay
-        self._done: tuple[Search, Found] | None = None
-        self._left = 0
-        """Collects until `_done` is handed over."""
+        self._due: list[tuple[int, Search, Found | None]] = []
+        """What the search hands over, each with the collect it is due at."""
+        self._collects = 0
 
     def offer(self, search: Search) -> None:
-        found = self.est.find(search.rgb, search.K, search.threshold, search.options, objects=search.objects)
-        self._done, self._left = (search, found), self.delay(len(found.detections) + found.dropped)
+        found = list(self.est.find_each(search.rgb, search.K, search.threshold, search.options, objects=search.objects))
+        self._collects = 0
+        self._due = [(self.delay(k + 1), search, f) for k, f in enumerate(found)] + [(self.delay(len(found)), search, None)]
 
     def idle(self) -> bool:
-        return self._done is None
+        return not self._due
 
-    def collect(self) -> list[tuple[Search, Found]]:
-        self._left -= 1
-        if self._done is None or self._left > 0:
-            return []
-        done, self._done = self._done, None
-        return [done]
+    def collect(self) -> list[tuple[Search, Found | None]]:
+        self._collects += 1
+        done = [(search, found) for due, search, found in self._due if due <= self._collects]
+        self._due = [d for d in self._due if d[0] > self._collects]
+        return done
 
     def wait_ready(self, timeout: float = 0.0) -> bool:
         return True
 
     def stop(self) -> None:
-        self._done = None
+        self._due = []
 
 
 def _camera_to_world(scene: BopScene, im_id: int) -> np.ndarray | None:

@@ -39,8 +39,8 @@ def _wait(condition, timeout: float = 60.0) -> bool:
 
 def test_the_background_searches_the_newest_frame_offered_and_hands_back_what_it_found(checkpoint):
     """While a search runs, frames offered replace each other (the newest is searched next); `collect` hands over
-    each finished search once, oldest first, with the localiser's objects posed; a search that fails goes to
-    `on_error` and the process goes on; `stop` ends it."""
+    what each search found once, a detection at a time, the localiser's likeliest first, then the search's end
+    (None); a search that fails goes to `on_error` and the process goes on; `stop` ends it."""
     errors = []
     finder = BackgroundFinder(Searcher(str(checkpoint)), errors.append)
     try:
@@ -49,11 +49,17 @@ def test_the_background_searches_the_newest_frame_offered_and_hands_back_what_it
         assert not finder.idle()
         assert _wait(finder.idle)
         done = finder.collect()
-        assert [s.stamp for s, _ in done] == [1.0, 3.0] and errors == []
-        assert all({d.obj_id for d in found.detections} == {1, 5} and len(found.poses) == len(found.detections) for _, found in done)
+        assert [s.stamp for s, found in done if found is None] == [1.0, 3.0] and errors == [] and done[-1][1] is None
+        for stamp in (1.0, 3.0):
+            each = [found for s, found in done if s.stamp == stamp]
+            assert each[-1] is None and all(len(f.detections) + f.dropped == 1 == len(f.poses) for f in each[:-1])
+            assert {d.obj_id for f in each[:-1] for d in f.detections} == {1, 5}
+            scores = [f.detections[0].score for f in each[:-1]]
+            assert scores == sorted(scores, reverse=True)
         assert finder.collect() == []
         finder.offer(_search(4.0, K=np.zeros((3, 3))))  # no intrinsics: the estimator refuses the frame
-        assert _wait(finder.idle) and len(errors) == 1 and finder.collect() == [] and finder.alive()
+        assert _wait(finder.idle) and len(errors) == 1 and finder.alive()
+        assert [(s.stamp, found) for s, found in finder.collect()] == [(4.0, None)]  # it ends, having found nothing
     finally:
         finder.stop()
     assert not finder.alive()
@@ -75,7 +81,7 @@ def test_a_search_process_that_cannot_load_or_ended_is_counted_not_a_crash(check
         finder._process.kill()
         finder._process.join(10)
         finder.offer(_search(1.0))
-        assert _wait(finder.idle) and [s.stamp for s, _ in finder.collect()] == [1.0]
+        assert _wait(finder.idle) and [s.stamp for s, found in finder.collect() if found is None] == [1.0]
         assert len(errors) == 1 and "ended" in str(errors[0]) and finder.alive()
     finally:
         finder.stop()
@@ -96,3 +102,28 @@ def test_a_search_looks_for_the_untracked_objects_and_one_tracked_object_in_turn
     assert poser._searched_objects((1, 5, 6, 8)) == (1, 6, 8)  # 8 never looked for since it is tracked
     poser.tracker.tracks = []
     assert poser._searched_objects((1, 5, 6, 8)) == (1, 5, 6, 8)
+
+
+def test_a_searchs_detections_join_the_views_as_they_come_and_challenge_tracks_once_it_is_done():
+    """Each detection the search hands over joins the views at once (`observe`); the tracks are challenged once,
+    with all of the search's poses, when it is done (two poses of one object in a search are two instances); a
+    search from before a reset (a later stamp than the frame's) joins nothing."""
+    from types import SimpleNamespace
+
+    from axispose_core.estimator import Found
+    from axispose_ros.posing import FramePoser
+
+    def found(obj_id: int, ok: bool = True) -> Found:
+        return Found([SimpleNamespace(obj_id=obj_id)], [SimpleNamespace(ok=ok, refined=False, refine_kept=None)])
+
+    early, late = _search(1.0), _search(9.0)
+    batches = [[(early, found(1)), (early, found(5, ok=False))], [(early, found(1)), (early, None), (late, found(5)), (late, None)]]
+    finder = SimpleNamespace(collect=lambda: batches.pop(0))
+    poser = FramePoser(None, {1: "ape", 5: "can"}, lambda key, n: None, finder)
+    calls = []
+    poser.tracker.observe = lambda camera, posed: calls.append(("observe", [d.obj_id for d, _ in posed]))
+    poser.tracker.challenge = lambda camera, posed: calls.append(("challenge", [d.obj_id for d, _ in posed]))
+    poser._take_found(_search(2.0))
+    assert calls == [("observe", [1]), ("observe", [])]
+    poser._take_found(_search(2.0))
+    assert calls[2:] == [("observe", [1]), ("challenge", [1, 1])]  # the search at 9.0 is from before a reset

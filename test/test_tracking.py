@@ -785,9 +785,9 @@ def test_an_object_posed_elsewhere_starts_its_track_once_whatever_its_contour_sa
 
 def test_a_track_on_a_wrong_pose_gives_way_to_a_pose_found_elsewhere_that_agrees_more():
     """A track its contour holds at a wrong pose (flipped 180 degrees, agreement 0.75) is followed beside the pose
-    found elsewhere for its object (`observe`): it goes on from that pose, its id kept (`tracks_corrected`), where
-    that pose agrees more (0.9); not where it agrees less, nor where two poses were found for the object (two
-    instances)."""
+    a search found elsewhere for its object (`observe`, then `challenge` with all the search's poses): it goes on
+    from that pose, its id kept (`tracks_corrected`), where that pose agrees more (0.9); not where it agrees less,
+    nor where the search found two poses of the object (two instances)."""
     scene = _scene()
     flipped = Rotation.from_euler("z", 180, degrees=True).as_matrix()
     truth = scene.poses[1]
@@ -803,7 +803,9 @@ def test_a_track_on_a_wrong_pose_gives_way_to_a_pose_found_elsewhere_that_agrees
 
         tracker.observe(np.eye(4), [(Det(1, 0.9, scene.box(1)), Pose(True, flipped, truth[1], COV))])
         first = step(0)  # the wrong pose starts the track
-        tracker.observe(np.eye(4), [(Det(1, 0.9, scene.box(1)), Pose(True, *p, COV)) for p in found])
+        searched = [(Det(1, 0.9, scene.box(1)), Pose(True, *p, COV)) for p in found]
+        tracker.observe(np.eye(4), searched)
+        tracker.challenge(np.eye(4), searched)  # the search is done
         return tracker, first + step(1) + step(2)
 
     tracker, poses = run([truth], right=0.9)

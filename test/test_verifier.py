@@ -125,6 +125,20 @@ def test_a_verifier_poses_down_to_its_min_score_and_publishes_its_probability(lo
         assert d.score == pytest.approx(expected) and d.box == original.box
 
 
+def test_find_each_gives_finds_detections_one_at_a_time_likeliest_first(localised, monkeypatch):
+    """`find_each` (the background search): the detections `find` poses, each on its own, the localiser's highest
+    score first, kept with the verifier's probability or counted as dropped as `find` does."""
+    score_only = localised.with_verifier(DetectionVerifier((1.0, 0.0, 0.0, 0.0), min_score=0.2))  # P(hit) = the score
+    asked = _detect(score_only, monkeypatch)
+    image = np.zeros((480, 640, 3), np.uint8)
+    each = list(score_only.find_each(image, LMO_K, 0.3))
+    assert asked == [0.2] and [len(f.detections) + f.dropped for f in each] == [1, 1, 1]
+    assert [f.dropped for f in each] == [0, 0, 1]  # 0.9, 0.5 kept; 0.25 below 0.3 dropped
+    assert [(d.obj_id, d.score) for f in each for d in f.detections] == [(1, pytest.approx(0.9)), (5, pytest.approx(0.5))]
+    assert [p.obj_id for f in each for p in f.poses] == [1, 5]
+    assert [d.obj_id for f in score_only.find_each(image, LMO_K, 0.3, objects={5}) for d in f.detections] == [5]
+
+
 def test_verified_refuses_the_poses_its_verifier_scores_below_the_threshold(localised):
     """`Estimator.verified` (a tracker's new detections, posed on their own): a pose the verifier scores below the
     threshold is refused with its reason; without a verifier, and for a pose already refused, nothing changes."""

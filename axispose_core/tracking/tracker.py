@@ -299,7 +299,7 @@ class Tracker:
         """Objects posed elsewhere (`observe`) since the last recall: their next recall starts a track whatever its
         contour's agreement, as the AGM's pose of a detection starts one on the frame it is posed."""
         self._challengers: dict[int, Challenger] = {}
-        """Per track id, a pose of its object away from the track's (the AGM's: `observe`, `_check`), followed
+        """Per track id, a pose of its object away from the track's (the AGM's: `challenge`, `_check`), followed
         beside the track on the next frame."""
 
     def reset(self, reason: str) -> None:
@@ -357,13 +357,13 @@ class Tracker:
     def observe(self, camera: np.ndarray, posed: Sequence[tuple[Detected, Measurement]]) -> int:
         """Poses made elsewhere on an earlier frame whose camera pose (4x4, camera to fixed) was `camera` (the
         localiser and the AGM in a process of their own): each joins its object's views, from where the next `step`
-        follows an object no track holds (at once, however recently it was not found there). Returns how many
-        joined (none without `view_window`, a finite camera pose, or an `ok` pose)."""
+        follows an object no track holds (at once, however recently it was not found there; the tracks away from
+        them are challenged once the search's poses are all in: `challenge`). Returns how many joined (none without
+        `view_window`, a finite camera pose, or an `ok` pose)."""
         camera = np.asarray(camera, float)
-        if self.config.view_window <= 0 or camera.shape != (4, 4) or not np.all(np.isfinite(camera)):
+        if not self._placeable(camera):
             return 0
         posed = [(d, m) for d, m in posed if m.ok]
-        self._challenge(camera, posed)
         for d, m in posed:
             self._add_view(camera, d.obj_id, m, d.box, d.score, self._frame - 1)
             self._recall_due.pop(d.obj_id, None)
@@ -371,11 +371,16 @@ class Tracker:
         self._count("views_observed", len(posed))
         return len(posed)
 
-    def _challenge(self, camera: np.ndarray, posed: Sequence[tuple[Detected, Measurement]]) -> None:
-        """A track whose object was posed elsewhere beyond `view_gate` of the track's pose (once: two poses of it may
-        be two instances) is challenged: the next frame follows that pose beside the track's, and the one whose
-        contour agrees more goes on (`_settle`), so a track stuck on a wrong pose its contour half agrees with is
-        put right by the AGM's next pose of its object."""
+    def challenge(self, camera: np.ndarray, posed: Sequence[tuple[Detected, Measurement]]) -> None:
+        """Every pose one search made elsewhere (`observe`; the camera's pose at its frame, 4x4, camera to fixed): a
+        track whose object it posed beyond `view_gate` of the track's pose (once: two poses of it may be two
+        instances) is challenged: the next frame follows that pose beside the track's, and the one whose contour
+        agrees more goes on (`_settle`), so a track stuck on a wrong pose its contour half agrees with is put right
+        by the AGM's next pose of its object."""
+        camera = np.asarray(camera, float)
+        if not self._placeable(camera):
+            return
+        posed = [(d, m) for d, m in posed if m.ok]
         found: dict[int, list[tuple[np.ndarray, np.ndarray, Measurement]]] = {}
         for d, m in posed:
             found.setdefault(d.obj_id, []).append((*in_fixed_frame(camera, m.R, m.t, np.eye(3))[:2], m))
@@ -383,6 +388,10 @@ class Tracker:
             mine = found.get(tr.obj_id, [])
             if tr.fixed is not None and len(mine) == 1 and apart(self.config.view_gate, tr.fixed, mine[0][:2], float(tr.filter.t[2])):
                 self._challengers[tr.id] = Challenger(*mine[0], fixed=True)
+
+    def _placeable(self, camera: np.ndarray) -> bool:
+        """Poses made at this camera pose can join the views: views kept, a finite 4x4 pose."""
+        return self.config.view_window > 0 and camera.shape == (4, 4) and bool(np.all(np.isfinite(camera)))
 
     def _check(self, track_id: int, m: Measurement, camera: np.ndarray | None) -> None:
         """The AGM's pose of a localiser's box that found a followed track (`_with_detections`): beyond `view_gate`
