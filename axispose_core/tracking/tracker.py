@@ -217,6 +217,14 @@ class Challenger:
     m: Measurement
     fixed: bool
 
+    @classmethod
+    def posed(cls, m: Measurement, camera: np.ndarray | None) -> Challenger:
+        """The pose `m` made on a frame whose camera pose (4x4, camera to fixed) was `camera`: kept in the fixed frame
+        where that is known, else in the camera's frame."""
+        if camera is None:
+            return cls(m.R, m.t, m, fixed=False)
+        return cls(*in_fixed_frame(camera, m.R, m.t, np.eye(3))[:2], m, fixed=True)
+
     def in_camera(self, camera: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
         """Where it is looked for on this frame: a fixed-frame pose moved into `camera`, a camera-frame pose as it
         is (the frame it was posed on is the one before)."""
@@ -361,9 +369,7 @@ class Tracker:
         them are challenged once the search's poses are all in: `challenge`). Returns how many joined (none without
         `view_window`, a finite camera pose, or an `ok` pose)."""
         camera = np.asarray(camera, float)
-        if not self._placeable(camera):
-            return 0
-        posed = [(d, m) for d, m in posed if m.ok]
+        posed = self._placeable(camera, posed)
         for d, m in posed:
             self._add_view(camera, d.obj_id, m, d.box, d.score, self._frame - 1)
             self._recall_due.pop(d.obj_id, None)
@@ -378,20 +384,24 @@ class Tracker:
         agrees more goes on (`_settle`), so a track stuck on a wrong pose its contour half agrees with is put right
         by the AGM's next pose of its object."""
         camera = np.asarray(camera, float)
-        if not self._placeable(camera):
-            return
-        posed = [(d, m) for d, m in posed if m.ok]
-        found: dict[int, list[tuple[np.ndarray, np.ndarray, Measurement]]] = {}
-        for d, m in posed:
-            found.setdefault(d.obj_id, []).append((*in_fixed_frame(camera, m.R, m.t, np.eye(3))[:2], m))
+        found: dict[int, list[Challenger]] = {}
+        for d, m in self._placeable(camera, posed):
+            found.setdefault(d.obj_id, []).append(Challenger.posed(m, camera))
         for tr in self.tracks:
             mine = found.get(tr.obj_id, [])
-            if tr.fixed is not None and len(mine) == 1 and apart(self.config.view_gate, tr.fixed, mine[0][:2], float(tr.filter.t[2])):
-                self._challengers[tr.id] = Challenger(*mine[0], fixed=True)
+            if (
+                tr.fixed is not None
+                and len(mine) == 1
+                and apart(self.config.view_gate, tr.fixed, (mine[0].R, mine[0].t), float(tr.filter.t[2]))
+            ):
+                self._challengers[tr.id] = mine[0]
 
-    def _placeable(self, camera: np.ndarray) -> bool:
-        """Poses made at this camera pose can join the views: views kept, a finite 4x4 pose."""
-        return self.config.view_window > 0 and camera.shape == (4, 4) and bool(np.all(np.isfinite(camera)))
+    def _placeable(self, camera: np.ndarray, posed: Sequence[tuple[Detected, Measurement]]) -> list[tuple[Detected, Measurement]]:
+        """The `ok` poses that can join the views from this camera pose: none without views kept or a finite 4x4
+        pose."""
+        if self.config.view_window <= 0 or camera.shape != (4, 4) or not np.all(np.isfinite(camera)):
+            return []
+        return [(d, m) for d, m in posed if m.ok]
 
     def _check(self, track_id: int, m: Measurement, camera: np.ndarray | None) -> None:
         """The AGM's pose of a localiser's box that found a followed track (`_with_detections`): beyond `view_gate`
@@ -401,10 +411,7 @@ class Tracker:
         if tr is None or not m.ok or not apart(self.config.view_gate, (tr.filter.R, tr.filter.t), (m.R, m.t), float(tr.filter.t[2])):
             return
         self._count("tracks_checked_apart")
-        if camera is None:
-            self._challengers[tr.id] = Challenger(m.R, m.t, m, fixed=False)
-        else:
-            self._challengers[tr.id] = Challenger(*in_fixed_frame(camera, m.R, m.t, np.eye(3))[:2], m, fixed=True)
+        self._challengers[tr.id] = Challenger.posed(m, camera)
 
     def _over_views(self, poses: list[TrackedPose], camera: np.ndarray | None) -> list[TrackedPose]:
         """Each measured track's pose fused from its object's views in the camera's fixed frame that agree with
