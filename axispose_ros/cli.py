@@ -21,6 +21,12 @@ REPLAY_PARAMS = {
 """`replay`'s options that set the node's parameter of that name ("on" / "off": True / False)."""
 
 
+def _refused(command: str, err: Exception) -> int:
+    """A command that cannot start: its reason on one line of stderr (whatever newlines it holds), exit code 2."""
+    print(f"axispose {command}: {' '.join(str(err).split())}", file=sys.stderr)
+    return 2
+
+
 def _make_bag(args: argparse.Namespace) -> int:
     from axispose_core.objects import objects_from_models
     from axispose_ros.bag import BagOptions, make_bag
@@ -30,8 +36,7 @@ def _make_bag(args: argparse.Namespace) -> int:
         options = BagOptions(storage=args.format, fps=args.fps, limit=args.limit, stamp_by_id=args.stamp_by_id)
         s = make_bag(args.data, args.out, objects, args.models, options)
     except (FileExistsError, FileNotFoundError, ValueError) as err:  # an output that exists, data or models missing, a bad option
-        print(f"axispose make-bag: {' '.join(str(err).split())}", file=sys.stderr)
-        return 2
+        return _refused("make-bag", err)
     print(f"wrote {s.path} ({args.format}): {s.frames} frames, {s.instances} GT instances, {s.bytes / 1e6:.1f} MB")
     return 0
 
@@ -64,8 +69,7 @@ def _replay(args: argparse.Namespace) -> int:
             print(f"axispose replay: what was recorded until then is in {args.out}", file=sys.stderr)
         return 2
     except (CheckpointError, ValueError, ParameterException) as err:  # the node refused to start: checkpoint, parameters
-        print(f"axispose replay: {' '.join(str(err).split())}", file=sys.stderr)
-        return 2
+        return _refused("replay", err)
     counts = ", ".join(f"{k} {v}" for k, v in sorted(result.counts.items()))
     print(f"replayed {result.frames_published} frames -> {result.out_bag}; node counters: {counts}")
     if result.report is not None:
