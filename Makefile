@@ -2,10 +2,12 @@
 VENV ?= .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed-stamp
+# Every pip install (also tools/build_msgs.sh's) takes the versions CI tested.
+export PIP_CONSTRAINT := $(CURDIR)/constraints.txt
 
 .PHONY: demo test lint validate
 
-$(STAMP): setup.py axispose_msgs/CMakeLists.txt axispose_msgs/package.xml axispose_msgs/build-requirements.txt $(wildcard axispose_msgs/msg/*.msg)
+$(STAMP): setup.py constraints.txt axispose_msgs/CMakeLists.txt axispose_msgs/package.xml axispose_msgs/build-requirements.txt $(wildcard axispose_msgs/msg/*.msg)
 	test -x $(PY) || python3 -m venv $(VENV)
 	$(PY) -m pip install -q -e ".[ros,dev,train]"
 	tools/build_msgs.sh $(VENV)

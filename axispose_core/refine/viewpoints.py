@@ -11,7 +11,9 @@ image plane), and how far the silhouette stays foreground inwards and background
 
 from __future__ import annotations
 
+import functools
 import hashlib
+import inspect
 import logging
 import os
 from dataclasses import dataclass
@@ -235,12 +237,24 @@ def _run_lengths(mask: np.ndarray, at: np.ndarray, normal: np.ndarray) -> tuple[
     return run(-1.0, 1), run(1.0, 0)
 
 
+@functools.cache
+def builder_digest() -> str:
+    """A digest of the code that builds viewpoint models: a model cached by other code (an earlier version of this
+    module) is never taken for this code's."""
+    h = hashlib.sha256()
+    for part in (geodesic_directions, _midpoint, view_rotation, _Edges, build_viewpoint_model, _view, _run_lengths):
+        h.update(inspect.getsource(part).encode())
+    return h.hexdigest()[:16]
+
+
 def mesh_digest(vertices: np.ndarray, faces: np.ndarray, settings: ViewpointSettings) -> str:
-    """A key for a mesh's viewpoint model under `settings`: the same mesh and settings give the same model."""
+    """A key for a mesh's viewpoint model under `settings`: the same mesh and settings, built by the same code
+    (`builder_digest`), give the same model."""
     h = hashlib.sha256()
     for a in (np.ascontiguousarray(vertices, dtype=np.float32), np.ascontiguousarray(faces, dtype=np.int32)):
         h.update(a.tobytes())
     h.update(repr(settings).encode())
+    h.update(builder_digest().encode())
     return h.hexdigest()[:24]
 
 
