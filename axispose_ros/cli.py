@@ -12,6 +12,7 @@ from pathlib import Path
 
 from axispose_core.cli import AddParser, build_parser, object_ids
 from axispose_core.cli import main as core_main
+from axispose_core.lmo import SHARED_LMO
 
 REPLAY_PARAMS = {
     "steps": "ddim_steps", "hypotheses": "hypotheses", "guidance": "guidance_scale", "precision": "precision", "tracking": "tracking",
@@ -122,8 +123,40 @@ def _soak(args: argparse.Namespace) -> int:
     return 0 if r["alive"] and not uncounted else 1
 
 
+def _adapt(args: argparse.Namespace) -> int:
+    import torch
+
+    from axispose_core.adapt.command import AdaptRequest, run_adapt
+    from axispose_core.adapt.recording import RecordingError
+    from axispose_core.estimator import SHIPPED_ESTIMATOR
+
+    torch.set_num_threads(args.threads)
+    request = AdaptRequest(Path(args.recording), Path(args.out), Path(args.checkpoint or SHIPPED_ESTIMATOR), Path(args.models),
+                           args.config, args.rounds, args.steps, args.resume, args.max_minutes, args.device)  # fmt: skip
+    if not is_bag(args.recording):
+        return run_adapt(request)
+    from axispose_core.adapt.recording import read_recording
+    from axispose_ros.recording import bag_to_recording
+
+    frames = Path(args.out) / "recording"
+    try:
+        if not frames.is_dir():
+            s = bag_to_recording(args.recording, frames, args.image_topic, args.camera_info_topic, args.odom_topic, args.every, args.limit)
+            print(f"wrote {s.frames} frames of {args.recording} into {frames}" + (f"; skipped {s.skipped}" if s.skipped else ""))
+        recording = read_recording(frames)
+    except RecordingError as err:
+        return _refused("adapt", err)
+    return run_adapt(request, recording)
+
+
+def is_bag(path: str | Path) -> bool:
+    """Whether `path` is a rosbag2 (its folder with metadata.yaml, or an .mcap / .db3 file)."""
+    path = Path(path)
+    return (path / "metadata.yaml").is_file() or path.suffix in (".mcap", ".db3")
+
+
 def _add_ros_commands(add_parser: AddParser) -> None:
-    """`make-bag` and `replay`: their handlers import ROS, the parser does not."""
+    """`make-bag`, `replay`, `soak` and `adapt`: their handlers import ROS, the parser does not."""
     mb = add_parser("make-bag", help="write a BOP scene as a rosbag2: camera stream, GT poses, GT boxes, model points")
     mb.add_argument("--data", required=True, help="one BOP scene folder (rgb/, scene_gt.json, scene_camera.json)")
     mb.add_argument("--out", required=True, help="bag folder to create")
@@ -186,6 +219,26 @@ def _add_ros_commands(add_parser: AddParser) -> None:
     sk.add_argument("--threads", type=int, default=2)
     sk.add_argument("--out", default="out/soak", help="folder for soak.json, rss.png and the node's log")
     sk.set_defaults(func=_soak)
+
+    ad = add_parser("adapt", help="adapt a checkpoint to your scene from an unlabeled recording of it (a rosbag or a BOP scene "
+                    "folder): its own poses, made consistent, teach the AGM the real look")  # fmt: skip
+    ad.add_argument("recording", help="rosbag2 (Image + CameraInfo, Odometry if any) or BOP scene folder (rgb/, scene_camera.json)")
+    ad.add_argument("--out", required=True, help="folder for the rounds, the report and OUT/adapted.safetensors")
+    ad.add_argument("--checkpoint", default=None, help="estimator checkpoint to adapt (default: the shipped one)")
+    ad.add_argument("--models", default=str(SHARED_LMO / "models"), help="the objects' BOP models (default: LM-O's beside the clone)")
+    ad.add_argument("--config", default=None, help="YAML of AdaptConfig's fields (axispose_core/adapt/run.py), e.g. config/adapt.yaml")
+    ad.add_argument("--rounds", type=int, default=None, help="most rounds (default: the config's)")
+    ad.add_argument("--steps", type=int, default=None, help="AGM training steps per round (default: the config's)")
+    ad.add_argument("--resume", action="store_true", help="go on with the adaptation in --out")
+    ad.add_argument("--max-minutes", type=float, default=None, help="stop (and save) after this much wall time; --resume goes on")
+    ad.add_argument("--device", default="auto", choices=["cpu", "cuda", "auto"])
+    ad.add_argument("--threads", type=int, default=2)
+    ad.add_argument("--image-topic", default=None, help="a bag's Image topic (default: its only one)")
+    ad.add_argument("--camera-info-topic", default=None, help="a bag's CameraInfo topic (default: its only one)")
+    ad.add_argument("--odom-topic", default=None, help="a bag's Odometry topic of the camera (default: its only one, if any)")
+    ad.add_argument("--every", type=int, default=1, help="a bag's every n-th image")
+    ad.add_argument("--limit", type=int, default=None, help="a bag's first N images at most")
+    ad.set_defaults(func=_adapt)
 
 
 def main(argv: Sequence[str] | None = None) -> int:

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import copy
 import csv
+import hashlib
 import math
 import platform
 import time
@@ -285,6 +286,12 @@ class _Session:
             self.checkpoint()
 
 
+def step_seed(seed: int, step: int, rank: int) -> int:
+    """The seed of the loss's randomness (e.g. diffusion noise) at one step of one rank: a function of the step, so a
+    resumed run draws what the uninterrupted run would have."""
+    return int.from_bytes(hashlib.sha256(f"{seed}/{step}/{rank}".encode()).digest()[:8], "little")
+
+
 def fit(job: TrainJob, run: RunOptions = DEFAULT_RUN) -> int:
     """Train `job.model` for cfg.optim.steps, as `run` says (resume, stop, progress); returns the step reached.
 
@@ -297,11 +304,12 @@ def fit(job: TrainJob, run: RunOptions = DEFAULT_RUN) -> int:
     trained = job.objective(parts.model) if job.objective is not None else parts.model
     net = torch.nn.parallel.DistributedDataParallel(trained) if world()[1] > 1 else trained
     session = _Session(job, run, parts, resumed)
-    gen = torch.Generator().manual_seed(session.optim.seed * 1000 + session.step + session.rank)
+    gen = torch.Generator()
     autocast = _bf16_autocast(session.optim, job.device, session.rank)
     bar = tqdm(total=session.optim.steps, initial=session.step, desc=job.desc, disable=not run.progress or session.rank != 0)
     try:
         for batch in job.batches(session.step) if not session.done() else ():
+            gen.manual_seed(step_seed(session.optim.seed, session.step, session.rank))
             loss = session.train_step(net, batch, gen, autocast)
             bar.update(1)
             bar.set_postfix(loss=f"{loss.item():.4f}")
