@@ -275,6 +275,29 @@ def bag_topics(path: str | Path) -> dict[str, str]:
         return {c.topic: c.msgtype for c in reader.connections}
 
 
+IMAGE = "sensor_msgs/msg/Image"
+CAMERA_INFO = "sensor_msgs/msg/CameraInfo"
+ODOMETRY = "nav_msgs/msg/Odometry"
+
+
+def unique_topic(topics: dict[str, str], msgtype: str, given: str | None) -> str:
+    """The topic of `msgtype` to read: `given` (which must be one), else the bag's only one (BagError otherwise)."""
+    if given:
+        if topics.get(given) != msgtype:
+            raise BagError(f"the bag has no {msgtype} topic '{given}' (it has: {sorted(topics)})")
+        return given
+    found = sorted(t for t, m in topics.items() if m == msgtype)
+    if len(found) != 1:
+        raise BagError(f"the bag has {len(found)} {msgtype} topics ({found}); name the one to use")
+    return found[0]
+
+
+def camera_topics(topics: dict[str, str], image: str | None, info: str | None, odom: str | None) -> tuple[str, str, str | None]:
+    """A bag's Image, CameraInfo and (where it has one, or one is named) Odometry topic."""
+    odom_topic = unique_topic(topics, ODOMETRY, odom) if odom or ODOMETRY in topics.values() else None
+    return unique_topic(topics, IMAGE, image), unique_topic(topics, CAMERA_INFO, info), odom_topic
+
+
 def deserialize(msg: BagMessage):
     """The rosbags message object of a raw bag message."""
     try:

@@ -157,6 +157,11 @@ def is_bag(path: str | Path) -> bool:
 
 def _add_ros_commands(add_parser: AddParser) -> None:
     """`make-bag`, `replay`, `soak` and `adapt`: their handlers import ROS, the parser does not."""
+    for add in (_add_make_bag, _add_replay, _add_soak, _add_adapt):
+        add(add_parser)
+
+
+def _add_make_bag(add_parser: AddParser) -> None:
     mb = add_parser("make-bag", help="write a BOP scene as a rosbag2: camera stream, GT poses, GT boxes, model points")
     mb.add_argument("--data", required=True, help="one BOP scene folder (rgb/, scene_gt.json, scene_camera.json)")
     mb.add_argument("--out", required=True, help="bag folder to create")
@@ -169,6 +174,8 @@ def _add_ros_commands(add_parser: AddParser) -> None:
     mb.add_argument("--limit", type=int, default=None, help="first N images only")
     mb.set_defaults(func=_make_bag)
 
+
+def _add_replay(add_parser: AddParser) -> None:
     rp = add_parser("replay", help="run the node in-process on a bag, record its outputs, score them against the bag's GT")
     rp.add_argument("bag", help="rosbag2 folder (sqlite3 or mcap)")
     rp.add_argument("--checkpoint", required=True)
@@ -202,6 +209,8 @@ def _add_ros_commands(add_parser: AddParser) -> None:
     rp.add_argument("--threads", type=int, default=2)
     rp.set_defaults(func=_replay)
 
+
+def _add_soak(add_parser: AddParser) -> None:
     sk = add_parser("soak", help="the node in its own process on a bag looped at a camera's rate, with faults injected: "
                     "RSS, frames delivered and dropped, faults counted, tracks reset")  # fmt: skip
     sk.add_argument("bag", help="rosbag2 folder with an Image and a CameraInfo topic")
@@ -220,6 +229,8 @@ def _add_ros_commands(add_parser: AddParser) -> None:
     sk.add_argument("--out", default="out/soak", help="folder for soak.json, rss.png and the node's log")
     sk.set_defaults(func=_soak)
 
+
+def _add_adapt(add_parser: AddParser) -> None:
     ad = add_parser("adapt", help="adapt a checkpoint to your scene from an unlabeled recording of it (a rosbag or a BOP scene "
                     "folder): its own poses, made consistent, teach the AGM the real look")  # fmt: skip
     ad.add_argument("recording", help="rosbag2 (Image + CameraInfo, Odometry if any) or BOP scene folder (rgb/, scene_camera.json)")

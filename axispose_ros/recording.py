@@ -23,15 +23,12 @@ import numpy as np
 
 from axispose_core.adapt.recording import RecordingError
 from axispose_core.data.bop import write_scene_camera
-from axispose_ros.bag import BagError, BagMessage, bag_topics, deserialize, read_bag
+from axispose_ros.bag import BagError, BagMessage, bag_topics, camera_topics, deserialize, read_bag
 from axispose_ros.conversions import InputError, Undistorter, check_frame, image_to_rgb, stamp_seconds
 from axispose_ros.odometry import pose_matrix
 from axispose_ros.params import SPECS
 from axispose_ros.sync import StampSynchronizer
 
-IMAGE = "sensor_msgs/msg/Image"
-CAMERA_INFO = "sensor_msgs/msg/CameraInfo"
-ODOMETRY = "nav_msgs/msg/Odometry"
 SYNC_SLOP: float = next(s.default for s in SPECS if s.name == "sync_slop")
 """The node's default largest Image/CameraInfo (and Image/Odometry) stamp difference, s."""
 
@@ -64,23 +61,12 @@ def _one_line(text: object) -> str:
     return " ".join(str(text).split())
 
 
-def _topic(topics: dict[str, str], msgtype: str, given: str | None) -> str:
-    """The topic of `msgtype` to read: `given`, else the bag's only one (as `axispose replay` picks them)."""
-    if given:
-        if topics.get(given) != msgtype:
-            raise RecordingError(f"the bag has no {msgtype} topic '{given}' (it has: {sorted(topics)})")
-        return given
-    found = sorted(t for t, m in topics.items() if m == msgtype)
-    if len(found) != 1:
-        raise RecordingError(f"the bag has {len(found)} {msgtype} topics ({found}); name the one to use")
-    return found[0]
-
-
 def _topics(bag: Path, image: str | None, info: str | None, odom: str | None) -> _Topics:
     """The bag's camera, CameraInfo and (where it has one, or one is named) Odometry topics."""
-    topics = bag_topics(bag)
-    use_odom = odom or ODOMETRY in topics.values()
-    return _Topics(_topic(topics, IMAGE, image), _topic(topics, CAMERA_INFO, info), _topic(topics, ODOMETRY, odom) if use_odom else None)
+    try:
+        return _Topics(*camera_topics(bag_topics(bag), image, info, odom))
+    except BagError as err:
+        raise RecordingError(str(err)) from err
 
 
 def _sorted(counts: Counter) -> dict[str, int]:

@@ -45,14 +45,18 @@ from axispose_core.metrics import Symmetry
 from axispose_core.tracking.jitter import PosePair, jitter
 from axispose_msgs.msg import DetectionArray
 from axispose_ros.bag import (
+    CAMERA_INFO,
     FORMATS,
     GT_PREFIX,
+    IMAGE,
     MODELS_PREFIX,
+    ODOMETRY,
     ROI_PREFIX,
     TYPESTORE,
     BagError,
     BagMessage,
     bag_topics,
+    camera_topics,
     cloud_points,
     deserialize,
     read_bag,
@@ -67,13 +71,7 @@ from axispose_ros.node import AxisPoseNode
 # clock) are polled no faster than this.
 POLL_S = 0.05
 
-ROS_TYPES = {
-    "sensor_msgs/msg/Image": Image,
-    "sensor_msgs/msg/CameraInfo": CameraInfo,
-    "sensor_msgs/msg/RegionOfInterest": RegionOfInterest,
-    "nav_msgs/msg/Odometry": Odometry,
-}
-ODOMETRY = "nav_msgs/msg/Odometry"
+ROS_TYPES = {IMAGE: Image, CAMERA_INFO: CameraInfo, "sensor_msgs/msg/RegionOfInterest": RegionOfInterest, ODOMETRY: Odometry}
 
 
 def _msg_folder() -> Path:
@@ -187,17 +185,6 @@ def _stamp_ns(header) -> int:
     return int(header.stamp.sec) * 10**9 + int(header.stamp.nanosec)
 
 
-def _unique_topic(topics: dict[str, str], msgtype: str, given: str | None) -> str:
-    if given:
-        if topics.get(given) != msgtype:
-            raise BagError(f"the bag has no {msgtype} topic '{given}' (it has: {sorted(topics)})")
-        return given
-    found = [t for t, m in topics.items() if m == msgtype]
-    if len(found) != 1:
-        raise BagError(f"the bag has {len(found)} {msgtype} topics ({found}); name the one to use")
-    return found[0]
-
-
 def _pose_rt(pose) -> tuple[np.ndarray, np.ndarray]:
     q = pose.orientation
     R = Rotation.from_quat([q.x, q.y, q.z, q.w]).as_matrix()
@@ -212,9 +199,7 @@ def replay(bag: str | Path, checkpoint: str | Path, out_bag: str | Path, options
     if out_bag.exists():
         raise FileExistsError(f"{out_bag} exists; rosbag2 writers refuse to overwrite a bag")
     topics = bag_topics(bag)
-    image_topic = _unique_topic(topics, "sensor_msgs/msg/Image", opts.image_topic)
-    info_topic = _unique_topic(topics, "sensor_msgs/msg/CameraInfo", opts.info_topic)
-    odom_topic = _unique_topic(topics, ODOMETRY, opts.odom_topic) if opts.odom_topic or ODOMETRY in topics.values() else None
+    image_topic, info_topic, odom_topic = camera_topics(topics, opts.image_topic, opts.info_topic, opts.odom_topic)
     remaps = [f"image:={image_topic}", f"camera_info:={info_topic}"] + ([f"camera_odom:={odom_topic}"] if odom_topic else [])
 
     ctx = rclpy.Context()
