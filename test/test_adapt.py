@@ -208,3 +208,20 @@ def test_bad_input_is_one_line_and_exit_2(recording, tmp_path, lmo_dir, capsys):
     for k in cams:
         cv2.imwrite(str(blank / "rgb" / f"{int(k):06d}.png"), np.full((480, 640, 3), 90, np.uint8))
     assert "no labels" in refused(recording=blank, out=tmp_path / "blank_out", config="{rounds: 1}")
+
+
+def test_recoloured_models_keep_their_geometry_and_wear_other_colours(lmo_dir, tmp_path):
+    from axispose_core.data.bop import model_path
+    from axispose_core.data.meshes import load_ply
+    from axispose_core.data.recolour import recoloured_models
+
+    out = recoloured_models(lmo_dir / "models", tmp_path / "a", seed=3)
+    again = recoloured_models(lmo_dir / "models", tmp_path / "b", seed=3)
+    for obj_id in (1, 10):
+        mesh, new = load_ply(model_path(lmo_dir / "models", obj_id)), load_ply(model_path(out, obj_id))
+        np.testing.assert_allclose(new.vertices, mesh.vertices, atol=1e-4)
+        assert (new.faces == mesh.faces).all()
+        hue = [cv2.cvtColor(m.colors.reshape(-1, 1, 3), cv2.COLOR_RGB2HSV)[:, 0, 0].astype(int) for m in (mesh, new)]
+        turned = np.minimum(abs(hue[1] - hue[0]), 180 - abs(hue[1] - hue[0]))
+        assert np.median(turned[mesh.colors.std(axis=1) > 8]) > 30  # coloured vertices turned in hue (OpenCV's 0-180)
+        assert (load_ply(model_path(again, obj_id)).colors == new.colors).all()  # one seed, one look

@@ -125,3 +125,21 @@ def test_odometry_places_the_cameras_and_a_thin_scene_fills_nothing():
 def test_config_refuses_gates_that_admit_nothing(gate):
     with pytest.raises(ValueError):
         ConsistencyConfig(depth_gate=gate)
+
+
+def test_a_window_keeps_a_moved_objects_poses_consistent_on_either_side_of_the_move():
+    """With `window`, each frame's scene is its neighbours': the duck put elsewhere half way through is a still object
+    in the frames away from the move, and its poses there are checked by the scene's."""
+    objects, cameras, cands = planted_scene(3, frames=14)
+    moved = pose_matrix(objects[9][:3, :3], objects[9][:3, 3] + np.array([0.0, 0.25, 0.0]))
+    rng = np.random.default_rng(9)
+    for f in range(7, 14):
+        cands[f] = [c for c in cands[f] if c.obj_id != 9] + [candidate(f, 9, inverse(cameras[f]) @ moved, rng)]
+    out = consistent(cands, GEOMETRY, ACCEPT, ConsistencyConfig(window=3))
+    far = [0, 1, 2, 3, 10, 11, 12, 13]
+    assert not any(9 in out.moved.get(f, set()) for f in far) and not out.rejected
+    for f in far:
+        duck = [p for p in out.predictions[f] if p.obj_id == 9]
+        truth = inverse(cameras[f]) @ (objects[9] if f < 7 else moved)
+        assert len(duck) == 1 and duck[0].own is not None and np.linalg.norm(duck[0].t - truth[:3, 3]) < 0.04
+    assert 9 in out.moved[7] or 9 in out.moved[6]  # a window across the move sees it

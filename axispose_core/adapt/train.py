@@ -37,7 +37,7 @@ class AdaptTrainConfig:
     trained on, as its training record says)."""
 
     optim: OptimConfig = field(
-        default_factory=lambda: OptimConfig(1500, 32, 1e-4, warmup=50, ema_decay=0.995, save_every=100, val_every=500, bf16=True)
+        default_factory=lambda: OptimConfig(1200, 32, 1e-4, warmup=50, ema_decay=0.995, save_every=100, val_every=500, bf16=True)
     )
     real_per_batch: int = 16
     min_visib: float = 0.2
