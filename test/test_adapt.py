@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 import torch
 
-from axispose_core.adapt.command import AdaptRequest, run_adapt
+from axispose_core.adapt.command import AdaptRequest, adapt_config, run_adapt
 from axispose_core.adapt.crops import KEYS, LabelledCrops, mixed_batches
 from axispose_core.adapt.labels import FillConfig, Label, label_frame, write_labels
 from axispose_core.adapt.pseudo import PoseSettings, pose_frames, read_candidates
@@ -182,6 +182,15 @@ def test_a_round_runs_end_to_end_and_resumes_to_the_same_weights(recording, tmp_
     assert all(torch.equal(a[k], b[k]) for k in a)
     with pytest.raises(AdaptError, match="another config"):
         Adaptation(rec, SHIPPED_ESTIMATOR, lmo_dir / "models", tmp_path / "cut", _small(steps=5), resume=True)
+
+
+def test_a_config_changes_only_the_values_it_names(tmp_path):
+    request = AdaptRequest(tmp_path, tmp_path / "out", SHIPPED_ESTIMATOR, tmp_path, config="{train: {optim: {lr: 3.0e-5}}, rounds: 1}")
+    cfg = adapt_config(request)
+    default = AdaptTrainConfig().optim
+    assert cfg.rounds == 1 and cfg.train.optim.lr == 3.0e-5
+    assert dataclasses.replace(cfg.train.optim, lr=default.lr) == default
+    assert adapt_config(dataclasses.replace(request, steps=300)).train.optim.steps == 300
 
 
 def test_bad_input_is_one_line_and_exit_2(recording, tmp_path, lmo_dir, capsys):

@@ -15,7 +15,7 @@ import torch
 from axispose_core.adapt.crops import LabelledCrops, mixed_batches
 from axispose_core.agm.model import AxisGenerator
 from axispose_core.camera import CropJitter
-from axispose_core.config import config_from_dict
+from axispose_core.config import PRESET, config_from_dict
 from axispose_core.data.bop import model_path
 from axispose_core.data.meshes import load_ply
 from axispose_core.data.synth.config import PhotometricConfig, StreamConfig
@@ -37,8 +37,10 @@ class AdaptTrainConfig:
     trained on, as its training record says)."""
 
     optim: OptimConfig = field(
-        default_factory=lambda: OptimConfig(1200, 32, 1e-4, warmup=50, ema_decay=0.995, save_every=100, val_every=500, bf16=True)
+        default_factory=lambda: OptimConfig(1200, 32, 1e-4, warmup=50, ema_decay=0.995, save_every=100, val_every=500, bf16=True),
+        metadata=PRESET,
     )
+    """A YAML's `optim` section changes these values; the keys it leaves out keep them."""
     real_per_batch: int = 16
     min_visib: float = 0.2
     augment: PhotometricConfig = STRONG
