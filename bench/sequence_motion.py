@@ -1,6 +1,6 @@
 """How far a scene's consecutive frames lie apart (`tracking/motion.py`): the camera's rotation between frames, how
 far the objects' centres move in the image, and how often an object moves against the rest (its centre more than
-`--tol` off the camera's motion: the object moved, or its annotation did).
+`--tol` off the camera's motion: the object moved, or its annotation did), in all and per object.
 
     python bench/sequence_motion.py ../shared/data/lmo_real_val/test/000002 [SCENE ...] [--tol 0.02]
 """
@@ -8,9 +8,24 @@ far the objects' centres move in the image, and how often an object moves agains
 from __future__ import annotations
 
 import argparse
+import itertools
 
 from axispose_core.data.bop import BopScene
-from axispose_core.tracking.motion import scene_motion
+from axispose_core.tracking.motion import camera_motion, scene_motion
+
+
+def moves_per_object(scene: BopScene, tol: float) -> dict[int, int]:
+    """Per object, the consecutive frame pairs in which it moves against the rest: a recording whose objects
+    stand still has none."""
+    moves: dict[int, int] = {}
+    for im_a, im_b in itertools.pairwise(sorted(scene.gt)):
+        found = camera_motion(scene.gt[im_a], scene.gt[im_b], tol)
+        if found is None:
+            continue
+        common = sorted({g.obj_id for g in scene.gt[im_a]} & {g.obj_id for g in scene.gt[im_b]})
+        for obj_id, off in zip(common, found[1], strict=True):
+            moves[obj_id] = moves.get(obj_id, 0) + (off > tol)
+    return moves
 
 
 def main() -> None:
@@ -27,6 +42,8 @@ def main() -> None:
               f"(q75 {m['rotation_deg_q75']:.1f}°), objects move {m['image_motion_px_median']:.0f} px "
               f"(q75 {m['image_motion_px_q75']:.0f} px) in the image; {m['objects_moved_share']:.1%} of object steps "
               "move against the rest")  # fmt: skip
+        moves = moves_per_object(BopScene(root), args.tol)
+        print("  moves per object: " + ", ".join(f"{obj_id}: {n}" for obj_id, n in sorted(moves.items())))
 
 
 if __name__ == "__main__":
