@@ -35,14 +35,15 @@ def main() -> None:
     args = ap.parse_args()
     for root in args.scenes:
         try:
-            m = scene_motion(BopScene(root), args.tol)
+            scene = BopScene(root)
+            m = scene_motion(scene, args.tol)
         except (OSError, ValueError) as exc:
             ap.exit(2, f"sequence_motion: {exc}\n")
         print(f"{root}: {m['frames']} frames; between consecutive frames the camera turns {m['rotation_deg_median']:.1f}° "
               f"(q75 {m['rotation_deg_q75']:.1f}°), objects move {m['image_motion_px_median']:.0f} px "
               f"(q75 {m['image_motion_px_q75']:.0f} px) in the image; {m['objects_moved_share']:.1%} of object steps "
               "move against the rest")  # fmt: skip
-        moves = moves_per_object(BopScene(root), args.tol)
+        moves = moves_per_object(scene, args.tol)
         print("  moves per object: " + ", ".join(f"{obj_id}: {n}" for obj_id, n in sorted(moves.items())))
 
 
