@@ -8,24 +8,9 @@ far the objects' centres move in the image, and how often an object moves agains
 from __future__ import annotations
 
 import argparse
-import itertools
 
 from axispose_core.data.bop import BopScene
-from axispose_core.tracking.motion import camera_motion, scene_motion
-
-
-def moves_per_object(scene: BopScene, tol: float) -> dict[int, int]:
-    """Per object, the consecutive frame pairs in which it moves against the rest: a recording whose objects
-    stand still has none."""
-    moves: dict[int, int] = {}
-    for im_a, im_b in itertools.pairwise(sorted(scene.gt)):
-        found = camera_motion(scene.gt[im_a], scene.gt[im_b], tol)
-        if found is None:
-            continue
-        common = sorted({g.obj_id for g in scene.gt[im_a]} & {g.obj_id for g in scene.gt[im_b]})
-        for obj_id, off in zip(common, found[1], strict=True):
-            moves[obj_id] = moves.get(obj_id, 0) + (off > tol)
-    return moves
+from axispose_core.tracking.motion import scene_motion
 
 
 def main() -> None:
@@ -35,16 +20,14 @@ def main() -> None:
     args = ap.parse_args()
     for root in args.scenes:
         try:
-            scene = BopScene(root)
-            m = scene_motion(scene, args.tol)
+            m = scene_motion(BopScene(root), args.tol)
         except (OSError, ValueError) as exc:
             ap.exit(2, f"sequence_motion: {exc}\n")
         print(f"{root}: {m['frames']} frames; between consecutive frames the camera turns {m['rotation_deg_median']:.1f}° "
               f"(q75 {m['rotation_deg_q75']:.1f}°), objects move {m['image_motion_px_median']:.0f} px "
               f"(q75 {m['image_motion_px_q75']:.0f} px) in the image; {m['objects_moved_share']:.1%} of object steps "
               "move against the rest")  # fmt: skip
-        moves = moves_per_object(scene, args.tol)
-        print("  moves per object: " + ", ".join(f"{obj_id}: {n}" for obj_id, n in sorted(moves.items())))
+        print("  moves per object: " + ", ".join(f"{obj_id}: {n}" for obj_id, n in sorted(m["moves"].items())))
 
 
 if __name__ == "__main__":

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -10,7 +11,7 @@ from scipy.spatial.transform import Rotation
 
 from axispose_core.data.bop import GTInstance
 from axispose_core.tracking.filter import FilterConfig, PoseFilter
-from axispose_core.tracking.motion import camera_motion
+from axispose_core.tracking.motion import camera_motion, scene_motion
 from axispose_core.tracking.tracker import Crop, Sighting, Tracker, TrackingConfig
 
 K = np.array([[572.4, 0.0, 325.3], [0.0, 573.6, 242.0], [0.0, 0.0, 1.0]])
@@ -446,6 +447,22 @@ def test_the_cameras_motion_between_frames_is_the_one_most_objects_agree_on():
     np.testing.assert_allclose(motion[:3, 3], pivot - turn @ pivot, atol=1e-9)
     assert off[2] == pytest.approx(0.05) and max(off[:2] + off[3:]) < 1e-9
     assert camera_motion(before, [], tol=0.02) is None
+
+
+def test_a_scene_counts_each_objects_moves_against_the_rest():
+    """Three still frames of four objects, the camera turning; object 3 moved 5 cm between the second and third: one
+    move of object 3, none of the others, one step of the six moved."""
+    world = [(Rotation.random(random_state=k).as_matrix(), np.array([0.1 * k - 0.2, 0.05 * k, 0.8])) for k in range(4)]
+    pivot = np.array([0.0, 0.0, 0.8])
+    frames = {}
+    for i in range(3):
+        turn = Rotation.from_euler("y", 10 * i, degrees=True).as_matrix()
+        shift = [np.array([0.05, 0.0, 0.0]) if i == 2 and k == 2 else np.zeros(3) for k in range(4)]
+        frames[i] = [GTInstance(k + 1, turn @ R, turn @ (t + shift[k] - pivot) + pivot) for k, (R, t) in enumerate(world)]
+    K = np.array([[572.0, 0.0, 320.0], [0.0, 572.0, 240.0], [0.0, 0.0, 1.0]])
+    scene = SimpleNamespace(gt=frames, cameras={i: K for i in frames}, root="three frames")
+    m = scene_motion(scene, tol=0.02)
+    assert m["moves"] == {1: 0, 2: 0, 3: 1, 4: 0} and m["objects_moved_share"] == pytest.approx(1 / 8)
 
 
 @dataclass

@@ -9,6 +9,7 @@ next positions wins). A camera stream at its own rate turns a degree or so and m
 from __future__ import annotations
 
 import itertools
+from typing import Any
 
 import numpy as np
 
@@ -24,7 +25,7 @@ def _transform(R: np.ndarray, t: np.ndarray) -> np.ndarray:
 
 def camera_motion(before: list[GTInstance], after: list[GTInstance], tol: float) -> tuple[np.ndarray, list[float]] | None:
     """The camera's motion from one frame to the next (4x4, camera-before to camera-after) and each common object's
-    centre distance (m) from where that motion puts it; None without a common object."""
+    centre distance (m) from where that motion puts it, in order of object id; None without a common object."""
     a = {g.obj_id: _transform(g.R, g.t) for g in before}
     b = {g.obj_id: _transform(g.R, g.t) for g in after}
     common = sorted(set(a) & set(b))
@@ -39,12 +40,13 @@ def camera_motion(before: list[GTInstance], after: list[GTInstance], tol: float)
     return best, best_off
 
 
-def scene_motion(scene: BopScene, tol: float) -> dict[str, float]:
+def scene_motion(scene: BopScene, tol: float) -> dict[str, Any]:
     """Median and 75th percentile of the camera's rotation (deg) and of the objects' image motion (px) between
-    consecutive frames, and the share of object steps that move against the rest; ValueError where no two consecutive
-    frames share an object."""
+    consecutive frames, the share of object steps that move against the rest and, per object id, its steps that do
+    (`moves`: none for a still scene); ValueError where no two consecutive frames share an object."""
     ids = sorted(scene.gt)
     rotation, pixels, moved, steps = [], [], 0, 0
+    moves: dict[int, int] = {}
     for im_a, im_b in itertools.pairwise(ids):
         found = camera_motion(scene.gt[im_a], scene.gt[im_b], tol)
         if found is None:
@@ -52,6 +54,9 @@ def scene_motion(scene: BopScene, tol: float) -> dict[str, float]:
         motion, off = found
         rotation.append(re(motion[:3, :3], np.eye(3)))
         moved, steps = moved + sum(o > tol for o in off), steps + len(off)
+        common = sorted({g.obj_id for g in scene.gt[im_a]} & {g.obj_id for g in scene.gt[im_b]})
+        for obj_id, o in zip(common, off, strict=True):
+            moves[obj_id] = moves.get(obj_id, 0) + int(o > tol)
         K = scene.cameras[im_b]
         after = {g.obj_id: g.t for g in scene.gt[im_b]}
         for g in scene.gt[im_a]:
@@ -67,4 +72,5 @@ def scene_motion(scene: BopScene, tol: float) -> dict[str, float]:
         "image_motion_px_median": float(np.median(pixels)),
         "image_motion_px_q75": float(np.percentile(pixels, 75)),
         "objects_moved_share": moved / max(steps, 1),
+        "moves": moves,
     }
