@@ -182,6 +182,15 @@ def test_a_round_runs_end_to_end_and_resumes_to_the_same_weights(recording, tmp_
     assert all(torch.equal(a[k], b[k]) for k in a)
     with pytest.raises(AdaptError, match="another config"):
         Adaptation(rec, SHIPPED_ESTIMATOR, lmo_dir / "models", tmp_path / "cut", _small(steps=5), resume=True)
+    # A finished run resumed with more rounds goes on from its last: round 1 poses and trains from round 0's model.
+    more = Adaptation(rec, SHIPPED_ESTIMATOR, lmo_dir / "models", tmp_path / "whole", _small(rounds=2, steps=3),
+                      RunOptions(device="cpu"), resume=True)  # fmt: skip
+    assert more.estimator_of(1) == tmp_path / "whole" / "round0" / ADAPTED
+    two = _weights(more.run(progress=False))
+    rounds = json.loads((tmp_path / "whole" / "report.json").read_text())["rounds"]
+    assert len(rounds) == 2 and rounds[1]["labels"] > 0 and ("stopped" in rounds[1]) != bool(rounds[1].get("trained"))
+    last = tmp_path / "whole" / ("round1" if rounds[1].get("trained") else "round0") / ADAPTED
+    assert all(torch.equal(two[k], _weights(last)[k]) for k in two)
 
 
 def test_a_config_changes_only_the_values_it_names(tmp_path):

@@ -82,7 +82,8 @@ class Adaptation:
         self.state = self._open(resume)
 
     def _open(self, resume: bool) -> dict:
-        """The run's state: new (OUT must not hold another run), or the one OUT holds, made by the same call."""
+        """The run's state: new (OUT must not hold another run), or the one OUT holds, made by the same call but
+        for the number of rounds: a finished run resumed with more rounds goes on from its last one."""
         path = self.out / STATE
         made = {"checkpoint": str(self.checkpoint.resolve()), "recording": str(self.recording.root.resolve()),
                 "frames": [f.im_id for f in self.recording.frames], "models": str(self.models.resolve()),
@@ -91,9 +92,11 @@ class Adaptation:
             if not resume:
                 raise AdaptError(f"{self.out} holds an adaptation already: --resume to go on with it, or another --out")
             state = json.loads(path.read_text())
+            state["config"]["rounds"] = self.cfg.rounds
             different = [k for k in made if state.get(k) != made[k]]
             if different:
                 raise AdaptError(f"{self.out} was adapted with another {', '.join(different)}: give the same, or another --out")
+            self._save(state)
             return state
         if resume:
             raise AdaptError(f"{path}: nothing to resume")
