@@ -18,7 +18,8 @@ from pathlib import Path
 
 import numpy as np
 
-from axispose_core.data.bop import BopEstimate, ObjectInfo, model_path
+from axispose_core.data.bop_models import ObjectInfo, model_path
+from axispose_core.data.bop_results import BopEstimate
 from axispose_core.data.meshes import load_ply
 from axispose_core.data.synth.raster import RenderMesh, render_depth
 from axispose_core.metrics import Symmetry, mspd, mssd, symmetry_transformations, vsd

@@ -16,7 +16,7 @@ from axispose_core.config import config_from_dict
 
 FORMAT = "axispose/1"
 ESTIMATOR = "estimator"
-"""The kind of an estimator checkpoint (`estimator.py`): AGM, reader and localiser in one file, as the node runs it."""
+"""The kind of an estimator checkpoint (`estimator_checkpoint.py`): AGM, reader and localiser in one file, as the node runs it."""
 C = TypeVar("C")
 
 

@@ -17,7 +17,7 @@ from axispose_core.axis_image import AxisSpec
 from axispose_core.lmo import LMO_DIAMETERS, LMO_NAMES, LMO_SYMMETRIC
 
 if TYPE_CHECKING:  # the node reads objects from its checkpoint; the BOP readers load only where a models folder is read
-    from axispose_core.data.bop import ObjectInfo
+    from axispose_core.data.bop_models import ObjectInfo
 
 NAMES_FILE = "names.json"
 """Beside models_info.json: {"<obj_id>": "<name>"}, written by `axispose synth` from the imported meshes' file names."""
@@ -72,7 +72,7 @@ def object_names(models_dir: str | Path, infos: dict[int, ObjectInfo] | None = N
             raise ValueError(f"{path}: names must be distinct, start with a letter and hold only letters, digits and '_' "
                              f"(topic and parameter names are made of them): {bad or sorted(names.values())}")  # fmt: skip
         return names
-    from axispose_core.data.bop import load_models_info
+    from axispose_core.data.bop_models import load_models_info
 
     infos = load_models_info(Path(models_dir) / "models_info.json") if infos is None else infos
     return dict(LMO_NAMES) if is_lmo(infos) else {}
@@ -81,7 +81,7 @@ def object_names(models_dir: str | Path, infos: dict[int, ObjectInfo] | None = N
 def objects_from_models(models_dir: str | Path, obj_ids: list[int] | None = None, names: dict[int, str] | None = None) -> list[ObjectSpec]:
     """ObjectSpecs from a BOP folder's models_info.json (λ_O = half the diameter), named by `names`, else by
     `object_names`; unnamed ids become obj_<id>."""
-    from axispose_core.data.bop import load_models_info
+    from axispose_core.data.bop_models import load_models_info
 
     infos = load_models_info(Path(models_dir) / "models_info.json")
     names = object_names(models_dir, infos) if names is None else names

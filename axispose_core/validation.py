@@ -16,7 +16,10 @@ from pathlib import Path
 import numpy as np
 
 from axispose_core.estimator import EstimateOptions, Estimator
-from axispose_core.evaluate import MIN_VISIB, EvalOptions, Record, estimator_runs, evaluate, plot_cdfs, summarize
+from axispose_core.evaluation.records import Record
+from axispose_core.evaluation.report import plot_cdfs
+from axispose_core.evaluation.run import MIN_VISIB, EvalOptions, estimator_runs, evaluate
+from axispose_core.evaluation.summary import summarize
 
 CROPS = ("gt", "detect")
 

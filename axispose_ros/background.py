@@ -18,7 +18,8 @@ from multiprocessing.connection import Connection
 
 import numpy as np
 
-from axispose_core.estimator import EstimateOptions, Estimator, Found
+from axispose_core.estimator import EstimateOptions, Estimator
+from axispose_core.pose_estimate import Found
 
 READY = "ready"
 """What the process sends once its checkpoint is loaded (or failed to load)."""

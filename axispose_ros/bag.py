@@ -27,7 +27,9 @@ from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 from scipy.spatial.transform import Rotation
 from tqdm import tqdm
 
-from axispose_core.data.bop import BopFormatError, BopScene, model_path
+from axispose_core.data.bop import BopFormatError
+from axispose_core.data.bop_models import model_path
+from axispose_core.data.bop_scene import BopScene
 from axispose_core.data.meshes import load_ply
 from axispose_core.data.visibility import gt_info_from_models
 from axispose_core.objects import ObjectSpec

@@ -10,15 +10,18 @@ import sys
 from collections.abc import Sequence
 from pathlib import Path
 
-from axispose_core.cli import AddParser, build_parser, object_ids
+from axispose_core.cli import build_parser
 from axispose_core.cli import main as core_main
+from axispose_core.command_args import AddParser, object_ids
 from axispose_core.lmo import SHARED_LMO
+from axispose_core.tracking.mode import Mode
 
 REPLAY_PARAMS = {
-    "steps": "ddim_steps", "hypotheses": "hypotheses", "guidance": "guidance_scale", "precision": "precision", "tracking": "tracking",
-    "refine": "refine", "follow": "follow", "redetect_period": "redetect_period", "measure_every": "measure_every",
-    "view_window": "view_window", "background_detection": "background_detection", "follow_passes": "follow_passes",
+    "steps": "ddim_steps", "hypotheses": "hypotheses", "guidance": "guidance_scale", "precision": "precision", "mode": "mode",
+    "refine": "refine", "redetect_period": "redetect_period", "measure_every": "measure_every", "view_window": "view_window",
+    "follow_passes": "follow_passes",
 }  # fmt: skip
+MODES = [m.value for m in Mode]
 """`replay`'s options that set the node's parameter of that name ("on" / "off": True / False)."""
 
 
@@ -46,7 +49,7 @@ def _replay(args: argparse.Namespace) -> int:
     from rclpy.exceptions import ParameterException
 
     from axispose_core.checkpoint import CheckpointError
-    from axispose_core.evaluate import format_table, write_report
+    from axispose_core.evaluation.report import format_table, write_report
     from axispose_ros.bag import BagError
     from axispose_ros.replay import ReplayOptions, replay
 
@@ -78,7 +81,7 @@ def _replay(args: argparse.Namespace) -> int:
         lat = result.report["frame_latency_ms"]
         print(f"frame latency: median {lat['median']:.0f} ms, p90 {lat['p90']:.0f} ms")
         jit = result.report["tracking"]
-        print(f"tracking {'on' if jit['on'] else 'off'}: jitter {jit['jitter_mm']:.1f} mm, {jit['jitter_deg']:.2f} deg "
+        print(f"modes {jit['modes']}: jitter {jit['jitter_mm']:.1f} mm, {jit['jitter_deg']:.2f} deg "
               f"(median over {jit['n']} consecutive frame pairs)")  # fmt: skip
         if args.report:
             write_report(result.report, args.report)
@@ -105,8 +108,7 @@ def _soak(args: argparse.Namespace) -> int:
     from axispose_ros.bag import BagError
     from axispose_ros.soak import SoakOptions, soak
 
-    opts = SoakOptions(seconds=args.minutes * 60, rate=args.rate, tracking=args.tracking == "on", follow=args.follow == "on",
-                       view_window=args.view_window, background_detection=args.background_detection == "on",
+    opts = SoakOptions(seconds=args.minutes * 60, rate=args.rate, mode=args.mode, view_window=args.view_window,
                        follow_passes=args.follow_passes, faults=not args.no_faults,
                        precision=args.precision, threads=args.threads)  # fmt: skip
     try:
@@ -197,15 +199,12 @@ def _add_replay(add_parser: AddParser) -> None:
     rp.add_argument(
         "--ignore-rois", action="store_true", help="do not play the bag's /roi/<name> boxes: the checkpoint's localiser finds the objects"
     )
-    rp.add_argument("--tracking", choices=["on", "off"], default=None, help="tracking parameter of the node (default: its own)")
+    rp.add_argument("--mode", choices=MODES, default=None, help="mode parameter of the node (default: its own, auto)")
     rp.add_argument("--refine", choices=["on", "off"], default=None, help="refine parameter of the node (default: its own, on)")
-    rp.add_argument("--follow", choices=["on", "off"], default=None, help="follow parameter of the node (with tracking)")
-    rp.add_argument("--redetect-period", type=int, default=None, help="redetect_period parameter of the node (with tracking)")
-    rp.add_argument("--measure-every", type=int, default=None, help="measure_every parameter of the node (with tracking)")
-    rp.add_argument("--view-window", type=int, default=None, help="view_window parameter of the node (with tracking and odometry)")
-    rp.add_argument("--follow-passes", type=int, default=None, help="follow_passes parameter of the node (with follow)")
-    rp.add_argument("--background-detection", choices=["on", "off"], default=None,
-                    help="background_detection parameter of the node (with follow and view_window)")  # fmt: skip
+    rp.add_argument("--redetect-period", type=int, default=None, help="redetect_period parameter of the node (video modes)")
+    rp.add_argument("--measure-every", type=int, default=None, help="measure_every parameter of the node (video modes)")
+    rp.add_argument("--view-window", type=int, default=None, help="view_window parameter of the node (video_odometry)")
+    rp.add_argument("--follow-passes", type=int, default=None, help="follow_passes parameter of the node (video modes)")
     rp.add_argument("--threads", type=int, default=2)
     rp.set_defaults(func=_replay)
 
@@ -217,12 +216,9 @@ def _add_soak(add_parser: AddParser) -> None:
     sk.add_argument("--checkpoint", default=None, help="estimator checkpoint (default: the shipped one)")
     sk.add_argument("--minutes", type=float, default=10.0)
     sk.add_argument("--rate", type=float, default=30.0, help="frames per second sent")
-    sk.add_argument("--tracking", choices=["on", "off"], default="off")
-    sk.add_argument("--follow", choices=["on", "off"], default="off", help="follow parameter of the node (with tracking)")
-    sk.add_argument("--view-window", type=int, default=0, help="view_window parameter of the node (with tracking and the bag's odometry)")
-    sk.add_argument("--follow-passes", type=int, default=0, help="follow_passes parameter of the node (with follow)")
-    sk.add_argument("--background-detection", choices=["on", "off"], default="off",
-                    help="background_detection parameter of the node (with follow and view_window)")  # fmt: skip
+    sk.add_argument("--mode", choices=MODES, default="auto", help="mode parameter of the node")
+    sk.add_argument("--view-window", type=int, default=160, help="view_window parameter of the node (video_odometry)")
+    sk.add_argument("--follow-passes", type=int, default=0, help="follow_passes parameter of the node (video modes)")
     sk.add_argument("--no-faults", action="store_true", help="the stream alone")
     sk.add_argument("--precision", choices=["auto", "float32", "bfloat16"], default="float32")
     sk.add_argument("--threads", type=int, default=2)

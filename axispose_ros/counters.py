@@ -43,9 +43,10 @@ class Counters:
         the old one, so a reader sees either)."""
         self.latency = [*self.latency[-(LATENCY_WINDOW - 1) :], seconds]
 
-    def key_values(self) -> list[KeyValue]:
-        """The counts (totals) and the median latency of the window in ms, sorted by key, for a DiagnosticStatus."""
-        values: dict[str, float] = dict(self.snapshot())
+    def key_values(self, described: dict[str, str] | None = None) -> list[KeyValue]:
+        """The counts (totals), the median latency of the window in ms and what `described` adds, sorted by key, for
+        a DiagnosticStatus."""
+        values: dict[str, float | str] = dict(self.snapshot()) | (described or {})
         latency = self.latency
         if latency:
             values["latency_median_ms"] = 1000 * float(np.median(latency))

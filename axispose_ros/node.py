@@ -2,7 +2,7 @@
 
 Inputs: `image` (sensor_msgs/Image) and `camera_info`, paired by stamp within `sync_slop`; the boxes to
 estimate come from `~/roi/<object_name>` (sensor_msgs/RegionOfInterest, the latest one per object within
-`roi_timeout` seconds), for users with their own detector; with tracking and `view_window`, `camera_odom`
+`roi_timeout` seconds), for users with their own detector; in `mode` auto or video_odometry, `camera_odom`
 (nav_msgs/Odometry: the camera's optical frame in a fixed frame, nearest the image's stamp within `sync_slop`).
 Outputs keep the image header:
 - `~/detections` (axispose_msgs/DetectionArray, every processed frame): each posed instance with its object id
@@ -220,7 +220,7 @@ class AxisPoseNode(Node):
         if outside:
             self.stats.add("roi_outside", outside)
         stamp = stamp_seconds(frame.image.header)
-        camera_pose = self.camera_poses.wait(stamp, s.sync_slop) if s.tracking and s.view_window > 0 else None
+        camera_pose = self.camera_poses.wait(stamp, s.sync_slop) if FramePoser.uses_odometry(s) else None
         posed = self.poser.pose(rgb, camera.K, stamp, rois, s, self.worker.cancelled, camera_pose)
         refused = self.outputs.publish(frame.image.header, posed, self.estimator, rgb, camera.K, s.marker_lifetime)
         if refused:
@@ -233,7 +233,7 @@ class AxisPoseNode(Node):
     def _publish_diagnostics(self) -> None:
         status = DiagnosticStatus(name="axispose: pose estimation", hardware_id=self.get_name())
         status.level, status.message = self.health.judge(time.monotonic())  # the recent window; counters are totals
-        status.values = self.stats.key_values()
+        status.values = self.stats.key_values(self.poser.choice.described())  # with the last frame's mode, and why
         msg = DiagnosticArray(status=[status])
         msg.header.stamp = self.get_clock().now().to_msg()
         self.pub_diag.publish(msg)

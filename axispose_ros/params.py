@@ -20,6 +20,7 @@ from rclpy.parameter import Parameter
 
 from axispose_core.checkpoint import CheckpointError
 from axispose_core.estimator import SHIPPED_ESTIMATOR
+from axispose_core.tracking.mode import Mode
 
 DEFAULT_CHECKPOINT = SHIPPED_ESTIMATOR
 OBJECT_SCALES = "object_scales."
@@ -82,16 +83,12 @@ SPECS = (
     Spec("score_threshold", 0.3, "least published score (the checkpoint's verifier's, else the localiser's)", floats=(0.0, 1.0)),
     Spec("marker_lifetime", 1.0, "lifetime of ~/markers in s (0: until replaced)", floats=(0.0, 3600.0)),
     Spec(
-        "tracking",
-        False,
-        "follow objects across frames: crops from predicted poses, the localiser every "
-        "redetect_period frames, each pose filtered (constant velocity, gated)",
-    ),
-    Spec(
-        "follow",
-        False,
-        "with tracking and a refiner, follow each track by its contour on every frame, the AGM posing only new and "
-        "lost objects: a fraction of the time per frame, steadier poses",
+        "mode",
+        "auto",
+        "how frames are treated: stills (each on its own), video (tracks followed by their contours, the AGM for new and "
+        "lost objects), video_odometry (video, each still object's views fused in camera_odom's fixed frame and the "
+        "search in a process of its own), auto (picks from what arrives: camera_odom, and whether contours hold; "
+        "/diagnostics says which and why)",
     ),
     Spec(
         "follow_passes",
@@ -108,32 +105,24 @@ SPECS = (
         "the localiser runs); in between a track publishes its filter's prediction",
         ints=(1, 1000),
     ),
-    Spec(
-        "warm_strength",
-        0.0,
-        "with tracking, a tracked object's samples start from its predicted axis image noised to "
-        "this fraction of the schedule (0: from noise, with ddim_steps); faster, but a wrong prediction's rotation "
-        "tends to stay",
-        floats=(0.0, 1.0),
-    ),
-    Spec("warm_steps", 1, "with tracking, DDIM steps of a warm-started sample", ints=(1, 1000)),
     Spec("track_timeout", 1.0, "with tracking, seconds without an accepted pose after which a track ends", floats=(0.0, 3600.0)),
     Spec(
         "view_window",
-        0,
-        "with tracking and the camera's pose on camera_odom (nav_msgs/Odometry of the optical frame in a fixed frame), "
-        "publish each still object's pose fused from its views over the last n frames (0: off)",
+        160,
+        "in video_odometry, each still object's pose fused from its views over the last n frames (0: not fused)",
         ints=(0, 1000),
-    ),
-    Spec(
-        "background_detection",
-        False,
-        "with tracking, follow and view_window, on frames with the camera's pose: the localiser and the AGM in a process "
-        "of their own, every frame only followed (their poses join the views, from where the objects are followed)",
     ),
     Spec("latency_budget", 2.0, "median latency (s) over which /diagnostics warns; at start", floats=(0.01, 60.0), at_start=True),
 )
 AT_START = frozenset(s.name for s in SPECS if s.at_start)
+REMOVED = {
+    "tracking": "mode (video or video_odometry track; stills does not)",
+    "follow": "mode (video and video_odometry follow tracks by their contours)",
+    "background_detection": "mode video_odometry (the search in a process of its own)",
+    "warm_strength": "nothing: warm-started samples lost accuracy",
+    "warm_steps": "nothing: warm-started samples lost accuracy",
+}
+"""Parameters the node no longer has, and what replaced them: given at start, they stop it with that said."""
 
 
 @dataclass(frozen=True)
@@ -157,16 +146,12 @@ class NodeSettings:
     refine: bool
     score_threshold: float
     marker_lifetime: float
-    tracking: bool
-    follow: bool
+    mode: str
     follow_passes: int
     redetect_period: int
     measure_every: int
-    warm_strength: float
-    warm_steps: int
     track_timeout: float
     view_window: int
-    background_detection: bool
     latency_budget: float
     object_scales: Mapping[str, float] = field(default_factory=dict)
     """`object_scales.<name>` by name (0: not set)."""
@@ -185,9 +170,11 @@ class NodeSettings:
 def declare(node: Node) -> NodeSettings:
     """Declare every parameter of SPECS on `node` and read them; `device` auto becomes the device chosen. Raises
     ValueError (a device this torch lacks), CheckpointError (no checkpoint) or rclpy's ParameterException (out of
-    range, wrong type): the node cannot start."""
+    range, wrong type) or ValueError (a removed parameter given, `REMOVED`): the node cannot start."""
+    _refuse_removed(node)
     for spec in SPECS:
         node.declare_parameter(spec.name, spec.default, spec.descriptor())
+    Mode.parse(node.get_parameter("mode").value)
     dev = node.get_parameter("device").value
     if dev not in ("cpu", "cuda", "auto"):
         raise ValueError(f"parameter 'device' must be cpu, cuda or auto, got {dev!r}")
@@ -199,6 +186,17 @@ def declare(node: Node) -> NodeSettings:
     if not settings.checkpoint:
         raise CheckpointError("parameter 'checkpoint' is empty: pass -p checkpoint:=/path/to/estimator.safetensors")
     return settings
+
+
+def _refuse_removed(node: Node) -> None:
+    """A removed parameter given at start (`-p`, a params file) stops the node, naming what replaced it: a user's
+    old `tracking: true` must not silently run another mode. Each is declared for the look only."""
+    for name, replacement in REMOVED.items():
+        node.declare_parameter(name, None, ParameterDescriptor(dynamic_typing=True))
+        given = node.get_parameter(name).type_ != Parameter.Type.NOT_SET
+        node.undeclare_parameter(name)
+        if given:
+            raise ValueError(f"parameter '{name}' was removed; use {replacement}")
 
 
 def declare_objects(node: Node, settings: NodeSettings, names: Mapping[int, str]) -> dict[int, str]:
@@ -229,11 +227,13 @@ def _value(node: Node, spec: Spec) -> Any:
 
 
 def check_change(params: list[Parameter]) -> SetParametersResult:
-    """Refuse a change of a parameter read at start only, or an `object_scales.<name>` that is not a length in
-    [0, 10] m (rclpy checks the declared ranges of the others)."""
+    """Refuse a change of a parameter read at start only, a `mode` that is none, or an `object_scales.<name>` that
+    is not a length in [0, 10] m (rclpy checks the declared ranges of the others)."""
     for p in params:
         if p.name in AT_START:
             return SetParametersResult(successful=False, reason=f"'{p.name}' is read at start only; restart the node to change it")
+        if p.name == "mode" and p.value not in {m.value for m in Mode}:
+            return SetParametersResult(successful=False, reason=f"'mode' must be one of {', '.join(m.value for m in Mode)}")
         if p.name.startswith(OBJECT_SCALES) and (p.type_ != Parameter.Type.DOUBLE or not 0.0 <= p.value <= MAX_OBJECT_SCALE):
             return SetParametersResult(successful=False, reason=f"'{p.name}' must be a length in [0, 10] m")
     return SetParametersResult(successful=True)

@@ -1,8 +1,9 @@
-"""From a frame to the poses the node publishes: the boxes of fresh ROIs, else what the localiser finds (each posed
-on its own, rescored by the checkpoint's verifier where it has one: `Estimator.find`); or, with `tracking`, every
-object followed by a `Tracker` (crops from predicted poses, the localiser only where due, filtered poses with their
-filter's covariance and a track id), the localiser and the AGM in a process of their own where the frames are only
-followed (`background_detection`: `background.py`)."""
+"""From a frame to the poses the node publishes: the boxes of fresh ROIs, else, in the frame's `mode`
+(`tracking/mode.py`), what the localiser finds (`stills`: each posed on its own, rescored by the checkpoint's verifier
+where it has one: `Estimator.find`) or every object followed by a `Tracker` (`video`: crops from predicted poses, the
+localiser only where due, filtered poses with their filter's covariance and a track id, tracks followed by their
+contours; `video_odometry`: the camera's pose fusing each object's views, the localiser and the AGM in a process of
+their own and the frames only followed: `background.py`)."""
 
 from __future__ import annotations
 
@@ -13,9 +14,13 @@ from typing import Protocol
 
 import numpy as np
 
-from axispose_core.estimator import EstimateOptions, Estimator, Found, PoseEstimate
+from axispose_core.estimator import EstimateOptions, Estimator
 from axispose_core.localiser.decode import Detection
-from axispose_core.tracking.tracker import Crop, Sighting, Tracker, TrackingConfig
+from axispose_core.pose_estimate import Found, PoseEstimate
+from axispose_core.tracking.config import TrackingConfig
+from axispose_core.tracking.mode import Choice, Mode, ModeChooser
+from axispose_core.tracking.tracker import Tracker
+from axispose_core.tracking.tracks import Crop, Sighting
 from axispose_ros.background import BackgroundFinder, Search, Searcher
 from axispose_ros.params import NodeSettings
 
@@ -51,10 +56,13 @@ class FramePoser:
     def __init__(
         self, estimator: Estimator, published: dict[int, str], count: Callable[[str, int], None], finder: Finder | None = None
     ) -> None:
-        """`finder`: where `background_detection` searches (None: `BackgroundFinder`'s process, started with the first
+        """`finder`: where `video_odometry` searches (None: `BackgroundFinder`'s process, started with the first
         frame that needs it)."""
         self.estimator, self.published, self.count = estimator, published, count
         self.tracker = Tracker(TrackingConfig())
+        self.chooser = ModeChooser()
+        self.choice = Choice(Mode.STILLS, "no frame yet")
+        """The mode the last frame ran in, and why (`mode`; what /diagnostics says)."""
         self._reported: dict[str, int] = {}
         self._finder = finder
         self._since_search = 0
@@ -65,8 +73,13 @@ class FramePoser:
         self._search_posed: list[tuple[Detection, PoseEstimate]] = []
         """What the running search has posed so far (its detections come one at a time)."""
 
+    @staticmethod
+    def uses_odometry(s: NodeSettings) -> bool:
+        """Whether a frame in `s.mode` wants the camera's pose (its frame then waits briefly for camera_odom)."""
+        return Mode(s.mode) in (Mode.AUTO, Mode.VIDEO_ODOMETRY) and s.view_window > 0
+
     def stop(self) -> None:
-        """End the search process of `background_detection`, if it has one."""
+        """End the search process of `video_odometry`, if it has one."""
         if self._finder is not None:
             self._finder.stop()
 
@@ -77,25 +90,29 @@ class FramePoser:
         """ROIs where fresh ones came; else the localiser's boxes, each posed on its own or through the tracker (with
         `camera_pose`, the camera's pose in a fixed frame at this frame, averaged over views: `view_window`)."""
         options = EstimateOptions(steps=s.ddim_steps, guidance_scale=s.guidance_scale, scales=s.scales(self.published),
-                                  hypotheses=s.hypotheses, warm_steps=s.warm_steps, warm_strength=max(s.warm_strength, 1e-3),
-                                  max_boxes=s.batch_boxes, refine=s.refine, follow_passes=s.follow_passes)  # fmt: skip
+                                  hypotheses=s.hypotheses, max_boxes=s.batch_boxes, refine=s.refine,
+                                  follow_passes=s.follow_passes)  # fmt: skip
 
-        def estimate(boxes: list[tuple[int, Box]], priors: list | None = None) -> list[PoseEstimate]:
-            return self._count_refined(self.estimator.estimate(rgb, K, boxes, options=options, cancelled=cancelled, priors=priors))
+        def estimate(boxes: list[tuple[int, Box]]) -> list[PoseEstimate]:
+            return self._count_refined(self.estimator.estimate(rgb, K, boxes, options=options, cancelled=cancelled))
 
         if rois or self.estimator.localiser is None:
+            self._run_in(Choice(Mode.STILLS, "boxes from ~/roi" if rois else "no localiser in the checkpoint: boxes from ~/roi only"))
             return _each(list(rois), [1.0] * len(rois), estimate)
 
         def find() -> Found:
             return self._counted(self.estimator.find(rgb, K, s.score_threshold, options, cancelled, objects=self.published))
 
-        if not s.tracking:
+        self._run_in(self.chooser.choose(Mode(s.mode), camera_pose is not None))
+        if not self.choice.tracking:
             if self.tracker.tracks:
                 self.tracker.reset("disabled")
             found = find()
             return Posed(found.poses, [d.score for d in found.detections], [d.box for d in found.detections], [0] * len(found.poses))
 
-        following = self.estimator.refiner is not None and s.refine and s.follow
+        following = self.estimator.refiner is not None and s.refine
+        camera_pose = camera_pose if self.choice.odometry else None
+        view_window = s.view_window if self.choice.odometry else 0
         verifier = self.estimator.config.verifier
 
         def dets() -> list:
@@ -110,7 +127,7 @@ class FramePoser:
             return [Sighting(d.obj_id, d.score, d.box, p) for d, p in zip(found.detections, found.poses, strict=True)]
 
         self.tracker.config = TrackingConfig(
-            redetect_period=s.redetect_period, measure_every=s.measure_every, track_timeout=s.track_timeout, view_window=s.view_window
+            redetect_period=s.redetect_period, measure_every=s.measure_every, track_timeout=s.track_timeout, view_window=view_window
         )
         follow = None
         if following:  # every track followed by its contour; the AGM poses the localiser's boxes of new and lost objects (verified)
@@ -118,20 +135,25 @@ class FramePoser:
             def follow(last: list, predicted: list) -> list[PoseEstimate]:
                 return self._count_refined(self.estimator.follow(rgb, K, last, predicted, options))
 
-            if s.background_detection and s.view_window > 0 and camera_pose is not None:
+            if view_window > 0 and camera_pose is not None:
                 search = Search(
                     stamp, np.array(K, float), np.array(camera_pose, float), rgb, s.score_threshold, options, tuple(self.published)
                 )
                 return self._in_background(search, s, estimate, follow)
-        return self._tracked(stamp, K, dets, estimate, s.warm_strength > 0, follow, s.score_threshold, camera_pose)
+        return self._tracked(stamp, K, dets, estimate, follow, s.score_threshold, camera_pose)
 
-    def _tracked(self, stamp: float, K: np.ndarray, detect, estimate, warm: bool, follow, threshold: float, camera_pose=None) -> Posed:
+    def _run_in(self, choice: Choice) -> None:
+        """This frame's mode: kept for `/diagnostics`, and counted (`mode_<mode>`: frames run in each)."""
+        self.choice = choice
+        self.count(f"mode_{choice.mode.value}", 1)
+
+    def _tracked(self, stamp: float, K: np.ndarray, detect, estimate, follow, threshold: float, camera_pose=None) -> Posed:
         """The tracked objects' filtered poses on this frame (followed by their contours where `follow` is given; a
-        pose of a localiser's box then verified, below `threshold` refused and counted as `verifier_dropped`),
-        warm-started from their predictions where `warm`; crops the estimator refused are counted."""
+        pose of a localiser's box then verified, below `threshold` refused and counted as `verifier_dropped`); crops
+        the estimator refused are counted, and what following did tells `auto` whether contours hold."""
 
         def measure(crops: list[Crop]) -> list[PoseEstimate]:
-            out = estimate([(c.obj_id, c.box) for c in crops], [c.prior for c in crops] if warm else None)
+            out = estimate([(c.obj_id, c.box) for c in crops])
             if follow is not None:
                 new = [k for k, c in enumerate(crops) if c.detected]
                 checked = self.estimator.verified([crops[k].score for k in new], [out[k] for k in new], threshold)
@@ -144,8 +166,10 @@ class FramePoser:
             return out
 
         tracked = self.tracker.step(stamp, K, detect, measure, follow, camera_pose)
-        for key, n in self._new_counts().items():
+        new = self._new_counts()
+        for key, n in new.items():
             self.count(f"tracking_{key}", n)
+        self.chooser.record(new.get("followed", 0), new.get("contour_lost", 0) + new.get("ended_unfollowable", 0))
         estimates = [dataclasses.replace(tp.measurement, R=tp.R, t=tp.t, covariance=tp.covariance) for tp in tracked]
         return Posed(estimates, [tp.score for tp in tracked], [tp.box for tp in tracked], [tp.track_id for tp in tracked])
 
@@ -156,7 +180,7 @@ class FramePoser:
         passed since one was offered, or where nothing is tracked."""
         self.start_background(s)
         self._take_found(search)
-        posed = self._tracked(search.stamp, search.K, None, estimate, False, follow, s.score_threshold, search.camera)
+        posed = self._tracked(search.stamp, search.K, None, estimate, follow, s.score_threshold, search.camera)
         self._since_search += 1
         if self._finder.idle() and (self._since_search >= s.redetect_period or not self.tracker.tracks):
             self._finder.offer(dataclasses.replace(search, objects=self._searched_objects(search.objects)))
@@ -195,7 +219,7 @@ class FramePoser:
         return tuple(o for o in objects if o not in held or o == checked)
 
     def start_background(self, s: NodeSettings, wait: float = 0.0) -> None:
-        """Start the search process of `background_detection` now (else the first frame that needs it does), and
+        """Start the search process of `video_odometry` now (else the first frame that needs it does), and
         wait up to `wait` s for it to load its checkpoint."""
         if self._finder is None:
             precision = "bfloat16" if self.estimator.bf16 else "float32"

@@ -11,14 +11,15 @@ that DDS does not discard large images in a burst. Two pacings:
   with are dropped by its latest-frame-wins slot and counted.
 Every message the node publishes is written into the output bag (stamped by its header). When the bag holds
 `/gt/<name>` poses and `/gt/models/<name>` points (as `make_bag` writes them), the report has the same metrics
-as `axispose eval` plus latency and the node's counters.
+as `axispose eval` plus latency and the node's counters. What is read from the bag is `replay_bag.py`'s, the scores
+`replay_report.py`'s.
 """
 
 from __future__ import annotations
 
 import time
 from collections import defaultdict
-from collections.abc import Callable, Iterable, Iterator, Mapping
+from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -32,46 +33,25 @@ from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.qos import QoSProfile, ReliabilityPolicy
-from rclpy.serialization import deserialize_message, serialize_message
+from rclpy.serialization import serialize_message
 from rosbags.rosbag2 import Writer
-from scipy.spatial.transform import Rotation
 from sensor_msgs.msg import CameraInfo, Image, RegionOfInterest
 from tqdm import tqdm
 from visualization_msgs.msg import MarkerArray
 
 import axispose_msgs
-from axispose_core.evaluate import Record, instance_scores, object_symmetries, summarize
-from axispose_core.metrics import Symmetry
-from axispose_core.tracking.jitter import PosePair, jitter
 from axispose_msgs.msg import DetectionArray
-from axispose_ros.bag import (
-    CAMERA_INFO,
-    FORMATS,
-    GT_PREFIX,
-    IMAGE,
-    MODELS_PREFIX,
-    ODOMETRY,
-    ROI_PREFIX,
-    TYPESTORE,
-    BagError,
-    BagMessage,
-    bag_topics,
-    camera_topics,
-    cloud_points,
-    deserialize,
-    read_bag,
-    register_types,
-)
+from axispose_ros.bag import FORMATS, ROI_PREFIX, TYPESTORE, BagError, bag_topics, camera_topics, read_bag, register_types
 from axispose_ros.conversions import image_to_rgb, stamp_seconds
 from axispose_ros.node import AxisPoseNode
+from axispose_ros.replay_bag import Truth, by_stamp, pose_rt, ros_message, stamp_ns
+from axispose_ros.replay_report import replay_report
 
 # How long one spin of the replay's executor may wait for an event before it re-checks its condition. The node's
 # inference runs on its own thread in this process, and a fast spin takes CPU from it (and lengthens the frame
 # latency being measured: docs/BENCHMARKS.md, Latency), so conditions that no ROS event signals (a count, a
 # clock) are polled no faster than this.
 POLL_S = 0.05
-
-ROS_TYPES = {IMAGE: Image, CAMERA_INFO: CameraInfo, "sensor_msgs/msg/RegionOfInterest": RegionOfInterest, ODOMETRY: Odometry}
 
 
 def _msg_folder() -> Path:
@@ -151,27 +131,6 @@ class _Session:
 
 
 @dataclass
-class _Truth:
-    """What the bag holds besides the camera stream, for the metrics: GT poses (stamp -> name -> [(R, t)]), K and
-    the GT boxes by stamp, the model points by name."""
-
-    gt: dict[int, dict[str, list]] = field(default_factory=lambda: defaultdict(lambda: defaultdict(list)))
-    cameras: dict[int, np.ndarray] = field(default_factory=dict)
-    boxes: dict[tuple[int, str], tuple[int, int, int, int]] = field(default_factory=dict)
-    points: dict[str, np.ndarray] = field(default_factory=dict)
-
-    def take(self, stamp: int, m: BagMessage) -> bool:
-        """Keep `m` if it is ground truth (a model's points, a GT pose); False for any other message."""
-        if m.topic.startswith(MODELS_PREFIX):
-            self.points[m.topic[len(MODELS_PREFIX) :]] = cloud_points(deserialize(m))
-        elif m.topic.startswith(GT_PREFIX):
-            self.gt[stamp][m.topic[len(GT_PREFIX) :]].append(_pose_rt(deserialize(m).pose))
-        else:
-            return False
-        return True
-
-
-@dataclass
 class _Recording:
     """What the player heard from the node: per-object poses (stamp -> name -> [(R, t)]), when each stamp's
     PoseArray arrived (perf_counter s), and the overlay PNGs written."""
@@ -179,16 +138,6 @@ class _Recording:
     poses: dict[int, dict[str, list]] = field(default_factory=lambda: defaultdict(lambda: defaultdict(list)))
     arrays: dict[int, float] = field(default_factory=dict)
     overlays: list[Path] = field(default_factory=list)
-
-
-def _stamp_ns(header) -> int:
-    return int(header.stamp.sec) * 10**9 + int(header.stamp.nanosec)
-
-
-def _pose_rt(pose) -> tuple[np.ndarray, np.ndarray]:
-    q = pose.orientation
-    R = Rotation.from_quat([q.x, q.y, q.z, q.w]).as_matrix()
-    return R, np.array([pose.position.x, pose.position.y, pose.position.z])
 
 
 def replay(bag: str | Path, checkpoint: str | Path, out_bag: str | Path, options: ReplayOptions | None = None) -> ReplayResult:
@@ -253,7 +202,7 @@ def _run(bag: str | Path, s: _Session, out_bag: Path, opts: ReplayOptions) -> Re
     counts = dict(s.node.counts)
     report = None
     if player.truth.gt and player.truth.points:
-        report = _report(s.node, player.truth, rec.poses, latency, counts, {"bag": str(bag), "rate": opts.rate})
+        report = replay_report(s.node, player.truth, rec.poses, latency, counts, {"bag": str(bag), "rate": opts.rate})
     return ReplayResult(out_bag, player.frames, counts, list(latency.values()), report, rec.overlays)
 
 
@@ -267,7 +216,7 @@ def _record(s: _Session, writer: Writer, opts: ReplayOptions) -> _Recording:
         def on_msg(msg) -> None:
             if topic not in conns:
                 conns[topic] = writer.add_connection(topic, msgtype, typestore=TYPESTORE)
-            stamp = _stamp_ns(msg.header) if hasattr(msg, "header") else time.time_ns()
+            stamp = stamp_ns(msg.header) if hasattr(msg, "header") else time.time_ns()
             writer.write(conns[topic], stamp or time.time_ns(), serialize_message(msg))
             if hook:
                 hook(msg)
@@ -275,7 +224,7 @@ def _record(s: _Session, writer: Writer, opts: ReplayOptions) -> _Recording:
         s.player.create_subscription(msg_class, topic, on_msg, depth)
 
     def on_array(msg: PoseArray) -> None:
-        rec.arrays[_stamp_ns(msg.header)] = time.perf_counter()
+        rec.arrays[stamp_ns(msg.header)] = time.perf_counter()
 
     def on_debug(msg: Image) -> None:
         if opts.overlays is not None and len(rec.overlays) < opts.overlay_count:
@@ -291,7 +240,7 @@ def _record(s: _Session, writer: Writer, opts: ReplayOptions) -> _Recording:
     record(DetectionArray, f"{ns}/detections", "axispose_msgs/msg/DetectionArray")
     record(PoseWithCovarianceStamped, f"{ns}/pose_cov", "geometry_msgs/msg/PoseWithCovarianceStamped")
     for name in s.node.published.values():
-        hook = (lambda n: lambda m: rec.poses[_stamp_ns(m.header)][n].append(_pose_rt(m.pose)))(name)
+        hook = (lambda n: lambda m: rec.poses[stamp_ns(m.header)][n].append(pose_rt(m.pose)))(name)
         record(PoseStamped, f"{ns}/poses/{name}", "geometry_msgs/msg/PoseStamped", hook)
     record(MarkerArray, f"{ns}/markers", "visualization_msgs/msg/MarkerArray")
     record(DiagnosticArray, "/diagnostics", "diagnostic_msgs/msg/DiagnosticArray")
@@ -316,7 +265,7 @@ class _Player:
         self.by_name = {o.name: o for o in s.node.estimator.config.objects} if opts.use_rois else {}
         for name in self.by_name:
             self.pubs[ROI_PREFIX + name] = s.player.create_publisher(RegionOfInterest, s.node.resolve_topic_name(f"~/roi/{name}"), 10)
-        self.truth = _Truth()
+        self.truth = Truth()
         self.published_at: dict[int, float] = {}
         self.frames = 0
         self._start = 0.0
@@ -329,8 +278,8 @@ class _Player:
         _spin_until(self.s.exe, lambda: all(p.get_subscription_count() > 0 for p in self.pubs.values()), 10.0)
         bar = tqdm(desc="replay", unit="frame", disable=not self.opts.progress)
         try:
-            for stamp, group in _by_stamp(read_bag(bag)):
-                stream = [(m.topic, _ros_message(m)) for m in group if not self.truth.take(stamp, m) and m.topic in self.pubs]
+            for stamp, group in by_stamp(read_bag(bag)):
+                stream = [(m.topic, ros_message(m)) for m in group if not self.truth.take(stamp, m) and m.topic in self.pubs]
                 if stream:
                     self._frame(stamp, stream, bar)
         finally:
@@ -346,11 +295,11 @@ class _Player:
         self._odometry([msg for t, msg in stream if t == s.odom_topic])
         for topic, msg in stream:
             if topic == s.info_topic:
-                self.truth.cameras[_stamp_ns(msg.header)] = np.array(msg.k, dtype=float).reshape(3, 3)
+                self.truth.cameras[stamp_ns(msg.header)] = np.array(msg.k, dtype=float).reshape(3, 3)
                 self.pubs[topic].publish(msg)
         for topic, msg in stream:
             if topic == s.image_topic:
-                self.published_at[_stamp_ns(msg.header)] = time.perf_counter()
+                self.published_at[stamp_ns(msg.header)] = time.perf_counter()
                 self.pubs[topic].publish(msg)
                 self.frames += 1
                 bar.update(1)
@@ -386,25 +335,6 @@ class _Player:
             _spin_until(self.s.exe, lambda: all(node.rois.latest(i) == roi for i, roi in want.items()), 10.0)
 
 
-def _by_stamp(messages: Iterable[BagMessage]) -> Iterator[tuple[int, list[BagMessage]]]:
-    """Consecutive messages grouped by bag time: one camera frame with its boxes and ground truth."""
-    group: list[BagMessage] = []
-    for m in messages:
-        if group and m.stamp_ns != group[0].stamp_ns:
-            yield group[0].stamp_ns, group
-            group = []
-        group.append(m)
-    if group:
-        yield group[0].stamp_ns, group
-
-
-def _ros_message(m):
-    try:
-        return deserialize_message(m.raw, ROS_TYPES[m.msgtype])
-    except Exception as err:
-        raise BagError(f"a '{m.topic}' message at {m.stamp_ns} ns does not decode as {m.msgtype} ({err})") from err
-
-
 def _spin_until(exe, cond: Callable[[], bool], timeout: float) -> bool:
     end = time.monotonic() + timeout
     while time.monotonic() < end:
@@ -428,60 +358,3 @@ def _await_frame(exe, node: AxisPoseNode, n: int, timeout: float, settle: float 
             return
         exe.spin_once(timeout_sec=POLL_S)
     raise TimeoutError(f"the node did not finish frame {n} within {timeout} s")
-
-
-def _jitter(records: list[Record], syms: dict[int, list[Symmetry]]) -> dict:
-    """Frame-to-frame jitter of the posed instances (`tracking/jitter.py`), a symmetric object's equivalent poses
-    counting as one."""
-    return jitter([PosePair(r.im_id, r.obj_id, r.R, r.t, r.R_gt, r.t_gt) for r in records if r.ok], syms)
-
-
-def _report(node: AxisPoseNode, truth: _Truth, poses: dict, latency: dict[int, float], counts: dict[str, int], config: dict) -> dict:
-    """Per-instance scores as `axispose eval`: each GT instance matched to the nearest estimate of its object in
-    the same frame (one-to-one); a frame the node dropped or an instance without estimate counts as wrong."""
-    by_name = {o.name: o for o in node.estimator.config.objects}
-    gt, points = truth.gt, truth.points
-    syms = object_symmetries(by_name.values(), {by_name[n].obj_id: p for n, p in points.items() if n in by_name})
-    records: list[Record] = []
-    for k, stamp in enumerate(sorted(gt)):
-        n_inst = max(1, sum(len(v) for v in gt[stamp].values()))
-        seconds = latency.get(stamp, 0.0) / 1000 / n_inst
-        K = truth.cameras.get(stamp)
-        for name, instances in gt[stamp].items():
-            spec = by_name.get(name)
-            if spec is None or name not in points or name not in node.published.values() or K is None:
-                continue
-            ests = list(poses.get(stamp, {}).get(name, []))
-            for R_gt, t_gt in instances:
-                best = min(range(len(ests)), key=lambda i: np.linalg.norm(ests[i][1] - t_gt)) if ests else None
-                R, t = ests.pop(best) if best is not None else (np.eye(3), np.zeros(3))
-                pose = (R, t) if best is not None else None
-                scores = instance_scores(spec, points[name], K, R_gt, t_gt, pose, syms.get(spec.obj_id, ()))
-                records.append(
-                    Record(
-                        spec.obj_id,
-                        "bag",
-                        k,
-                        scores,
-                        seconds,
-                        R_gt,
-                        t_gt,
-                        R,
-                        t,
-                        best is not None,
-                        K,
-                        None,
-                        truth.boxes.get((stamp, name), (0, 0, 0, 0)),
-                    )
-                )
-    objects = [o for o in node.estimator.config.objects if o.name in node.published.values()]
-    settings = node.settings()
-    used = {"ddim_steps": settings.ddim_steps, "hypotheses": settings.hypotheses, "precision": node.precision,
-            "tracking": settings.tracking, "redetect_period": settings.redetect_period,
-            "measure_every": settings.measure_every, "refine": settings.refine and node.estimator.refiner is not None}  # fmt: skip
-    report = summarize(records, objects, config | used)
-    report["tracking"] = {"on": settings.tracking, **_jitter(records, syms)}
-    lat = np.array(list(latency.values())) if latency else np.zeros(1)
-    report["frame_latency_ms"] = {"median": float(np.median(lat)), "p90": float(np.percentile(lat, 90))}
-    report["counts"] = counts
-    return report

@@ -11,7 +11,7 @@ move in `/diagnostics` (FAULTS):
 - `other_size`: one frame of another size than its CameraInfo, not a uniform scale -> `dropped_camera_info_mismatch`
   (the node checks a frame as it arrives, so a busy node counts it too);
 - `corrupt`: one frame whose data is shorter than its size says -> `dropped_image_data`;
-- `objects_leave`: 2 s of an empty grey frame, then the scene again -> with tracking, tracks end and start again.
+- `objects_leave`: 2 s of an empty grey frame, then the scene again -> in the video modes, tracks end and start again.
 """
 
 from __future__ import annotations
@@ -44,7 +44,8 @@ FAULTS: dict[str, tuple[str, ...]] = {
     "corrupt": ("dropped_image_data",),
     "objects_leave": ("tracking_ended_misses", "tracking_ended_unseen", "tracking_ended_timeout", "tracking_ended_unfound"),
 }
-"""Each fault and the /diagnostics counters of which at least one must grow (objects_leave's only with tracking)."""
+"""Each fault and the /diagnostics counters of which at least one must grow (objects_leave's only where frames ran in a
+video mode meanwhile)."""
 SETTLE_S = 4.0
 """Seconds after a fault ends before the counters it moved are read (diagnostics come once a second)."""
 IMAGE_TOPIC, INFO_TOPIC, ODOM_TOPIC = "/soak/image", "/soak/camera_info", "/soak/camera_odom"
@@ -56,15 +57,12 @@ class SoakOptions:
 
     seconds: float = 600.0
     rate: float = 30.0
-    tracking: bool = False
-    follow: bool = False
-    """With tracking: follow the tracks by their contours (the node's `follow`)."""
-    view_window: int = 0
-    """With tracking: the node's `view_window` (the bag's camera odometry is played on `camera_odom` either way)."""
-    background_detection: bool = False
-    """With follow and view_window: the node's `background_detection`."""
+    mode: str = "auto"
+    """The node's `mode` (the bag's camera odometry is played on `camera_odom` either way)."""
+    view_window: int = 160
+    """The node's `view_window` (video_odometry)."""
     follow_passes: int = 0
-    """With follow: the node's `follow_passes`."""
+    """The node's `follow_passes` (video modes)."""
     faults: bool = True
     precision: str = "float32"
     threads: int = 2
@@ -124,8 +122,7 @@ def load_frames(bag: str | Path) -> list[tuple[Image, CameraInfo, Odometry | Non
 def node_command(checkpoint: str, opts: SoakOptions) -> list[str]:
     """The node's command line: its parameters from the options, its topics remapped to the soak's."""
     params = {"checkpoint": checkpoint, "precision": opts.precision, "num_threads": opts.threads, "warmup_boxes": opts.warmup_boxes,
-              "tracking": str(opts.tracking).lower(), "follow": str(opts.follow).lower(), "view_window": opts.view_window,
-              "background_detection": str(opts.background_detection).lower(), "follow_passes": opts.follow_passes}  # fmt: skip
+              "mode": opts.mode, "view_window": opts.view_window, "follow_passes": opts.follow_passes}  # fmt: skip
     return [sys.executable, "-m", "axispose_ros.node", "--ros-args", *[a for k, v in params.items() for a in ("-p", f"{k}:={v}")],
             "-r", f"image:={IMAGE_TOPIC}", "-r", f"camera_info:={INFO_TOPIC}", "-r", f"camera_odom:={ODOM_TOPIC}"]  # fmt: skip
 
@@ -286,13 +283,18 @@ def _stream(node: subprocess.Popen, camera: _Camera, log: _Log, exe, opts: SoakO
     return events
 
 
+def _tracked_during(event: dict) -> bool:
+    """Whether frames ran in a video mode while the fault lasted (only then do tracks end)."""
+    return any(event["after"].get(k, 0) > event["before"].get(k, 0) for k in ("mode_video", "mode_video_odometry"))
+
+
 def _report(node: subprocess.Popen, camera: _Camera, log: _Log, events: list[dict], opts: SoakOptions, work: Path) -> dict:
     c = log.counters
     dropped = {k[len("dropped_") :]: v for k, v in c.items() if k.startswith("dropped_")}
     faults = []
     for e in events:
         moved = {k: e["after"].get(k, 0) - e["before"].get(k, 0) for k in FAULTS[e["fault"]]}
-        needed = opts.tracking or e["fault"] != "objects_leave"
+        needed = e["fault"] != "objects_leave" or _tracked_during(e)
         faults.append({"fault": e["fault"], "t": e["t"], "moved": moved, "counted": any(v > 0 for v in moved.values()) or not needed})
     rss = log.rss
     base = next((r for t, r in rss if t >= min(60.0, opts.seconds / 3)), rss[0][1] if rss else float("nan"))

@@ -18,7 +18,7 @@ import numpy as np
 from axispose_core.adapt.geometry import IDENTITY, ObjectGeometry, rotation_gap_deg
 from axispose_core.adapt.labels import Label
 from axispose_core.adapt.pseudo import AcceptConfig, read_candidates
-from axispose_core.data.bop import BopScene
+from axispose_core.data.bop_scene import BopScene
 from axispose_core.data.visibility import gt_info_from_models
 from axispose_core.estimator import Estimator
 from axispose_core.lmo import SHARED_LMO

@@ -1,6 +1,6 @@
 """Where the pose error of a checkpoint comes from: rotation, or depth along the viewing ray, or across it.
 
-Runs `axispose_core.evaluate.evaluate` with GT crops (the code `axispose eval` runs) and splits each posed
+Runs `axispose_core.evaluation.run.evaluate` with GT crops (the code `axispose eval` runs) and splits each posed
 instance's translation error into its part along the camera's z axis and the part across it. For the
 instances whose rotation is within `--rot-ok` degrees it asks what ADD(-S)@0.1d would be if depth were right:
 once with the true depth (an oracle), and once with the depth that makes the object model's projected box
@@ -37,10 +37,12 @@ from write_results import write_results
 
 from axispose_core.agm.correspondences import dense_correspondences
 from axispose_core.camera import project_model
-from axispose_core.data.bop import model_path
+from axispose_core.data.bop_models import model_path
 from axispose_core.data.meshes import load_ply
-from axispose_core.estimator import EstimateOptions, Estimator, crop_batch, fuse_depth
-from axispose_core.evaluate import Prediction, evaluate
+from axispose_core.estimator import EstimateOptions, Estimator
+from axispose_core.estimator_stages import crop_batch, fuse_depth
+from axispose_core.evaluation.records import Prediction
+from axispose_core.evaluation.run import evaluate
 from axispose_core.metrics import add_or_adi, re
 from axispose_core.tbm.dense import DensePoints, fuse_pose, translation_from_points
 

@@ -19,7 +19,7 @@ import numpy as np
 import torch
 from write_results import write_results
 
-from axispose_core.data.bop import bop_frames
+from axispose_core.data.bop_scene import bop_frames
 from axispose_core.estimator import EstimateOptions, Estimator
 from axispose_core.localiser.scoring import frame_instances
 

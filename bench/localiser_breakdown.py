@@ -36,7 +36,7 @@ from scipy.stats import binomtest
 from tqdm import tqdm
 from write_results import write_results
 
-from axispose_core.data.bop import BopScene, bop_frames
+from axispose_core.data.bop_scene import BopScene, bop_frames
 from axispose_core.data.visibility import gt_info_from_models
 from axispose_core.localiser.decode import Detection, iou
 from axispose_core.localiser.model import Localiser

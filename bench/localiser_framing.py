@@ -20,7 +20,7 @@ from tqdm import tqdm
 from write_results import write_results
 
 from axispose_core.camera import square_around_box
-from axispose_core.data.bop import bop_frames
+from axispose_core.data.bop_scene import bop_frames
 from axispose_core.estimator import Estimator
 from axispose_core.localiser.decode import match
 from axispose_core.localiser.scoring import frame_instances, frame_outcome

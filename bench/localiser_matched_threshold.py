@@ -14,7 +14,7 @@ import numpy as np
 import torch
 from write_results import write_results
 
-from axispose_core.data.bop import bop_frames
+from axispose_core.data.bop_scene import bop_frames
 from axispose_core.data.visibility import gt_info_from_models
 from axispose_core.localiser.decode import Detection
 from axispose_core.localiser.scoring import Instance, frame_instances, tally

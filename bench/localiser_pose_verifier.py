@@ -19,7 +19,7 @@ from node_estimator import add_common_arguments, node_estimator
 from scipy.stats import rankdata
 from write_results import write_results
 
-from axispose_core.data.bop import bop_frames
+from axispose_core.data.bop_scene import bop_frames
 from axispose_core.data.visibility import gt_info_from_models
 from axispose_core.localiser.decode import Detection
 from axispose_core.localiser.scoring import Instance, detection_outcomes, frame_instances, tally

@@ -19,15 +19,18 @@ from scipy.spatial import ConvexHull
 from write_results import write_results
 
 from axispose_core.camera import square_around_box
-from axispose_core.data.bop import GTInstance, bbox_from_model, bop_frames, model_path
+from axispose_core.data.bop import GTInstance, bbox_from_model
+from axispose_core.data.bop_models import model_path
+from axispose_core.data.bop_scene import bop_frames
 from axispose_core.data.meshes import load_ply
 from axispose_core.data.visibility import gt_info_from_models
-from axispose_core.estimator import EstimateOptions, Estimator, PoseEstimate
-from axispose_core.evaluate import object_symmetries
+from axispose_core.estimator import EstimateOptions, Estimator
+from axispose_core.evaluation.records import object_symmetries
 from axispose_core.localiser.decode import match
 from axispose_core.localiser.scoring import frame_instances, frame_outcome
 from axispose_core.metrics import pose_scores
 from axispose_core.objects import ObjectSpec
+from axispose_core.pose_estimate import PoseEstimate
 
 PASSES = ("detection", "recrop1", "recrop2", "gt_box")
 

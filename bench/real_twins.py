@@ -33,7 +33,8 @@ import cv2
 import numpy as np
 import torch
 
-from axispose_core.data.bop import BopScene, read_bgr, scene_dirs
+from axispose_core.data.bop import read_bgr
+from axispose_core.data.bop_scene import BopScene, scene_dirs
 from axispose_core.data.meshes import load_render_mesh
 from axispose_core.data.synth.randomize import jpeg
 from axispose_core.data.synth.raster import Light, render

@@ -14,7 +14,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from axispose_core.data.bop import bop_frames
+from axispose_core.data.bop_scene import bop_frames
 from axispose_core.data.visibility import gt_info_from_models
 from axispose_core.estimator import SHIPPED_ESTIMATOR, EstimateOptions, Estimator
 from axispose_core.refine.refiner import Start

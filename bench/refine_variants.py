@@ -20,7 +20,9 @@ import torch
 from axispose_core.config import config_from_dict
 from axispose_core.data.meshes import refiner_meshes
 from axispose_core.estimator import SHIPPED_ESTIMATOR, EstimateOptions, Estimator
-from axispose_core.evaluate import EvalOptions, Prediction, evaluate, pooled, summarize
+from axispose_core.evaluation.records import Prediction
+from axispose_core.evaluation.run import EvalOptions, evaluate
+from axispose_core.evaluation.summary import pooled, summarize
 from axispose_core.refine.config import RefineConfig
 from axispose_core.refine.refiner import ContourRefiner, Start
 

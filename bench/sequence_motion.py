@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import argparse
 
-from axispose_core.data.bop import BopScene
+from axispose_core.data.bop_scene import BopScene
 from axispose_core.tracking.motion import scene_motion
 
 

@@ -4,16 +4,16 @@ Each setting runs every scene (a BOP folder from `axispose synth --camera-path`,
 either single-frame (the localiser's boxes, each posed on its own: `{"tracking": false}`) or through a `Tracker`
 whose `TrackingConfig` fields and `filter` (a `FilterConfig`) the setting gives; `"follow": true` follows the
 tracks by their contours (`Estimator.follow`), the AGM posing only new and lost objects; `"refine": false` poses
-without contour refinement; `"warm": true` starts tracked samples from their predictions (`--warm-strength`, one
-step); `"live": true` feeds the frames at `--fps` in real time, the newest taken whenever the last is done (the
-node's latest-frame-wins), and scores only those it took; `"view_window": n` gives the tracker the camera's pose
-the scene records (scene_camera.json's `cam_R_w2c`, as odometry would) to fuse each pose over its object's views;
-`"background": true` runs the node's own poser (`axispose_ros.posing.FramePoser`, `background_detection`: the
-localiser and the AGM in a process of their own) on frames delivered in real time at `--fps`, the newest taken
-whenever the last is done, with the node's defaults but for the setting's `redetect_period`, `view_window` and
-`follow_passes` (`"follow_passes": n` follows with the last n passes of the refiner's schedule, in any setting);
-`"search_delay": n` runs that poser lock-step, its search in this process, each search's result coming n frames after
-the frame it searched (the same run every time, unlike real time); `[a, b]`: after a + b x the boxes it posed seconds.
+without contour refinement; `"live": true` feeds the frames at `--fps` in real time, the newest taken whenever the
+last is done (the node's latest-frame-wins), and scores only those it took; `"view_window": n` gives the tracker the
+camera's pose the scene records (scene_camera.json's `cam_R_w2c`, as odometry would) to fuse each pose over its
+object's views; `"background": true` runs the node's own poser (`axispose_ros.posing.FramePoser`,
+`video_odometry`: the localiser and the AGM in a process of their own) on frames delivered in real time at
+`--fps`, the newest taken whenever the last is done, with the node's defaults but for the setting's
+`redetect_period`, `view_window` and `follow_passes` (`"follow_passes": n` follows with the last n passes of the
+refiner's schedule, in any setting); `"search_delay": n` runs that poser lock-step, its search in this process, each
+search's result coming n frames after the frame it searched (the same run every time, unlike real time); `[a, b]`:
+after a + b x the boxes it posed seconds.
 Each GT instance is matched to the nearest pose of its object in its frame. Prints, per setting, ADD(-S)@0.1d and
 Reproj@15px (mean over scenes), and per scene jitter (`tracking/jitter.py`), drift and recovery
 (`tracking/stream_scores.py`; an instance's visibility counts the part of it outside the image as unseen), the median
@@ -22,7 +22,7 @@ and mean frame time and the share of frames processed, as one JSON line; `--out`
 compares the same views.
 
     python bench/tracking_paths.py --scene V777/000000 --scene V778/000000 \\
-        --setting '{"tracking": false}' --setting '{}' --setting '{"warm": true}'
+        --setting '{"tracking": false}' --setting '{}' --setting '{"follow": true}'
 """
 
 from __future__ import annotations
@@ -38,14 +38,18 @@ import numpy as np
 import torch
 from rclpy.parameter import Parameter
 
-from axispose_core.data.bop import BopScene, model_path
+from axispose_core.data.bop_models import model_path
+from axispose_core.data.bop_scene import BopScene
 from axispose_core.data.meshes import load_ply
-from axispose_core.estimator import SHIPPED_ESTIMATOR, EstimateOptions, Estimator, Found
-from axispose_core.evaluate import instance_scores, object_symmetries
+from axispose_core.estimator import SHIPPED_ESTIMATOR, EstimateOptions, Estimator
+from axispose_core.evaluation.records import instance_scores, object_symmetries
+from axispose_core.pose_estimate import Found
+from axispose_core.tracking.config import TrackingConfig
 from axispose_core.tracking.filter import FilterConfig
 from axispose_core.tracking.jitter import PosePair, jitter
 from axispose_core.tracking.stream_scores import Seen, drift, recovery, visibility
-from axispose_core.tracking.tracker import Sighting, Tracker, TrackingConfig
+from axispose_core.tracking.tracker import Tracker
+from axispose_core.tracking.tracks import Sighting
 from axispose_ros.background import Search
 from axispose_ros.params import SPECS, NodeSettings
 from axispose_ros.posing import FramePoser
@@ -93,7 +97,7 @@ class Bench:
         return self._summary(rows, pairs, times, len(frames), tracker.counts if tracker else {})
 
     def _background(self, setting: dict, scene: BopScene) -> dict:
-        """The node's poser with `background_detection`: frames delivered at `fps` in real time (frame k at k / fps
+        """The node's poser in `video_odometry`: frames delivered at `fps` in real time (frame k at k / fps
         after the first), the newest one taken whenever the last is done; or, with `search_delay`, every frame in
         turn, the search done in this process and handed over that many frames after the frame searched (the same
         run every time, for choosing between designs: live runs differ by the machine's timing)."""
@@ -124,8 +128,8 @@ class Bench:
         counts it reports."""
         defaults = {spec.name: spec.default for spec in SPECS if not isinstance(spec.default, Parameter.Type)}
         chosen = {k: setting.get(k, default) for k, default in (("redetect_period", 5), ("view_window", 80), ("follow_passes", 0))}
-        settings = NodeSettings(**defaults | chosen | {"checkpoint": self.checkpoint, "objects": (), "tracking": True, "follow": True,
-                                                       "background_detection": True, "ddim_steps": self.options.steps,
+        settings = NodeSettings(**defaults | chosen | {"checkpoint": self.checkpoint, "objects": (), "mode": "video_odometry",
+                                                       "ddim_steps": self.options.steps,
                                                        "num_threads": torch.get_num_threads()})  # fmt: skip
         counts: dict[str, int] = {}
         poser = FramePoser(
@@ -174,8 +178,7 @@ class Bench:
             return [Sighting(d.obj_id, d.score, d.box, p) for d, p in zip(found.detections, found.poses, strict=True)]
 
         def measure(crops: list) -> list:
-            priors = [c.prior for c in crops] if setting.get("warm", False) else None
-            out = self.est.estimate(rgb, K, [(c.obj_id, c.box) for c in crops], options=options, priors=priors)
+            out = self.est.estimate(rgb, K, [(c.obj_id, c.box) for c in crops], options=options)
             if following:
                 new = [k for k, c in enumerate(crops) if c.detected]
                 for k, p in zip(new, self.est.verified([crops[k].score for k in new], [out[k] for k in new], self.threshold), strict=True):
@@ -257,14 +260,13 @@ def main() -> None:
     ap.add_argument("--models", default="../shared/data/lmo/models_eval")
     ap.add_argument("--fps", type=float, default=15.0)
     ap.add_argument("--steps", type=int, default=3)
-    ap.add_argument("--warm-strength", type=float, default=0.5)
     ap.add_argument("--threshold", type=float, default=0.3)
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--there-and-back", action="store_true", help="play each scene forward, then backward (drift on the same views)")
     ap.add_argument("--out", type=Path)
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
-    options = EstimateOptions(steps=args.steps, warm_steps=1, warm_strength=args.warm_strength, max_boxes=8)
+    options = EstimateOptions(steps=args.steps, max_boxes=8)
     bench = Bench(args.checkpoint, args.models, args.threshold, options, args.fps, args.there_and_back)
     scenes = [BopScene(Path(s)) for s in args.scene]
     rows = []

@@ -60,7 +60,8 @@ def save_tiny_estimator(path: Path, refine_models: Path | None = None) -> Path:
     with a contour refiner of their meshes from `refine_models` (a BOP models folder) where given."""
     from axispose_core.agm.model import AxisGenerator
     from axispose_core.data.meshes import refiner_meshes
-    from axispose_core.estimator import Estimator, EstimatorConfig
+    from axispose_core.estimator import Estimator
+    from axispose_core.estimator_checkpoint import EstimatorConfig
     from axispose_core.objects import lmo_objects
     from axispose_core.tbm.reader import SHIPPED_READER, load_reader
 

@@ -21,7 +21,7 @@ from axispose_core.adapt.recording import RecordingError, read_recording
 from axispose_core.adapt.run import ADAPTED, Adaptation, AdaptConfig, AdaptError, object_geometry
 from axispose_core.adapt.scene import ConsistencyConfig, Prediction
 from axispose_core.adapt.train import AdaptTrainConfig
-from axispose_core.data.bop import BopScene
+from axispose_core.data.bop_scene import BopScene
 from axispose_core.data.synth.config import CameraPathConfig, PhotometricConfig, StreamConfig, SynthConfig
 from axispose_core.data.synth.stream import CropStream
 from axispose_core.estimator import SHIPPED_ESTIMATOR, Estimator
@@ -78,7 +78,7 @@ class _Finder:
     calls = 0
 
     def find(self, image, K, threshold=None, options=None):
-        from axispose_core.estimator import Found, PoseEstimate
+        from axispose_core.pose_estimate import Found, PoseEstimate
 
         self.calls += 1
         pose = PoseEstimate(1, np.eye(3), np.array([0.0, 0.0, 0.8]), True, "", np.zeros((4, 4, 3)), K, (0.0, 0.0), 1.0,
@@ -229,7 +229,7 @@ def test_bad_input_is_one_line_and_exit_2(recording, tmp_path, lmo_dir, capsys):
 
 
 def test_recoloured_models_keep_their_geometry_and_wear_other_colours(lmo_dir, tmp_path):
-    from axispose_core.data.bop import model_path
+    from axispose_core.data.bop_models import model_path
     from axispose_core.data.meshes import load_ply
     from axispose_core.data.recolour import recoloured_models
 

@@ -110,7 +110,7 @@ def test_a_searchs_detections_join_the_views_as_they_come_and_challenge_tracks_o
     search from before a reset (a later stamp than the frame's) joins nothing."""
     from types import SimpleNamespace
 
-    from axispose_core.estimator import Found
+    from axispose_core.pose_estimate import Found
     from axispose_ros.posing import FramePoser
 
     def found(obj_id: int, ok: bool = True) -> Found:

@@ -10,21 +10,19 @@ from axispose_core.data.bop import (
     MM,
     ROTATION_TOL,
     BopFormatError,
-    BopScene,
     GTInfo,
     GTInstance,
     bbox_from_model,
     load_camera_poses,
-    load_models_info,
     load_scene_camera,
     load_scene_gt,
-    model_path,
     read_scene_gt,
-    write_models_info,
     write_scene_camera,
     write_scene_gt,
     write_scene_gt_info,
 )
+from axispose_core.data.bop_models import load_models_info, model_path, write_models_info
+from axispose_core.data.bop_scene import BopScene
 from axispose_core.data.meshes import load_ply
 from axispose_core.data.visibility import gt_info_from_models, write_gt_info
 from axispose_core.lmo import LMO_DIAMETERS, LMO_K, LMO_SYMMETRIC

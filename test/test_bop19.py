@@ -10,18 +10,15 @@ from scipy.spatial.transform import Rotation
 
 from axispose_core.bop19 import FRACTIONS, BopImage, BopObject, average_recall, image_errors
 from axispose_core.cli import main
-from axispose_core.data.bop import (
-    BopEstimate,
-    BopFormatError,
-    BopScene,
-    load_models_info,
-    load_test_targets,
-    read_bop_results,
-    write_bop_results,
-)
+from axispose_core.data.bop import BopFormatError, load_test_targets
+from axispose_core.data.bop_models import load_models_info
+from axispose_core.data.bop_results import BopEstimate, read_bop_results, write_bop_results
+from axispose_core.data.bop_scene import BopScene
 from axispose_core.data.synth.config import SynthConfig
 from axispose_core.data.synth.generate import generate
-from axispose_core.evaluate import EvalOptions, Prediction, evaluate, summarize
+from axispose_core.evaluation.records import Prediction
+from axispose_core.evaluation.run import EvalOptions, evaluate
+from axispose_core.evaluation.summary import summarize
 from axispose_core.metrics import mspd, mssd, symmetry_transformations, vsd
 from axispose_core.objects import objects_from_models
 
@@ -261,7 +258,8 @@ def _tiny_checkpoint(scenes, tmp_path):
     from conftest import TINY_AGM
 
     from axispose_core.agm.model import AxisGenerator
-    from axispose_core.estimator import Estimator, EstimatorConfig
+    from axispose_core.estimator import Estimator
+    from axispose_core.estimator_checkpoint import EstimatorConfig
     from axispose_core.tbm.reader import SHIPPED_READER, load_reader
 
     reader = load_reader(SHIPPED_READER)

@@ -3,9 +3,10 @@ from pathlib import Path
 
 import pytest
 
-from axispose_core.cli import _config, main
+from axispose_core.cli import main
 from axispose_core.estimator import Estimator
 from axispose_core.train.agm import TrainConfig
+from axispose_core.train.command import training_config
 from axispose_core.train.direct import DirectTrainConfig
 from axispose_core.train.localiser import LocaliserTrainConfig
 from axispose_ros.node import DEFAULT_CHECKPOINT
@@ -28,10 +29,10 @@ CONFIGS = sorted((Path(__file__).resolve().parents[1] / "config").glob("train_*.
 def test_shipped_training_configs_load_into_their_dataclasses(path):
     kinds = {"train_agm": TrainConfig, "train_direct": DirectTrainConfig, "train_localiser": LocaliserTrainConfig}
     cls = next(c for prefix, c in kinds.items() if path.name.startswith(prefix))
-    cfg = _config(cls, str(path))  # unknown or misspelt fields raise
+    cfg = training_config(cls, str(path))  # unknown or misspelt fields raise
     if path.name == "train_agm.yaml":  # the defaults are the shipped recipe's first stage
         assert cfg == TrainConfig()
     if path.name == "train_agm_gpu.yaml":  # the CPU recipe's network and stream, a larger batch: --init a CPU run
-        assert cfg.agm == _config(TrainConfig, str(path.with_name("train_agm.yaml"))).agm
+        assert cfg.agm == training_config(TrainConfig, str(path.with_name("train_agm.yaml"))).agm
     if path.name == "train_localiser.yaml":  # the shipped localiser's network, so --init can be the shipped model
         assert cfg.localiser == replace(Estimator.load(DEFAULT_CHECKPOINT).config.localiser, obj_ids=())

@@ -9,7 +9,7 @@ import pytest
 from conftest import within_a_pixel
 
 from axispose_core.camera import project
-from axispose_core.data.bop import load_models_info, model_path
+from axispose_core.data.bop_models import load_models_info, model_path
 from axispose_core.data.meshes import load_ply, load_render_mesh
 from axispose_core.data.synth import clutter, generate
 from axispose_core.data.synth.config import BackgroundConfig, LightConfig, RandomizationConfig, SceneConfig, SynthConfig

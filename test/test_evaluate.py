@@ -9,11 +9,15 @@ import numpy as np
 import pytest
 
 from axispose_core.cli import main
-from axispose_core.data.bop import BopFormatError, BopScene
+from axispose_core.data.bop import BopFormatError
+from axispose_core.data.bop_scene import BopScene
 from axispose_core.data.synth.config import SynthConfig
 from axispose_core.data.synth.generate import generate
 from axispose_core.data.synth.preview import contact_sheet
-from axispose_core.evaluate import EvalOptions, Prediction, evaluate, plot_cdfs, plot_grid, plot_uncertainty, summarize, write_report
+from axispose_core.evaluation.records import Prediction
+from axispose_core.evaluation.report import plot_cdfs, plot_grid, plot_uncertainty, write_report
+from axispose_core.evaluation.run import EvalOptions, evaluate
+from axispose_core.evaluation.summary import summarize
 from axispose_core.objects import objects_from_models
 from axispose_core.stress import low_light, motion_blur
 
@@ -163,7 +167,8 @@ def test_eval_cli_writes_the_report(scenes, lmo_dir, tmp_path, official_like):
     from conftest import TINY_AGM
 
     from axispose_core.agm.model import AxisGenerator
-    from axispose_core.estimator import Estimator, EstimatorConfig
+    from axispose_core.estimator import Estimator
+    from axispose_core.estimator_checkpoint import EstimatorConfig
     from axispose_core.tbm.reader import SHIPPED_READER, load_reader
 
     reader = load_reader(SHIPPED_READER)

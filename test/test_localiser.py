@@ -13,17 +13,20 @@ from conftest import TINY_AGM
 from axispose_core.agm.model import AxisGenerator
 from axispose_core.camera import crop_transform, instance_crop, project
 from axispose_core.checkpoint import CheckpointError, read_checkpoint, stored_half
-from axispose_core.cli import _score_and_attach, main
+from axispose_core.cli import main
 from axispose_core.config import config_from_dict
-from axispose_core.data.bop import BopFormatError, BopScene
+from axispose_core.data.bop import BopFormatError
+from axispose_core.data.bop_scene import BopScene
 from axispose_core.data.synth.config import SurfaceConfig
-from axispose_core.estimator import Estimator, EstimatorConfig
+from axispose_core.estimator import Estimator
+from axispose_core.estimator_checkpoint import EstimatorConfig
 from axispose_core.localiser.decode import Detection, decode, draw_targets, focal_loss, iou, match
 from axispose_core.localiser.model import STRIDE, Localiser, LocaliserConfig, build_localiser
 from axispose_core.localiser.scoring import detection_scores, frame_outcome
 from axispose_core.localiser.weights import KIND, load_localiser, warm_start
 from axispose_core.objects import objects_from_models
 from axispose_core.tbm.reader import SHIPPED_READER, load_reader
+from axispose_core.train.command import score_and_attach
 from axispose_core.train.dataset import AxisCropDataset
 from axispose_core.train.localiser import LocaliserDataset, LocaliserTrainConfig, localiser_loss, train_localiser
 from axispose_core.train.loop import OptimConfig, RunOptions
@@ -302,7 +305,7 @@ def test_attach_keeps_the_precision_the_checkpoint_is_stored_in(estimator_with_l
     target = tmp_path / "est.safetensors"
     Estimator.load(estimator_with_localiser).save(target, half=half)
     assert stored_half(target) == half
-    assert _score_and_attach(argparse.Namespace(out=str(trained[1]), val=None, attach=str(target))) == 0
+    assert score_and_attach(argparse.Namespace(out=str(trained[1]), val=None, attach=str(target))) == 0
     assert stored_half(target) == half  # the shipped file stays float16, within its size budget
     attached, trained_weights = Estimator.load(target).localiser.state_dict(), load_localiser(trained[1]).state_dict()
     for key, value in trained_weights.items():

@@ -2,7 +2,9 @@ import numpy as np
 import pytest
 
 from axispose_core.cli import main
-from axispose_core.data.bop import BopFormatError, BopScene, load_models_info, model_path
+from axispose_core.data.bop import BopFormatError
+from axispose_core.data.bop_models import load_models_info, model_path
+from axispose_core.data.bop_scene import BopScene
 from axispose_core.data.mesh_import import import_meshes
 from axispose_core.data.meshes import load_obj, load_ply
 from axispose_core.data.synth.config import SynthConfig, recipe

@@ -20,11 +20,13 @@ from visualization_msgs.msg import Marker, MarkerArray
 
 from axispose_core.agm.model import AxisGenerator
 from axispose_core.checkpoint import CheckpointError
-from axispose_core.estimator import Estimator, EstimatorConfig, PoseEstimate, bf16_native
+from axispose_core.estimator import Estimator, bf16_native
+from axispose_core.estimator_checkpoint import EstimatorConfig
 from axispose_core.lmo import LMO_K
 from axispose_core.localiser.model import Localiser, LocaliserConfig
 from axispose_core.localiser.verifier import DetectionVerifier
 from axispose_core.objects import lmo_objects
+from axispose_core.pose_estimate import PoseEstimate
 from axispose_core.tbm.reader import SHIPPED_READER, load_reader
 from axispose_core.trunks import ResidualBNConfig
 from axispose_msgs.msg import DetectionArray
@@ -335,9 +337,11 @@ def test_image_scaled_uniformly_from_camera_info_is_handled(harness):
     assert harness.spin_until(lambda: harness.node.counts["frames_processed"] >= 1)
 
 
-def test_diagnostics_report_counts(harness):
+def test_diagnostics_report_counts_and_the_mode(harness):
     harness.frame(sec=40)
     assert harness.spin_until(lambda: any(s.values for d in harness.got["diag"] for s in d.status if "processed" in s.message), 10.0)
+    values = {v.key: v.value for d in harness.got["diag"] for s in d.status for v in s.values}
+    assert values["mode"] == "stills" and "localiser" in values["mode_reason"]  # the harness's checkpoint has none
 
 
 def test_parameters_are_validated_at_start_and_at_run_time(checkpoint, tmp_path):
@@ -353,6 +357,8 @@ def test_parameters_are_validated_at_start_and_at_run_time(checkpoint, tmp_path)
         assert h.node.set_parameters([Parameter("ddim_steps", value=8)])[0].successful
         assert h.node.get_parameter("ddim_steps").value == 8
         assert h.node.set_parameters([Parameter("checkpoint", value="x")])[0].successful is False
+        assert h.node.set_parameters([Parameter("mode", value="tracking")])[0].successful is False
+        assert h.node.set_parameters([Parameter("mode", value="video")])[0].successful and h.node.settings().mode == "video"
         assert h.node.set_parameters([Parameter("object_scales.ape", value=-1.0)])[0].successful is False
         assert h.node.set_parameters([Parameter("object_scales.ape", value=0.06)])[0].successful
         assert h.node._scales() == {1: 0.06}
@@ -447,12 +453,13 @@ def test_with_a_refiner_every_pose_is_counted_and_bad_input_is_answered_as_befor
         h.close()
 
 
-@pytest.mark.parametrize("background", [False, True])
-def test_following_tracks_by_their_contours_runs_the_frames_and_counts_them(tmp_path, lmo_dir, background):
-    """`tracking` with `follow` (and `view_window`, the camera's pose on camera_odom) on a checkpoint with a localiser
-    and a refiner: every frame ends in frames_processed, each counted as followed or estimated by the tracker; an
-    odometry message that is no pose is counted; nothing fails. With `background_detection` the localiser and the
-    AGM search frames in a process of their own (the node stops it)."""
+@pytest.mark.parametrize("mode", ["video", "video_odometry", "auto"])
+def test_following_tracks_by_their_contours_runs_the_frames_and_counts_them(tmp_path, lmo_dir, mode):
+    """`video` (the tracks followed by their contours) on a checkpoint with a localiser and a refiner, with the camera's
+    pose on camera_odom: every frame ends in frames_processed, each counted as followed or estimated by the tracker;
+    an odometry message that is no pose is counted; nothing fails. In `video_odometry` the localiser and the AGM
+    search frames in a process of their own (the node stops it). `auto` runs `video_odometry` on the frames with the
+    camera's pose and `video` on the one whose odometry was no pose; `/diagnostics` counts the frames of each mode."""
     reader = load_reader(SHIPPED_READER)
     cfg = EstimatorConfig(agm=TINY_AGM, reader=reader.config, objects=tuple(lmo_objects()[:2]), ddim_steps=1)
     localiser = Localiser(LocaliserConfig(obj_ids=(1, 5), input_size=(160, 128), trunk=ResidualBNConfig(widths=(8, 16, 24, 32))))
@@ -461,7 +468,8 @@ def test_following_tracks_by_their_contours_runs_the_frames_and_counts_them(tmp_
     path = tmp_path / "follow.safetensors"
     est = Estimator(cfg, AxisGenerator(cfg.agm), reader).with_localiser(localiser)
     est.with_refiner(refiner_meshes(lmo_dir / "models", [1, 5])).save(path)
-    h = Harness(path, score_threshold=0.0, tracking=True, follow=True, view_window=5, background_detection=background)
+    h = Harness(path, score_threshold=0.0, mode=mode, view_window=5)
+    background = mode != "video"
     from nav_msgs.msg import Odometry
 
     odom = h.peer.create_publisher(Odometry, "camera_odom", 50)
@@ -479,6 +487,9 @@ def test_following_tracks_by_their_contours_runs_the_frames_and_counts_them(tmp_
         assert counts["camera_odom_invalid"] == 1 and h.node.camera_poses.at(3.0, 0.01)[0, 3] == pytest.approx(0.03)
         assert "dropped_error" not in counts and "background_failed" not in counts
         assert (counts.get("background_searches", 0) > 0) == background
+        expected = {"video": {"video": 3}, "video_odometry": {"video_odometry": 2, "video": 1}, "auto": {"video_odometry": 2, "video": 1}}
+        assert {k[len("mode_") :]: n for k, n in counts.items() if k.startswith("mode_")} == expected[mode]
+        assert h.node.poser.choice.mode.value == ("video" if not background else "video_odometry")
     finally:
         h.close()
     assert h.node.poser._finder is None or not h.node.poser._finder.alive()
@@ -579,11 +590,11 @@ def test_the_checkpoints_verifier_sets_the_published_score_and_its_drops_are_cou
 
 
 def test_with_tracking_a_verified_detection_is_posed_once(localised_checkpoint, tmp_path):
-    """With tracking on, the verifier's poses of a frame's detections start the tracks: the localiser's frame goes
+    """In `video`, the verifier's poses of a frame's detections start the tracks: the localiser's frame goes
     through the AGM once, not once to score and again to track."""
     path = tmp_path / "verified.safetensors"
     Estimator.load(localised_checkpoint).with_verifier(DetectionVerifier((0.0, 0.0, 0.0, 2.0), min_score=1e-3)).save(path)
-    h = Harness(path, score_threshold=0.3, tracking=True)
+    h = Harness(path, score_threshold=0.3, mode="video")
     try:
         calls = _fixed_poses(h.node)
         h.spin_until(lambda: h.pub_image.get_subscription_count() > 0, 5.0)
@@ -632,10 +643,13 @@ def test_an_unsupported_lens_model_drops_the_frame_with_a_reason(harness):
 
 @pytest.mark.slow
 @pytest.mark.parametrize(
-    "param", ["ddim_steps:=0", "ddim_steps:=abc", "sync_slop:=-1.0", "num_threads:=0", "device:=cuda", "precision:=half"]
-)
+    "param",
+    ["ddim_steps:=0", "ddim_steps:=abc", "sync_slop:=-1.0", "num_threads:=0", "device:=cuda", "precision:=half", "mode:=tracking",
+     "tracking:=true"],
+)  # fmt: skip
 def test_bad_parameters_at_start_are_one_line_and_exit_2(checkpoint, param):
-    """Out of range, of the wrong type, or a device this torch has not: one clear line, exit code 2, no traceback."""
+    """Out of range, of the wrong type, a device this torch has not, a mode that is none, or a parameter the node no
+    longer has: one clear line, exit code 2, no traceback; a removed one names what replaced it."""
     if param == "device:=cuda" and torch.cuda.is_available():
         pytest.skip("this machine has CUDA")
     proc = subprocess.run(
@@ -645,3 +659,4 @@ def test_bad_parameters_at_start_are_one_line_and_exit_2(checkpoint, param):
     lines = proc.stderr.strip().splitlines()
     assert proc.returncode == 2 and len(lines) == 1 and lines[0].startswith("axispose_node: "), proc.stderr
     assert param.split(":=")[0] in lines[0] and "Traceback" not in proc.stderr
+    assert ("video_odometry" in lines[0]) == param.startswith(("mode", "tracking"))

@@ -10,7 +10,7 @@ import pybullet_data
 import pytest
 import yaml
 
-from axispose_core.data.bop import model_path
+from axispose_core.data.bop_models import model_path
 from axispose_core.data.meshes import load_ply
 from axispose_core.estimator import Estimator
 from axispose_ros.cli import main

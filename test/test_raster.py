@@ -8,7 +8,7 @@ from matplotlib.path import Path as PolyPath
 from scipy.spatial import ConvexHull
 from scipy.spatial.transform import Rotation
 
-from axispose_core.data.bop import model_path
+from axispose_core.data.bop_models import model_path
 from axispose_core.data.meshes import load_ply
 from axispose_core.data.synth.raster import Light, RenderMesh, _rasterize, render, render_depth, vertex_normals
 

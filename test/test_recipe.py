@@ -15,7 +15,8 @@ from axispose_core.estimator import Estimator
 from axispose_core.tbm.reader import SHIPPED_READER
 from axispose_core.train.loop import RunOptions
 from axispose_core.train.reader import train_reader
-from axispose_core.train.recipe import RecipeError, RecipeRunner, load_recipe
+from axispose_core.train.recipe import RecipeError, load_recipe
+from axispose_core.train.recipe_runner import RecipeRunner
 
 OPTIM = {"steps": 2, "batch": 2, "warmup": 1, "workers": 0, "save_every": 1, "val_every": 2}
 SHIPPED_RECIPE = Path(__file__).resolve().parents[1] / "config" / "recipes" / "axispose_lmo.yaml"
@@ -162,7 +163,7 @@ def test_the_verifier_is_fitted_on_the_assembled_checkpoint_and_an_adopted_one_i
         calls.append((est.config.verifier, [Path(d).name for d in data], config.min_score))
         return DetectionVerifier((0.5, 1.0, 0.0, -1.0), config.min_score), {"hits": 3}
 
-    monkeypatch.setattr("axispose_core.train.recipe.fit_verifier", fake_fit)
+    monkeypatch.setattr("axispose_core.train.recipe_runner.fit_verifier", fake_fit)
     plain = RecipeRunner(load_recipe(_write(tmp_path, _recipe(lmo_dir / "models"))), tmp_path / "plain", RunOptions(progress=False), adopt)
     assert Estimator.load(plain.run_all()).config.verifier is None and calls == []
     recipe = _recipe(lmo_dir / "models")
@@ -267,14 +268,14 @@ def test_the_pretrained_variant_recipe_differs_from_the_shipped_one_in_its_trunk
 
 def test_a_data_entry_changes_only_the_part_of_its_frame_recipes_scenes_and_look_it_names():
     from axispose_core.data.synth.config import recipe as synth_recipe
-    from axispose_core.train.recipe import _synth_config
+    from axispose_core.train.recipe import synth_config
 
     spec = {"scenes": 2, "seed": 5, "recipe": "desk", "randomization": {"light": {"ambient": [0.15, 1.0]}}}
-    cfg = _synth_config(spec)
+    cfg = synth_config(spec)
     _, desk = synth_recipe("desk")
     assert cfg.randomization.light.ambient == (0.15, 1.0)
     assert cfg.randomization == dataclasses.replace(desk, light=dataclasses.replace(desk.light, ambient=(0.15, 1.0)))
-    assert _synth_config({"scenes": 2, "seed": 5, "recipe": "desk"}).randomization == desk
+    assert synth_config({"scenes": 2, "seed": 5, "recipe": "desk"}).randomization == desk
     scene, _ = synth_recipe("desk")
-    alike = _synth_config({**spec, "scene": {"lookalike_prob": 0.5}})
+    alike = synth_config({**spec, "scene": {"lookalike_prob": 0.5}})
     assert alike.scene == dataclasses.replace(scene, lookalike_prob=0.5) and alike.randomization == cfg.randomization

@@ -12,7 +12,8 @@ import pytest
 from rosbags.rosbag2 import Writer
 
 from axispose_core.adapt.recording import RecordingError, read_recording
-from axispose_core.data.bop import BopScene, load_camera_poses
+from axispose_core.data.bop import load_camera_poses
+from axispose_core.data.bop_scene import BopScene
 from axispose_core.data.synth.config import CameraPathConfig, SynthConfig
 from axispose_core.data.synth.generate import generate
 from axispose_core.lmo import LMO_K

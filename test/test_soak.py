@@ -12,6 +12,7 @@ from pathlib import Path
 import pytest
 from conftest import save_tiny_estimator
 
+from axispose_core.tracking.mode import Mode
 from axispose_ros.params import SPECS
 from axispose_ros.soak import FAULTS, SoakOptions, node_command
 
@@ -42,10 +43,10 @@ def test_a_short_soak_keeps_the_node_up_and_counts_every_fault(tmp_path):
 
 
 def test_the_soak_starts_the_node_with_its_own_parameters_as_asked():
-    """Each `-p name:=value` the soak gives the node is one of the node's parameters, of its type; tracking and
-    following reach it as asked."""
+    """Each `-p name:=value` the soak gives the node is one of the node's parameters, of its type; the mode and the
+    view window reach it as asked."""
     specs = {spec.name: spec for spec in SPECS}
-    for opts in (SoakOptions(), SoakOptions(tracking=True, follow=True, view_window=80, background_detection=True)):
+    for opts in (SoakOptions(), SoakOptions(mode="video_odometry", view_window=80)):
         cmd = node_command("model.safetensors", opts)
         params = dict(cmd[i + 1].split(":=", 1) for i, a in enumerate(cmd) if a == "-p")
         assert set(params) <= set(specs), set(params) - set(specs)
@@ -54,7 +55,7 @@ def test_the_soak_starts_the_node_with_its_own_parameters_as_asked():
                 assert value in ("true", "false")
             elif isinstance(specs[name].default, int):
                 int(value)
-        assert params["tracking"] == params["follow"] == params["background_detection"] == str(opts.follow).lower()
+        assert params["mode"] == opts.mode and Mode.parse(params["mode"])
         assert int(params["view_window"]) == opts.view_window
         assert "camera_odom:=/soak/camera_odom" in cmd
 

@@ -17,7 +17,7 @@ from conftest import within_a_pixel
 
 from axispose_core.camera import crop_intrinsics, project
 from axispose_core.cli import main as cli_main
-from axispose_core.data.bop import model_path
+from axispose_core.data.bop_models import model_path
 from axispose_core.data.meshes import load_ply, load_render_mesh
 from axispose_core.data.synth.config import ALL_PHOTOS, ALL_TEXTURES, StreamConfig
 from axispose_core.data.synth.randomize import _procedural, photographs

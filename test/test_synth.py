@@ -13,7 +13,8 @@ from conftest import within_a_pixel
 
 from axispose_core.axis_image import AxisSpec
 from axispose_core.camera import instance_crop, project
-from axispose_core.data.bop import BopScene, load_models_info, model_path
+from axispose_core.data.bop_models import load_models_info, model_path
+from axispose_core.data.bop_scene import BopScene
 from axispose_core.data.meshes import load_ply, load_render_mesh
 from axispose_core.data.synth.config import SynthConfig
 from axispose_core.data.synth.generate import generate, render_image

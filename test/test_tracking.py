@@ -10,9 +10,11 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from axispose_core.data.bop import GTInstance
+from axispose_core.tracking.config import TrackingConfig
 from axispose_core.tracking.filter import FilterConfig, PoseFilter
 from axispose_core.tracking.motion import camera_motion, scene_motion
-from axispose_core.tracking.tracker import Crop, Sighting, Tracker, TrackingConfig
+from axispose_core.tracking.tracker import Tracker
+from axispose_core.tracking.tracks import Crop, Sighting
 
 K = np.array([[572.4, 0.0, 325.3], [0.0, 573.6, 242.0], [0.0, 0.0, 1.0]])
 SIGMA_T, SIGMA_R = 0.01, np.deg2rad(5.0)
@@ -204,7 +206,7 @@ def test_a_sighting_brings_its_pose_and_is_not_posed_again():
     assert [sorted(c.obj_id for c in crops) for crops in scene.crops] == [[1, 5]]
     scene.hidden = {5}
     third = tracker.step(2 / 15, K, sightings, scene.estimate)  # the localiser finds object 1 only
-    assert [c.obj_id for c in scene.crops[-1]] == [5] and scene.crops[-1][0].prior is not None
+    assert [c.obj_id for c in scene.crops[-1]] == [5] and scene.crops[-1][0].track is not None
     assert {p.obj_id: p.measurement is given.get(p.obj_id) for p in third} == {1: True, 5: False}
     assert {p.track_id for p in first} == {p.track_id for p in third}
 
@@ -216,7 +218,7 @@ def test_tracks_keep_their_ids_and_the_localiser_runs_every_period():
     assert all(i == ids[0] for i in ids) and len(ids[0]) == 2
     assert scene.detect_calls == 4  # frames 0, 5, 10, 15
     tracked = scene.crops[1]
-    assert all(c.track is not None and c.prior is not None for c in tracked)
+    assert all(c.track is not None for c in tracked)
     for c in tracked:  # a tracked object's crop is where it is
         x, y, w, h = scene.box(c.obj_id)
         assert np.hypot(c.box[0] + c.box[2] / 2 - (x + w / 2), c.box[1] + c.box[3] / 2 - (y + h / 2)) < 5

@@ -10,7 +10,8 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from axispose_core.data.bop import BopScene, bbox_from_model
+from axispose_core.data.bop import bbox_from_model
+from axispose_core.data.bop_scene import BopScene
 from axispose_core.data.meshes import load_render_mesh
 from axispose_core.data.synth.raster import Light, render
 from axispose_core.data.twins import TwinPart, twin_frame, write_twins

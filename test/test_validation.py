@@ -10,8 +10,10 @@ from conftest import TINY_AGM
 from axispose_core.agm.model import AxisGenerator
 from axispose_core.cli import main
 from axispose_core.data.meshes import refiner_meshes
-from axispose_core.estimator import Estimator, EstimatorConfig
-from axispose_core.evaluate import Record, depth_errors
+from axispose_core.estimator import Estimator
+from axispose_core.estimator_checkpoint import EstimatorConfig
+from axispose_core.evaluation.records import Record
+from axispose_core.evaluation.summary import depth_errors
 from axispose_core.lmo import REAL_SLICE
 from axispose_core.localiser.model import Localiser, LocaliserConfig
 from axispose_core.objects import lmo_objects

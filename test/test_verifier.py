@@ -10,13 +10,15 @@ from scipy.special import expit
 
 from axispose_core.agm.model import AxisGenerator
 from axispose_core.cli import main
-from axispose_core.data.bop import bop_frames
-from axispose_core.estimator import SHIPPED_ESTIMATOR, EstimateOptions, Estimator, EstimatorConfig, Found
+from axispose_core.data.bop_scene import bop_frames
+from axispose_core.estimator import SHIPPED_ESTIMATOR, EstimateOptions, Estimator
+from axispose_core.estimator_checkpoint import EstimatorConfig
 from axispose_core.lmo import LMO_K
 from axispose_core.localiser.decode import Detection
 from axispose_core.localiser.model import Localiser, LocaliserConfig
 from axispose_core.localiser.verifier import FEATURES, WORST_VARIANCE, DetectionVerifier, fit, signals
 from axispose_core.objects import lmo_objects
+from axispose_core.pose_estimate import Found
 from axispose_core.tbm.reader import SHIPPED_READER, load_reader
 from axispose_core.trunks import ResidualBNConfig
 

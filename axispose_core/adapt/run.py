@@ -28,7 +28,7 @@ from axispose_core.adapt.report import contact_sheet, round_counts
 from axispose_core.adapt.scene import ConsistencyConfig, SceneResult, consistent
 from axispose_core.adapt.train import AdaptTrainConfig, adapt_agm
 from axispose_core.estimator import Estimator
-from axispose_core.evaluate import object_symmetries
+from axispose_core.evaluation.records import object_symmetries
 from axispose_core.train.loop import DEFAULT_RUN, RunOptions
 from axispose_core.train.resume import state_path
 

@@ -16,12 +16,12 @@ from axispose_core.adapt.crops import LabelledCrops, mixed_batches
 from axispose_core.agm.model import AxisGenerator
 from axispose_core.camera import CropJitter
 from axispose_core.config import PRESET, config_from_dict
-from axispose_core.data.bop import model_path
+from axispose_core.data.bop_models import model_path
 from axispose_core.data.meshes import load_ply
 from axispose_core.data.synth.config import PhotometricConfig, StreamConfig
 from axispose_core.data.synth.stream import CropStream
 from axispose_core.estimator import Estimator
-from axispose_core.evaluate import object_symmetries
+from axispose_core.evaluation.records import object_symmetries
 from axispose_core.train.agm import VAL_COLUMNS, validate, with_depth_target
 from axispose_core.train.loop import DEFAULT_RUN, OptimConfig, RunOptions, TrainJob, Validation, fit, training_device, training_record
 from axispose_core.train.losses import AGMObjective

@@ -89,10 +89,6 @@ class Encoding(NamedTuple):
     log_depth: torch.Tensor
     """(B,): log(z S / (f λ_O)), the depth relative to the crop's focal length f (px) and the object's size."""
 
-    def select(self, rows: torch.Tensor) -> Encoding:
-        """The encodings of `rows` (indices), in that order."""
-        return Encoding(*([m[rows] for m in v] if isinstance(v, list) else v[rows] for v in self))
-
     def repeat(self, k: int) -> Encoding:
         """Each crop's encoding k times in a row (k hypotheses of one crop share its encoder pass)."""
         return Encoding(

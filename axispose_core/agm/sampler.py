@@ -26,22 +26,6 @@ class Guidance:
     scale: float
 
 
-@dataclass(frozen=True)
-class Start:
-    """Where sampling starts. `noise_scale` (one factor per row) scales the starting noise: 0 starts the
-    deterministic (eta = 0) path from the mode of N(0, I). With a guess `x0` (B,3,S,S) in [-1, 1], sampling starts
-    part-way (SDEdit): the guess noised to timestep `strength`·T, then the steps from there down; a tracked object's
-    predicted axis image needs fewer steps than noise does."""
-
-    noise_scale: torch.Tensor | None = None
-    x0: torch.Tensor | None = None
-    strength: float = 1.0
-
-    def __post_init__(self) -> None:
-        if not 0.0 < self.strength <= 1.0:
-            raise ValueError(f"strength must lie in (0, 1], got {self.strength}")
-
-
 @torch.no_grad()
 def sample(
     agm: AxisGenerator,
@@ -51,24 +35,20 @@ def sample(
     generator: torch.Generator | None = None,
     guidance: Guidance | None = None,
     cancelled: Callable[[], bool] | None = None,
-    start: Start | None = None,
+    noise_scale: torch.Tensor | None = None,
 ) -> torch.Tensor:
     """One axis image (B,3,S,S) in [-1,1] per row of `enc` (`Encoding.repeat` for several per crop), with run-time
     `guidance` where given (None or scale 0: off). `cancelled()` is asked before every step; True raises
-    `Cancelled` (a node shutting down mid-frame). `start` (None: from noise) says where the path begins; from a
-    guess, the `steps` steps are the last of a schedule of steps / strength steps over T."""
-    start = start or Start()
+    `Cancelled` (a node shutting down mid-frame). `noise_scale` (one factor per row) scales the starting noise x_T:
+    0 starts the deterministic (eta = 0) path from the mode of N(0, I)."""
     sched = agm.scheduler
-    sched.set_timesteps(steps if start.x0 is None else max(steps, round(steps / start.strength)))
+    sched.set_timesteps(steps)
     S = agm.config.denoiser.size
     ref = enc.context
     x = torch.randn((ref.shape[0], 3, S, S), generator=generator, dtype=ref.dtype).to(ref.device)
-    if start.noise_scale is not None:
-        x = x * start.noise_scale.to(x).view(-1, 1, 1, 1)
-    timesteps = sched.timesteps.tolist()[-steps:]
-    if start.x0 is not None:
-        x = sched.add_noise(start.x0.to(x), x, torch.full((x.shape[0],), timesteps[0], device=x.device))
-    for t in timesteps:
+    if noise_scale is not None:
+        x = x * noise_scale.to(x).view(-1, 1, 1, 1)
+    for t in sched.timesteps.tolist():
         if cancelled is not None and cancelled():
             raise Cancelled("sampling cancelled")
         out = agm.denoiser(x, torch.full((x.shape[0],), t, device=x.device), enc)

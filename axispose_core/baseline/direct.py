@@ -18,7 +18,7 @@ from torch import nn
 from axispose_core.agm.denoiser import CropEncoder, EncoderConfig
 from axispose_core.agm.model import EncoderLossConfig
 from axispose_core.checkpoint import load_state, read_checkpoint, save_checkpoint
-from axispose_core.estimator import crop_batch
+from axispose_core.estimator_stages import crop_batch
 from axispose_core.objects import ObjectSpec
 from axispose_core.tbm.backproject import Backprojection, backproject
 

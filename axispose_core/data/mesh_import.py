@@ -14,7 +14,8 @@ from scipy.spatial import ConvexHull
 from scipy.spatial.distance import pdist
 from scipy.spatial.transform import Rotation
 
-from axispose_core.data.bop import MM, BopFormatError, ObjectInfo, model_path, write_models_info
+from axispose_core.data.bop import MM, BopFormatError
+from axispose_core.data.bop_models import ObjectInfo, model_path, write_models_info
 from axispose_core.data.meshes import Mesh, load_mesh, write_ply
 from axispose_core.objects import NAMES_FILE, object_name
 

@@ -11,7 +11,8 @@ from pathlib import Path
 import numpy as np
 import plyfile
 
-from axispose_core.data.bop import MM, BopFormatError, model_path
+from axispose_core.data.bop import MM, BopFormatError
+from axispose_core.data.bop_models import model_path
 from axispose_core.data.synth.raster import RenderMesh, decimate, vertex_normals
 
 log = logging.getLogger(__name__)

@@ -10,7 +10,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from axispose_core.data.bop import load_models_info, model_path
+from axispose_core.data.bop_models import load_models_info, model_path
 from axispose_core.data.meshes import Mesh, load_ply, write_ply
 
 

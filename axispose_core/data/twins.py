@@ -22,7 +22,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from axispose_core.data.bop import BopScene, GTInstance, read_bgr, scene_dirs
+from axispose_core.data.bop import GTInstance, read_bgr
+from axispose_core.data.bop_scene import BopScene, scene_dirs
 from axispose_core.data.meshes import load_render_mesh
 from axispose_core.data.synth.randomize import wrong_texture
 from axispose_core.data.synth.raster import Light, RenderMesh, render

@@ -12,17 +12,9 @@ from pathlib import Path
 
 import numpy as np
 
-from axispose_core.data.bop import (
-    BopFormatError,
-    BopScene,
-    GTInfo,
-    GTInstance,
-    bbox_from_mask,
-    bbox_from_model,
-    model_path,
-    read_bgr,
-    write_scene_gt_info,
-)
+from axispose_core.data.bop import BopFormatError, GTInfo, GTInstance, bbox_from_mask, bbox_from_model, read_bgr, write_scene_gt_info
+from axispose_core.data.bop_models import model_path
+from axispose_core.data.bop_scene import BopScene
 from axispose_core.data.meshes import load_render_mesh
 from axispose_core.data.synth.raster import Light, RenderMesh, render
 

@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
-from axispose_core.data.bop import BopScene, bop_frames
+from axispose_core.data.bop_scene import BopScene, bop_frames
 from axispose_core.localiser.decode import Detection, match
 from axispose_core.localiser.model import Localiser
 

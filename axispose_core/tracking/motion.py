@@ -13,7 +13,8 @@ from typing import Any
 
 import numpy as np
 
-from axispose_core.data.bop import BopScene, GTInstance
+from axispose_core.data.bop import GTInstance
+from axispose_core.data.bop_scene import BopScene
 from axispose_core.metrics import re
 
 

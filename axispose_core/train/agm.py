@@ -28,12 +28,13 @@ import torch.distributed as dist
 
 from axispose_core.agm.correspondences import dense_correspondences
 from axispose_core.agm.model import AGMConfig, AxisGenerator, depth_from_log, grow_into, transplant
-from axispose_core.agm.sampler import Start, sample
+from axispose_core.agm.sampler import sample
 from axispose_core.axis_image import axis_keypoints
 from axispose_core.data.meshes import refiner_meshes
 from axispose_core.data.synth.config import StreamConfig
 from axispose_core.data.synth.stream import CropStream, stream_loader
-from axispose_core.estimator import Estimator, EstimatorConfig
+from axispose_core.estimator import Estimator
+from axispose_core.estimator_checkpoint import EstimatorConfig
 from axispose_core.metrics import Symmetry, nearest_truth, re
 from axispose_core.objects import ObjectSpec
 from axispose_core.tbm.backproject import backproject_readings
@@ -132,7 +133,7 @@ def validate(
     with torch.no_grad():
         loss = float(np.mean([agm_losses(agm, batch, torch.Generator().manual_seed(k))["diffusion"].item() for k in range(4)]))
         enc = agm.encode(batch["crop"], batch["object"])
-        axes = sample(agm, enc, steps, generator=torch.Generator().manual_seed(0), start=Start(noise_scale=torch.zeros(len(batch["crop"]))))
+        axes = sample(agm, enc, steps, generator=torch.Generator().manual_seed(0), noise_scale=torch.zeros(len(batch["crop"])))
     readings = reader.read(((axes + 1) * 0.5).clamp(0, 1).cpu())
     size = batch["crop"].shape[-1]
     errs, kp_errs, tbm_depth, head_depth = [], [], [], []

@@ -11,7 +11,7 @@ from torch.utils.data import Dataset
 
 from axispose_core.axis_image import DEFAULT_LINE_WIDTH, render_axis_image
 from axispose_core.camera import CropJitter, InstanceCrop, instance_crop
-from axispose_core.data.bop import BopScene, bop_frames
+from axispose_core.data.bop_scene import BopScene, bop_frames
 from axispose_core.data.visibility import gt_info_from_models
 from axispose_core.objects import ObjectSpec
 

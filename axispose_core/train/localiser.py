@@ -20,7 +20,7 @@ import torch.nn.functional as F
 from torch.utils.data import Dataset
 
 from axispose_core.checkpoint import save_checkpoint
-from axispose_core.data.bop import BopScene, bop_frames
+from axispose_core.data.bop_scene import BopScene, bop_frames
 from axispose_core.data.synth.appearance import photometric, surface
 from axispose_core.data.synth.config import PhotometricConfig, SurfaceConfig
 from axispose_core.data.visibility import gt_info_from_models

@@ -10,11 +10,11 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from axispose_core.data.bop import model_path
+from axispose_core.data.bop_models import model_path
 from axispose_core.data.meshes import load_ply
 from axispose_core.data.synth.config import StreamConfig
 from axispose_core.data.synth.stream import CropStream, CropStreamDataset
-from axispose_core.evaluate import object_symmetries
+from axispose_core.evaluation.records import object_symmetries
 from axispose_core.metrics import Symmetry
 from axispose_core.objects import ObjectSpec, dataset_objects
 from axispose_core.train.dataset import AxisCropDataset

@@ -14,7 +14,7 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
-from axispose_core.data.bop import bop_frames
+from axispose_core.data.bop_scene import bop_frames
 from axispose_core.estimator import EstimateOptions, Estimator
 from axispose_core.localiser.decode import Detection
 from axispose_core.localiser.scoring import detection_outcomes, frame_instances

@@ -26,12 +26,12 @@ from axispose_core.data.bop import (
     GTInstance,
     bbox_from_mask,
     bbox_from_model,
-    load_models_info,
     write_depth,
     write_scene_camera,
     write_scene_gt,
     write_scene_gt_info,
 )
+from axispose_core.data.bop_models import load_models_info
 from axispose_core.data.meshes import load_render_mesh
 from axispose_core.data.synth.clutter import distractor_mesh, lookalike
 from axispose_core.data.synth.config import TABLE_TEXTURE, CameraPathConfig, SynthConfig

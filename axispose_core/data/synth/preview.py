@@ -10,7 +10,9 @@ import numpy as np
 
 from axispose_core.axis_image import AxisSpec, draw_axes
 from axispose_core.camera import Camera
-from axispose_core.data.bop import BopScene, load_models_info, read_bgr, scene_dirs
+from axispose_core.data.bop import read_bgr
+from axispose_core.data.bop_models import load_models_info
+from axispose_core.data.bop_scene import BopScene, scene_dirs
 from axispose_core.data.synth.stream import CropStream
 
 

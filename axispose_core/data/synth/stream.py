@@ -36,7 +36,8 @@ from torch.utils.data import DataLoader, Dataset
 
 from axispose_core.axis_image import axis_keypoints, render_axis_keypoints
 from axispose_core.camera import crop_intrinsics, square_around_box
-from axispose_core.data.bop import bbox_from_model, load_models_info, model_path
+from axispose_core.data.bop import bbox_from_model
+from axispose_core.data.bop_models import load_models_info, model_path
 from axispose_core.data.meshes import load_render_mesh, ply_vertex_properties
 from axispose_core.data.synth.appearance import photometric, surface
 from axispose_core.data.synth.clutter import distractor_mesh
