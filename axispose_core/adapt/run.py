@@ -47,7 +47,7 @@ class AdaptConfig:
     scene's predictions become labels, how the AGM trains on them, and how many rounds at most (a round after the
     first only while the labels grew by `min_growth` over the round before)."""
 
-    rounds: int = 2
+    rounds: int = 1
     min_growth: float = 0.05
     pose: PoseSettings = field(default_factory=PoseSettings)
     accept: AcceptConfig = field(default_factory=AcceptConfig)
