@@ -123,7 +123,7 @@ class AxisPoseNode(Node):
         for obj_id, name in self.published.items():
             self.create_subscription(RegionOfInterest, f"~/roi/{name}", lambda m, i=obj_id: self._on_roi(i, m), 10)
         self.outputs = PoseOutputs(self, self.published)
-        self.poser = FramePoser(self.estimator, self.published, self.stats.add)
+        self.poser = FramePoser(self.estimator, self.published, self.stats.add, lambda: self.stats.snapshot().get("dropped_stale", 0))
         self.pub_diag = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
         self.create_timer(1.0, self._publish_diagnostics)
 

@@ -87,7 +87,7 @@ SPECS = (
         "auto",
         "how frames are treated: stills (each on its own), video (tracks followed by their contours, the AGM for new and "
         "lost objects), video_odometry (video, each still object's views fused in camera_odom's fixed frame and the "
-        "search in a process of its own), auto (picks from what arrives: camera_odom, and whether contours hold; "
+        "search in a process of its own), auto (picks from what arrives: camera_odom, whether the node keeps up, whether contours hold; "
         "/diagnostics says which and why)",
     ),
     Spec(

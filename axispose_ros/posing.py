@@ -54,11 +54,13 @@ class FramePoser:
     `refine_kept_<reason>` of every pose the contour refiner saw) goes to `count(key, n)`."""
 
     def __init__(
-        self, estimator: Estimator, published: dict[int, str], count: Callable[[str, int], None], finder: Finder | None = None
-    ) -> None:
-        """`finder`: where `video_odometry` searches (None: `BackgroundFinder`'s process, started with the first
-        frame that needs it)."""
-        self.estimator, self.published, self.count = estimator, published, count
+        self, estimator: Estimator, published: dict[int, str], count: Callable[[str, int], None], dropped: Callable[[], int] = lambda: 0,
+        finder: Finder | None = None,
+    ) -> None:  # fmt: skip
+        """`dropped`: the frames the node dropped so far for being busy (`dropped_stale`: under `auto`, falling behind
+        the camera turns following on); `finder`: where `video_odometry` searches (None: `BackgroundFinder`'s process,
+        started with the first frame that needs it)."""
+        self.estimator, self.published, self.count, self._dropped = estimator, published, count, dropped
         self.tracker = Tracker(TrackingConfig())
         self.chooser = ModeChooser()
         self.choice = Choice(Mode.STILLS, "no frame yet")
@@ -103,7 +105,7 @@ class FramePoser:
         def find() -> Found:
             return self._counted(self.estimator.find(rgb, K, s.score_threshold, options, cancelled, objects=self.published))
 
-        self._run_in(self.chooser.choose(Mode(s.mode), camera_pose is not None))
+        self._run_in(self.chooser.choose(Mode(s.mode), camera_pose is not None, self._dropped()))
         if not self.choice.tracking:
             if self.tracker.tracks:
                 self.tracker.reset("disabled")

@@ -133,7 +133,7 @@ class Bench:
                                                        "num_threads": torch.get_num_threads()})  # fmt: skip
         counts: dict[str, int] = {}
         poser = FramePoser(
-            self.est, {i: str(i) for i in self.specs}, lambda key, n: counts.__setitem__(key, counts.get(key, 0) + n), finder
+            self.est, {i: str(i) for i in self.specs}, lambda key, n: counts.__setitem__(key, counts.get(key, 0) + n), finder=finder
         )
         return poser, settings, counts
 

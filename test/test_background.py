@@ -119,7 +119,7 @@ def test_a_searchs_detections_join_the_views_as_they_come_and_challenge_tracks_o
     early, late = _search(1.0), _search(9.0)
     batches = [[(early, found(1)), (early, found(5, ok=False))], [(early, found(1)), (early, None), (late, found(5)), (late, None)]]
     finder = SimpleNamespace(collect=lambda: batches.pop(0))
-    poser = FramePoser(None, {1: "ape", 5: "can"}, lambda key, n: None, finder)
+    poser = FramePoser(None, {1: "ape", 5: "can"}, lambda key, n: None, finder=finder)
     calls = []
     poser.tracker.observe = lambda camera, posed: calls.append(("observe", [d.obj_id for d, _ in posed]))
     poser.tracker.challenge = lambda camera, posed: calls.append(("challenge", [d.obj_id for d, _ in posed]))
