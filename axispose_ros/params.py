@@ -87,25 +87,25 @@ SPECS = (
         "auto",
         "how frames are treated: stills (each on its own), video (tracks followed by their contours, the AGM for new and "
         "lost objects), video_odometry (video, each still object's views fused in camera_odom's fixed frame and the "
-        "search in a process of its own), auto (picks from what arrives: camera_odom, whether the node keeps up, whether contours hold; "
-        "/diagnostics says which and why)",
+        "search in a process of its own), auto (picks from what arrives: camera_odom, whether the node keeps up, "
+        "whether contours hold; /diagnostics says which and why)",
     ),
     Spec(
         "follow_passes",
         0,
-        "with follow, correspondence passes per followed object: the last n of the checkpoint's following schedule "
+        "video modes: correspondence passes per followed object: the last n of the checkpoint's following schedule "
         "(0: all): fewer make a frame cheaper and reach less far",
         ints=(0, 16),
     ),
-    Spec("redetect_period", 5, "with tracking, run the localiser on every n-th frame (and when a track is lost)", ints=(1, 1000)),
+    Spec("redetect_period", 5, "video modes: run the localiser on every n-th frame (and when a track is lost)", ints=(1, 1000)),
     Spec(
         "measure_every",
         1,
-        "with tracking, pose each track on every n-th frame, the tracks taking turns (all of them when "
+        "video modes: pose each track on every n-th frame, the tracks taking turns (all of them when "
         "the localiser runs); in between a track publishes its filter's prediction",
         ints=(1, 1000),
     ),
-    Spec("track_timeout", 1.0, "with tracking, seconds without an accepted pose after which a track ends", floats=(0.0, 3600.0)),
+    Spec("track_timeout", 1.0, "video modes: seconds without an accepted pose after which a track ends", floats=(0.0, 3600.0)),
     Spec(
         "view_window",
         160,
