@@ -351,6 +351,10 @@ def test_parameters_are_validated_at_start_and_at_run_time(checkpoint, tmp_path)
         Harness(checkpoint, objects=["teapot"])
     with pytest.raises(rclpy.exceptions.InvalidParameterValueException):
         Harness(checkpoint, ddim_steps=0)
+    with pytest.raises(ValueError, match="stills, video, video_odometry, auto"):
+        Harness(checkpoint, mode="tracking")
+    with pytest.raises(ValueError, match="'follow' was removed; use mode"):
+        Harness(checkpoint, follow=True)
     h = Harness(checkpoint, objects=["ape"])
     try:
         assert h.node.set_parameters([Parameter("ddim_steps", value=0)])[0].successful is False
@@ -453,13 +457,13 @@ def test_with_a_refiner_every_pose_is_counted_and_bad_input_is_answered_as_befor
         h.close()
 
 
-@pytest.mark.parametrize("mode", ["video", "video_odometry", "auto"])
+@pytest.mark.parametrize("mode", ["video", "auto"])
 def test_following_tracks_by_their_contours_runs_the_frames_and_counts_them(tmp_path, lmo_dir, mode):
     """`video` (the tracks followed by their contours) on a checkpoint with a localiser and a refiner, with the camera's
     pose on camera_odom: every frame ends in frames_processed, each counted as followed or estimated by the tracker;
     an odometry message that is no pose is counted; nothing fails. In `video_odometry` the localiser and the AGM
-    search frames in a process of their own (the node stops it). `auto` runs `video_odometry` on the frames with the
-    camera's pose and `video` on the one whose odometry was no pose; `/diagnostics` counts the frames of each mode."""
+    search frames in a process of their own (the node stops it): `auto` runs it on the frames with the camera's pose,
+    and `video` on the one whose odometry was no pose; `/diagnostics` counts the frames of each mode."""
     reader = load_reader(SHIPPED_READER)
     cfg = EstimatorConfig(agm=TINY_AGM, reader=reader.config, objects=tuple(lmo_objects()[:2]), ddim_steps=1)
     localiser = Localiser(LocaliserConfig(obj_ids=(1, 5), input_size=(160, 128), trunk=ResidualBNConfig(widths=(8, 16, 24, 32))))
@@ -487,7 +491,7 @@ def test_following_tracks_by_their_contours_runs_the_frames_and_counts_them(tmp_
         assert counts["camera_odom_invalid"] == 1 and h.node.camera_poses.at(3.0, 0.01)[0, 3] == pytest.approx(0.03)
         assert "dropped_error" not in counts and "background_failed" not in counts
         assert (counts.get("background_searches", 0) > 0) == background
-        expected = {"video": {"video": 3}, "video_odometry": {"video_odometry": 2, "video": 1}, "auto": {"video_odometry": 2, "video": 1}}
+        expected = {"video": {"video": 3}, "auto": {"video_odometry": 2, "video": 1}}
         assert {k[len("mode_") :]: n for k, n in counts.items() if k.startswith("mode_")} == expected[mode]
         assert h.node.poser.choice.mode.value == ("video" if not background else "video_odometry")
     finally:
@@ -644,12 +648,11 @@ def test_an_unsupported_lens_model_drops_the_frame_with_a_reason(harness):
 @pytest.mark.slow
 @pytest.mark.parametrize(
     "param",
-    ["ddim_steps:=0", "ddim_steps:=abc", "sync_slop:=-1.0", "num_threads:=0", "device:=cuda", "precision:=half", "mode:=tracking",
-     "tracking:=true"],
+    ["ddim_steps:=0", "ddim_steps:=abc", "sync_slop:=-1.0", "num_threads:=0", "device:=cuda", "precision:=half", "tracking:=true"],
 )  # fmt: skip
 def test_bad_parameters_at_start_are_one_line_and_exit_2(checkpoint, param):
-    """Out of range, of the wrong type, a device this torch has not, a mode that is none, or a parameter the node no
-    longer has: one clear line, exit code 2, no traceback; a removed one names what replaced it."""
+    """Out of range, of the wrong type, a device this torch has not, or a parameter the node no longer has: one clear
+    line, exit code 2, no traceback; a removed one names what replaced it."""
     if param == "device:=cuda" and torch.cuda.is_available():
         pytest.skip("this machine has CUDA")
     proc = subprocess.run(
@@ -659,4 +662,4 @@ def test_bad_parameters_at_start_are_one_line_and_exit_2(checkpoint, param):
     lines = proc.stderr.strip().splitlines()
     assert proc.returncode == 2 and len(lines) == 1 and lines[0].startswith("axispose_node: "), proc.stderr
     assert param.split(":=")[0] in lines[0] and "Traceback" not in proc.stderr
-    assert ("video_odometry" in lines[0]) == param.startswith(("mode", "tracking"))
+    assert ("video_odometry" in lines[0]) == param.startswith("tracking")
