@@ -32,6 +32,11 @@ def stamp_seconds(header: Header) -> float:
     return header.stamp.sec + 1e-9 * header.stamp.nanosec
 
 
+def stamp_ns(header: Header) -> int:
+    """A message header's stamp in nanoseconds, exact: the key frames and poses are matched by."""
+    return int(header.stamp.sec) * 10**9 + int(header.stamp.nanosec)
+
+
 def printable(text: str, limit: int = 32) -> str:
     """A string from a message as it may be logged: quoted with escapes (no newline reaches the log), cut short."""
     return repr(text[:limit]) + ("…" if len(text) > limit else "")

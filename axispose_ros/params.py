@@ -232,8 +232,11 @@ def check_change(params: list[Parameter]) -> SetParametersResult:
     for p in params:
         if p.name in AT_START:
             return SetParametersResult(successful=False, reason=f"'{p.name}' is read at start only; restart the node to change it")
-        if p.name == "mode" and p.value not in {m.value for m in Mode}:
-            return SetParametersResult(successful=False, reason=f"'mode' must be one of {', '.join(m.value for m in Mode)}")
+        if p.name == "mode":
+            try:
+                Mode.parse(p.value)
+            except ValueError as err:  # the same refusal as at start
+                return SetParametersResult(successful=False, reason=str(err))
         if p.name.startswith(OBJECT_SCALES) and (p.type_ != Parameter.Type.DOUBLE or not 0.0 <= p.value <= MAX_OBJECT_SCALE):
             return SetParametersResult(successful=False, reason=f"'{p.name}' must be a length in [0, 10] m")
     return SetParametersResult(successful=True)

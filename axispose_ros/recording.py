@@ -24,7 +24,7 @@ import numpy as np
 from axispose_core.adapt.recording import RecordingError
 from axispose_core.data.bop import write_scene_camera
 from axispose_ros.bag import BagError, BagMessage, bag_topics, camera_topics, deserialize, read_bag
-from axispose_ros.conversions import InputError, Undistorter, check_frame, image_to_rgb, stamp_seconds
+from axispose_ros.conversions import InputError, Undistorter, check_frame, image_to_rgb, stamp_ns, stamp_seconds
 from axispose_ros.odometry import pose_matrix
 from axispose_ros.params import SPECS
 from axispose_ros.sync import StampSynchronizer
@@ -71,10 +71,6 @@ def _topics(bag: Path, image: str | None, info: str | None, odom: str | None) ->
 
 def _sorted(counts: Counter) -> dict[str, int]:
     return dict(sorted(counts.items()))
-
-
-def _stamp_ns(header) -> int:
-    return int(header.stamp.sec) * 10**9 + int(header.stamp.nanosec)
 
 
 class _CameraPoses:
@@ -144,7 +140,7 @@ class _FrameWriter:
         path = self.folder / "rgb" / f"{k:06d}.png"
         if not cv2.imwrite(str(path), cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR)):
             raise OSError(f"cv2 could not write {path}")
-        self.cams[k], self.stamps[k] = camera.K, _stamp_ns(image.header)
+        self.cams[k], self.stamps[k] = camera.K, stamp_ns(image.header)
         T = self.poses.at(stamp_seconds(image.header), SYNC_SLOP) if self.poses else None
         if T is not None:
             R_w2c = T[:3, :3].T

@@ -42,9 +42,9 @@ from visualization_msgs.msg import MarkerArray
 import axispose_msgs
 from axispose_msgs.msg import DetectionArray
 from axispose_ros.bag import FORMATS, ROI_PREFIX, TYPESTORE, BagError, bag_topics, camera_topics, read_bag, register_types
-from axispose_ros.conversions import image_to_rgb, stamp_seconds
+from axispose_ros.conversions import image_to_rgb, stamp_ns, stamp_seconds
 from axispose_ros.node import AxisPoseNode
-from axispose_ros.replay_bag import Truth, by_stamp, pose_rt, ros_message, stamp_ns
+from axispose_ros.replay_bag import Truth, by_stamp, pose_rt, ros_message
 from axispose_ros.replay_report import replay_report
 
 # How long one spin of the replay's executor may wait for an event before it re-checks its condition. The node's

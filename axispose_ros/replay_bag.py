@@ -39,11 +39,6 @@ class Truth:
         return True
 
 
-def stamp_ns(header) -> int:
-    """A message header's stamp in nanoseconds: the key frames and poses are matched by."""
-    return int(header.stamp.sec) * 10**9 + int(header.stamp.nanosec)
-
-
 def pose_rt(pose) -> tuple[np.ndarray, np.ndarray]:
     """A geometry_msgs Pose as (R, t)."""
     q = pose.orientation

@@ -78,7 +78,7 @@ class ModeChooser:
         self.config = config
         self._attempts: deque[bool] = deque(maxlen=config.window)
         self._stills_left = 0
-        self._following = True
+        """Under `auto`, frames still to pose as stills because contours stopped holding (0: following)."""
         self._streaming = False
         """Under `auto`, a stream is being followed (it came with odometry, or the node fell behind it)."""
         self._drops: deque[bool] = deque(maxlen=config.behind_frames)
@@ -96,11 +96,11 @@ class ModeChooser:
             return Choice(Mode.VIDEO, "requested")
         if requested is Mode.VIDEO_ODOMETRY:
             return Choice(Mode.VIDEO_ODOMETRY, "requested") if has_camera_pose else Choice(Mode.VIDEO, "requested; no camera_odom")
-        if not self._following:
+        if self._stills_left > 0:
             self._stills_left -= 1
             if self._stills_left > 0:
                 return Choice(Mode.STILLS, f"contours held on {self._held_text()}; following again in {self._stills_left} frames")
-            self._following, self._attempts = True, deque(maxlen=self.config.window)
+            self._attempts = deque(maxlen=self.config.window)
         held = f"contours held on {self._held_text()}" if self._attempts else "following"
         if has_camera_pose:
             self._streaming = True
@@ -117,8 +117,8 @@ class ModeChooser:
         few held over the last `window` attempts turn the next `retry_frames` frames to `stills`."""
         self._attempts.extend([True] * held + [False] * lost)
         full = len(self._attempts) == self._attempts.maxlen
-        if self._following and full and sum(self._attempts) < self.config.least_held * len(self._attempts):
-            self._following, self._stills_left, self._streaming = False, self.config.retry_frames + 1, False
+        if self._stills_left == 0 and full and sum(self._attempts) < self.config.least_held * len(self._attempts):
+            self._stills_left, self._streaming = self.config.retry_frames + 1, False
 
     def _held_text(self) -> str:
         return f"{sum(self._attempts)} of the last {len(self._attempts)} followed tracks"
