@@ -13,22 +13,14 @@ earlier frames and is followed on a short schedule from its predicted pose.
 from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
-import cv2
 import numpy as np
 
 from axispose_core.refine.config import RefineConfig
 from axispose_core.refine.histograms import ColourHistograms, colour_bins
-from axispose_core.refine.region import (
-    Lines,
-    StepFunction,
-    contour_distributions,
-    gradient_hessian,
-    log_odds,
-    place_lines,
-    sample_posteriors,
-)
+from axispose_core.refine.passes import Occlusion, RefineState, correspondence_pass, rotvec
+from axispose_core.refine.region import StepFunction, place_lines, sample_posteriors
 from axispose_core.refine.viewpoints import ViewpointModel, viewpoint_model
 
 KEPT_REASONS = ("invalid", "small", "few_lines", "no_contrast", "run_away")
@@ -72,32 +64,6 @@ class Refinement:
     `covariance`; geometry_msgs' order): lets a tracker whose prediction was the prior fold the pose in once."""
 
 
-@dataclass
-class _State:
-    """One object's refinement under way."""
-
-    start: Start
-    model: ViewpointModel
-    diameter: float
-    R: np.ndarray
-    t: np.ndarray
-    precision: np.ndarray
-    """The prior's (6,6) information in (ω, δ), zero without one."""
-    histograms: ColourHistograms
-    schedule: tuple[tuple[float, ...], tuple[float, ...]]
-    """Its passes' scales and sigmas."""
-    carried: bool = False
-    """The histograms came from earlier frames: blend this frame's colours in from the first pass."""
-    table: np.ndarray | None = None
-    """The histograms' P(foreground | colour), as last learned."""
-    hessian: np.ndarray = field(default_factory=lambda: np.zeros((6, 6)))
-    lines: Lines | None = None
-    occluded: np.ndarray | None = None
-    """The mask of the nearer objects at the last pass."""
-    valid: float = 0.0
-    reason: str = ""
-
-
 def _finite_pose(s: Start) -> bool:
     R, t = np.asarray(s.R, dtype=float), np.asarray(s.t, dtype=float)
     return R.shape == (3, 3) and t.shape == (3,) and bool(np.all(np.isfinite(R)) and np.all(np.isfinite(t))) and t[2] > 0
@@ -116,10 +82,6 @@ def _information(covariance: np.ndarray | None) -> np.ndarray | None:
         return np.linalg.inv(C)
     except np.linalg.LinAlgError:
         return None
-
-
-def _rotvec(R: np.ndarray) -> np.ndarray:
-    return cv2.Rodrigues(np.ascontiguousarray(R))[0][:, 0]
 
 
 class ContourRefiner:
@@ -159,7 +121,7 @@ class ContourRefiner:
         K = np.asarray(K, dtype=np.float64)
         shape = image_rgb.shape[:2]
         bins = colour_bins(image_rgb, cfg.histogram_bins)
-        states: list[_State | None] = []
+        states: list[RefineState | None] = []
         kept: dict[int, str] = {}
         for i, s in enumerate(starts):
             if s.obj_id not in self.meshes:
@@ -171,107 +133,29 @@ class ContourRefiner:
             states.append(None if i in kept else self._state(s, colours[i], passes))
         for k in range(max(len(cfg.scales), len(cfg.track_scales))):
             live = [s for s in states if s is not None and not s.reason and k < len(s.schedule[0])]
-            masks = self._occluders(live, K, shape)
-            for s, occluded in zip(live, masks, strict=True):
-                scale = max(1, round(s.schedule[0][k] * K[0, 0] * s.diameter / s.t[2]))
-                self._pass(s, bins, K, scale, s.schedule[1][k], occluded)
+            if live:
+                correspondence_pass(live, k, bins, K, Occlusion.of(live, K, shape), cfg, self.step)
         out = []
         for i, (start, s) in enumerate(zip(starts, states, strict=True)):
             out.append(self._finish(start, s, bins, K, kept.get(i, "")))
         return out
 
-    def _state(self, s: Start, colours: ColourHistograms | None, passes: int = 0) -> _State:
+    def _state(self, s: Start, colours: ColourHistograms | None, passes: int = 0) -> RefineState:
         info = _information(s.covariance) if self.config.prior else None
         cfg = self.config
         learned = colours.copy() if colours is not None else ColourHistograms.empty(cfg.histogram_bins)
         schedule = (cfg.track_scales[-passes:], cfg.track_sigmas[-passes:]) if colours is not None else (cfg.scales, cfg.sigmas)
-        return _State(s, self.model(s.obj_id), self.diameters[s.obj_id] * s.scale, np.asarray(s.R, float), np.asarray(s.t, float),
+        return RefineState(s, self.model(s.obj_id), self.diameters[s.obj_id] * s.scale, np.asarray(s.R, float), np.asarray(s.t, float),
                       np.zeros((6, 6)) if info is None else info, learned, schedule, carried=colours is not None)  # fmt: skip
 
-    def _occluders(self, states: list[_State], K: np.ndarray, shape: tuple[int, int]) -> list[np.ndarray]:
-        """Per object, the mask of the frame's objects nearer the camera than it (their outline polygons)."""
-        order = sorted(range(len(states)), key=lambda i: states[i].t[2])
-        acc = np.zeros(shape, dtype=np.uint8)
-        masks: list[np.ndarray] = [acc] * len(states)
-        for i in order:
-            masks[i] = acc.copy()
-            s = states[i]
-            v = s.model.closest_view(s.R, s.t)
-            p = s.model.points[v][s.model.outline[v]] * s.start.scale @ s.R.T + s.t
-            if len(p) >= 3 and np.all(p[:, 2] > 1e-6):
-                uv = p @ K.T
-                poly = np.round(uv[:, :2] / uv[:, 2:] * 4).astype(np.int32)
-                cv2.fillPoly(acc, [poly], 1, lineType=cv2.LINE_8, shift=2)
-        return masks
-
-    def _pass(self, s: _State, bins: np.ndarray, K: np.ndarray, scale: int, sigma: float, occluded: np.ndarray) -> None:
-        """One correspondence pass: lines at the current pose, histograms learned there, distributions, Newton steps."""
-        cfg = self.config
-        s.occluded = occluded
-        n_seg = cfg.function_length + cfg.distribution_length - 1
-        reach = n_seg * scale / 2
-        placed = place_lines(s.model, s.R, s.t, K, cfg.lines, s.start.scale)
-        c = np.round(placed.centres).astype(np.int64)
-        inside_image = (c[:, 0] >= 0) & (c[:, 0] < bins.shape[1]) & (c[:, 1] >= 0) & (c[:, 1] < bins.shape[0])
-        valid = placed.usable(reach, cfg.min_continuous * scale, bins.shape) & inside_image
-        valid[valid] &= occluded[c[valid, 1], c[valid, 0]] == 0
-        s.valid = float(valid.mean())
-        if valid.sum() < cfg.min_lines:
-            s.reason = "few_lines"
-            return
-        self._learn(s, bins, placed.centres[valid], placed.normals[valid], placed.inside_px[valid], placed.outside_px[valid], occluded)
-        s.table = table = s.histograms.posterior()
-        centres, normals = placed.centres[valid], placed.normals[valid]
-        offsets = (np.arange(n_seg * scale) + 0.5) - n_seg * scale / 2
-        # Sub-pixel (bilinear) where a segment is a pixel; at coarser scales the nearest pixel, a quarter of the work.
-        odds = sample_posteriors(log_odds(table), bins, centres, normals, offsets, bilinear=scale == 1)
-        dist = contour_distributions(odds, scale, self.step, cfg.distribution_length)
-        weight = np.full(len(centres), self.step.min_variance * scale**2 / sigma**2)
-        s.lines = Lines(placed.model_points[valid], centres, normals, float(scale), dist, weight)
-        damping = np.repeat(np.asarray(cfg.damping, dtype=float), 3)
-        for k in range(cfg.newton_steps):
-            g, H = gradient_hessian(s.lines, K, s.R, s.t)
-            if k == 0:
-                s.hessian = H
-            e = np.concatenate([_rotvec(s.R @ s.start.R.T), s.t - s.start.t])
-            A = -H + s.precision + np.diag(damping)
-            step = np.linalg.solve(A, g - s.precision @ e)
-            if not np.all(np.isfinite(step)):
-                s.reason = "run_away"
-                return
-            s.R = cv2.Rodrigues(step[:3])[0] @ s.R
-            s.t = s.t + step[3:]
-            if s.t[2] <= 0:
-                s.reason = "run_away"
-                return
-
-    def _learn(self, s: _State, bins: np.ndarray, centres: np.ndarray, normals: np.ndarray, inside: np.ndarray, outside: np.ndarray,
-               occluded: np.ndarray) -> None:  # fmt: skip
-        """The colours along the lines at the current pose into the histograms: inwards foreground, outwards
-        background, each side from `histogram_margin` to its silhouette run or `histogram_reach`."""
-        cfg = self.config
-        m = cfg.histogram_margin
-        steps = m + np.arange(int(np.ceil(cfg.histogram_reach)))
-        h, w = bins.shape
-        sides = []
-        for sign, run in ((-1.0, inside), (1.0, outside)):
-            q = np.round(centres[:, None, :] + sign * steps[None, :, None] * normals[:, None, :]).astype(np.int64)
-            ok = (steps[None, :] <= np.minimum(run - m, cfg.histogram_reach)[:, None]) & (q[..., 0] >= 0) & (q[..., 0] < w)
-            ok &= (q[..., 1] >= 0) & (q[..., 1] < h)
-            x, y = q[..., 0][ok], q[..., 1][ok]
-            keep = occluded[y, x] == 0
-            sides.append(bins[y[keep], x[keep]])
-        fresh = s.lines is None and not s.carried
-        s.histograms.learn(sides[0], sides[1], 1.0 if fresh else cfg.histogram_rate)
-
-    def _finish(self, start: Start, s: _State | None, bins: np.ndarray, K: np.ndarray, reason: str) -> Refinement:
+    def _finish(self, start: Start, s: RefineState | None, bins: np.ndarray, K: np.ndarray, reason: str) -> Refinement:
         """The refined pose with its covariance and agreement, or the start kept with the reason."""
         if s is None or s.reason or s.lines is None:
             return Refinement(start.R, start.t, start.covariance, False, reason or (s.reason if s else "") or "few_lines",
                               s.valid if s else 0.0, colours=s.histograms if s and s.lines is not None else None)  # fmt: skip
         cfg = self.config
         H = -s.hessian + s.precision
-        jump = (_rotvec(s.R @ s.start.R.T), s.t - s.start.t)
+        jump = (rotvec(s.R @ s.start.R.T), s.t - s.start.t)
         if _information(start.covariance) is not None and cfg.max_jump > 0 and not s.carried:  # a tracker gates its own
             C = np.asarray(start.covariance, dtype=float)
             d2 = (float(jump[1] @ np.linalg.solve(C[:3, :3], jump[1])), float(jump[0] @ np.linalg.solve(C[3:, 3:], jump[0])))
@@ -289,14 +173,14 @@ class ContourRefiner:
         information = -s.hessian[np.ix_(_ORDER, _ORDER)] / np.outer(d, d)
         return Refinement(s.R, s.t, cov, True, "", s.valid, agreement, s.histograms, (information + information.T) / 2)
 
-    def _agreement(self, s: _State, bins: np.ndarray, K: np.ndarray) -> float:
+    def _agreement(self, s: RefineState, bins: np.ndarray, K: np.ndarray) -> float:
         """Mean over the object's unoccluded lines at its final pose of P(foreground) in the four pixels inside the
         contour and P(background) in the four outside it, under the learned colours (0.5: no contrast)."""
         offsets = np.arange(-3.5, 4.0, 1.0)
         placed = place_lines(s.model, s.R, s.t, K, self.config.lines, s.start.scale)
         c = np.round(placed.centres).astype(np.int64)
         valid = placed.usable(4.0, 4.0, bins.shape)
-        valid[valid] &= s.occluded[c[valid, 1], c[valid, 0]] == 0
+        valid[valid] &= ~s.occlusion.occluded(c[valid, 0], c[valid, 1], s.rank)
         if not valid.any():
             return 0.5
         pf = sample_posteriors(s.table, bins, placed.centres[valid], placed.normals[valid], offsets)

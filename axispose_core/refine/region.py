@@ -1,7 +1,7 @@
 """The region modality: correspondence lines across the object's projected contour, the probability of where the
-contour lies along each (from the colour histograms' per-pixel posteriors and a smoothed step function), and the
-gradient and Hessian of their log-likelihood in the pose (ICG's region modality, Stoiber et al. 2022; written
-here, vectorised over lines).
+contour lies along each (from the colour histograms' per-pixel posteriors and a smoothed step function) (ICG's region
+modality, Stoiber et al. 2022; written here, vectorised over lines); the Newton steps on their log-likelihood are
+`passes.py`'s.
 
 Pose perturbations are the dense fusion's (`tbm/dense.py`): R ← exp([ω]×) R, t ← t + δ, camera frame, state (ω, δ).
 Along a line, positions are in segments of `scale` pixels, 0 at the line's centre, positive outwards.
@@ -79,27 +79,29 @@ def place_lines(model: ViewpointModel, R: np.ndarray, t: np.ndarray, K: np.ndarr
 
 
 def sample_posteriors(
-    table: np.ndarray, bins: np.ndarray, centres: np.ndarray, normals: np.ndarray, offsets: np.ndarray, bilinear: bool = True
-) -> np.ndarray:
+    table: np.ndarray, bins: np.ndarray, centres: np.ndarray, normals: np.ndarray, offsets: np.ndarray, bilinear: bool = True,
+    rows: np.ndarray | None = None,
+) -> np.ndarray:  # fmt: skip
     """A per-colour `table` (P(foreground), or its log odds) looked up (N,L) at `offsets` (L,) pixels along each line
     (centres (N,2), normals (N,2)) in the `bins` image: bilinear in the pixels' values, or at the nearest pixel
-    (positions clipped to the image)."""
+    (positions clipped to the image). With `rows` (N,), `table` holds one row per object and each line reads its
+    object's."""
     h, w = bins.shape
     q = centres[:, None, :] + offsets[None, :, None] * normals[:, None, :]
     flat = bins.reshape(-1)
+
+    def at(k: np.ndarray) -> np.ndarray:
+        return table[flat[k]] if rows is None else table[rows[:, None], flat[k]]
+
     if not bilinear:
         x = np.clip(np.rint(q[..., 0]), 0, w - 1).astype(np.int64)
         y = np.clip(np.rint(q[..., 1]), 0, h - 1).astype(np.int64)
-        return table[flat[y * w + x]]
+        return at(y * w + x)
     x = np.clip(q[..., 0], 0, w - 1.001)
     y = np.clip(q[..., 1], 0, h - 1.001)
     x0, y0 = x.astype(np.int64), y.astype(np.int64)
     fx, fy = x - x0, y - y0
     i = y0 * w + x0
-
-    def at(k: np.ndarray) -> np.ndarray:
-        return table[flat[k]]
-
     return (1 - fy) * ((1 - fx) * at(i) + fx * at(i + 1)) + fy * ((1 - fx) * at(i + w) + fx * at(i + w + 1))
 
 
@@ -137,19 +139,6 @@ def contour_distributions(odds: np.ndarray, scale: int, step: StepFunction, leng
     return Distributions(mean - (length - 1) / 2, variance)
 
 
-def line_jacobians(
-    K: np.ndarray, R: np.ndarray, t: np.ndarray, X: np.ndarray, normals: np.ndarray, scale: float
-) -> tuple[np.ndarray, np.ndarray]:
-    """Projections (N,2) of model points X (N,3) at (R, t), and d(offset along each line, in segments)/d(ω, δ)
-    (N,6)."""
-    p = X @ R.T + t
-    q = p @ K.T
-    z = q[:, 2]
-    uv = q[:, :2] / z[:, None]
-    a = np.einsum("ni,nij->nj", normals, projection_jacobian(K, uv, z)) / scale  # d offset / d p
-    return uv, np.concatenate([np.cross(p - t, a), a], axis=1)
-
-
 @dataclass(frozen=True)
 class Lines:
     """One object's valid lines at one pass, ready for Newton steps: model points, fixed centres and normals, the
@@ -161,14 +150,3 @@ class Lines:
     scale: float
     dist: Distributions
     weight: np.ndarray
-
-
-def gradient_hessian(lines: Lines, K: np.ndarray, R: np.ndarray, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """The lines' log-likelihood gradient (6,) and Gauss-Newton Hessian (6,6) in (ω, δ) at (R, t): each line's
-    contour offset, where the model's contour now lies, pulled towards its distribution's mean with its variance."""
-    uv, J = line_jacobians(K, R, t, lines.model_points, lines.normals, lines.scale)
-    offset = np.einsum("ni,ni->n", uv - lines.centres, lines.normals) / lines.scale
-    var = lines.dist.variance
-    g = np.einsum("n,ni->i", lines.weight * (lines.dist.mean - offset) / var, J)
-    H = -np.einsum("n,ni,nj->ij", lines.weight / var, J, J)
-    return g, H

@@ -1,0 +1,248 @@
+"""One correspondence pass over a frame's objects together: every object's lines placed, its colours learned, the
+contour's distribution found along each line and Newton steps taken, each stage one vectorised step over all the
+objects' lines (each line knows its object), so five objects cost little more than one. An object's pass reads only
+its own state and the frame's occlusion at the pass's start: the objects' passes do not depend on each other.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+
+import cv2
+import numpy as np
+
+from axispose_core.camera import projection_jacobian
+from axispose_core.refine.config import RefineConfig
+from axispose_core.refine.histograms import ColourHistograms
+from axispose_core.refine.region import (
+    Distributions,
+    Lines,
+    StepFunction,
+    contour_distributions,
+    log_odds,
+    place_lines,
+    sample_posteriors,
+)
+from axispose_core.refine.viewpoints import ViewpointModel
+
+NONE_NEARER = np.iinfo(np.int32).max
+
+
+@dataclass
+class RefineState:
+    """One object's refinement under way."""
+
+    start: object
+    """The `refiner.Start` it began from."""
+    model: ViewpointModel
+    diameter: float
+    R: np.ndarray
+    t: np.ndarray
+    precision: np.ndarray
+    """The prior's (6,6) information in (ω, δ), zero without one."""
+    histograms: ColourHistograms
+    schedule: tuple[tuple[float, ...], tuple[float, ...]]
+    """Its passes' scales and sigmas."""
+    carried: bool = False
+    """The histograms came from earlier frames: blend this frame's colours in from the first pass."""
+    table: np.ndarray | None = None
+    """The histograms' P(foreground | colour), as last learned."""
+    hessian: np.ndarray = field(default_factory=lambda: np.zeros((6, 6)))
+    lines: Lines | None = None
+    occlusion: Occlusion | None = None
+    """The frame's objects in depth order at its last pass."""
+    rank: int = 0
+    """Its place in that order (0: the nearest)."""
+    valid: float = 0.0
+    reason: str = ""
+
+
+@dataclass(frozen=True)
+class Occlusion:
+    """Per pixel, the depth rank of the nearest object whose outline covers it (`NONE_NEARER` where none does): an
+    object of rank r is occluded where a rank below r is."""
+
+    nearest: np.ndarray
+
+    @classmethod
+    def of(cls, states: Sequence[RefineState], K: np.ndarray, shape: tuple[int, int]) -> Occlusion:
+        """The objects' outline polygons drawn from the farthest to the nearest, each at its rank, and each state
+        told its rank."""
+        order = sorted(range(len(states)), key=lambda i: states[i].t[2])
+        nearest = np.full(shape, NONE_NEARER, dtype=np.int32)
+        for rank, i in reversed(list(enumerate(order))):
+            s = states[i]
+            s.rank = rank
+            v = s.model.closest_view(s.R, s.t)
+            p = s.model.points[v][s.model.outline[v]] * s.start.scale @ s.R.T + s.t
+            if len(p) >= 3 and np.all(p[:, 2] > 1e-6):
+                uv = p @ K.T
+                poly = np.round(uv[:, :2] / uv[:, 2:] * 4).astype(np.int32)
+                cv2.fillPoly(nearest, [poly], rank, lineType=cv2.LINE_8, shift=2)
+        return cls(nearest)
+
+    def occluded(self, x: np.ndarray, y: np.ndarray, rank: np.ndarray | int) -> np.ndarray:
+        """Whether pixels (x, y) (in the image) are covered by an object nearer than `rank` (per pixel or one)."""
+        return self.nearest[y, x] < rank
+
+
+@dataclass
+class _Batch:
+    """The valid lines of the objects in a pass, object after object (`owner`: each line's object)."""
+
+    owner: np.ndarray
+    X: np.ndarray
+    centres: np.ndarray
+    normals: np.ndarray
+    inside: np.ndarray
+    outside: np.ndarray
+    scale: np.ndarray
+
+
+def correspondence_pass(states: Sequence[RefineState], k: int, bins: np.ndarray, K: np.ndarray, occlusion: Occlusion,
+                        config: RefineConfig, step: StepFunction) -> None:  # fmt: skip
+    """Pass k of each state's schedule: lines at its pose, colours learned there, the contour's distribution along
+    each line, `newton_steps` Newton steps on the lines' log-likelihood with the prior. A state with too few valid
+    lines stops (`few_lines`), one whose step diverges too (`run_away`)."""
+    scales = [max(1, round(s.schedule[0][k] * K[0, 0] * s.diameter / s.t[2])) for s in states]
+    batch = _place(states, scales, bins.shape, K, occlusion, config)
+    if batch is None:
+        return
+    kept = np.unique(batch.owner)
+    tables = _learn(states, kept, batch, bins, occlusion, config)
+    mean, variance = np.empty(len(batch.owner)), np.empty(len(batch.owner))
+    n_seg = config.function_length + config.distribution_length - 1
+    for scale in np.unique(batch.scale):
+        lines = batch.scale == scale
+        offsets = (np.arange(n_seg * scale) + 0.5) - n_seg * scale / 2
+        # Sub-pixel (bilinear) where a segment is a pixel; at coarser scales the nearest pixel, a quarter of the work.
+        odds = sample_posteriors(tables, bins, batch.centres[lines], batch.normals[lines], offsets, bilinear=scale == 1,
+                                 rows=batch.owner[lines])  # fmt: skip
+        dist = contour_distributions(odds, int(scale), step, config.distribution_length)
+        mean[lines], variance[lines] = dist.mean, dist.variance
+    sigma = np.array([states[i].schedule[1][k] for i in batch.owner])
+    weight = step.min_variance * batch.scale**2 / sigma**2
+    bounds = np.searchsorted(batch.owner, np.append(kept, kept[-1] + 1))
+    for j, i in enumerate(kept):
+        part = slice(bounds[j], bounds[j + 1])
+        states[i].lines = Lines(batch.X[part], batch.centres[part], batch.normals[part], float(scales[i]),
+                                Distributions(mean[part], variance[part]), weight[part])  # fmt: skip
+    _newton(states, kept, batch, mean, variance, weight, K, config)
+
+
+def _place(states: Sequence[RefineState], scales: list[int], shape: tuple[int, int], K: np.ndarray, occlusion: Occlusion,
+           config: RefineConfig) -> _Batch | None:  # fmt: skip
+    """Each state's lines at its pose, kept where usable at its scale, on the image and not occluded; a state with
+    fewer than `min_lines` stops here. None where no state has enough."""
+    n_seg = config.function_length + config.distribution_length - 1
+    h, w = shape
+    parts = []
+    for i, (s, scale) in enumerate(zip(states, scales, strict=True)):
+        s.occlusion = occlusion
+        placed = place_lines(s.model, s.R, s.t, K, config.lines, s.start.scale)
+        c = np.round(placed.centres).astype(np.int64)
+        valid = placed.usable(n_seg * scale / 2, config.min_continuous * scale, shape)
+        valid &= (c[:, 0] >= 0) & (c[:, 0] < w) & (c[:, 1] >= 0) & (c[:, 1] < h)
+        valid[valid] &= ~occlusion.occluded(c[valid, 0], c[valid, 1], s.rank)
+        s.valid = float(valid.mean())
+        if valid.sum() < config.min_lines:
+            s.reason = "few_lines"
+            continue
+        n = int(valid.sum())
+        parts.append((np.full(n, i), placed.model_points[valid], placed.centres[valid], placed.normals[valid],
+                      placed.inside_px[valid], placed.outside_px[valid], np.full(n, float(scale))))  # fmt: skip
+    if not parts:
+        return None
+    return _Batch(*(np.concatenate(column) for column in zip(*parts, strict=True)))
+
+
+def _learn(states: Sequence[RefineState], kept: np.ndarray, batch: _Batch, bins: np.ndarray, occlusion: Occlusion,
+           config: RefineConfig) -> np.ndarray:  # fmt: skip
+    """The colours along each line into its object's histograms (inwards foreground, outwards background, each side
+    from `histogram_margin` to its silhouette run or `histogram_reach`, unoccluded); each object's posterior table
+    (rows: objects)."""
+    m = config.histogram_margin
+    steps = m + np.arange(int(np.ceil(config.histogram_reach)))
+    h, w = bins.shape
+    n_bins = config.histogram_bins**3
+    ranks = np.array([s.rank for s in states])
+    counts = []
+    for sign, run in ((-1.0, batch.inside), (1.0, batch.outside)):
+        q = np.round(batch.centres[:, None, :] + sign * steps[None, :, None] * batch.normals[:, None, :]).astype(np.int64)
+        ok = (steps[None, :] <= np.minimum(run - m, config.histogram_reach)[:, None]) & (q[..., 0] >= 0) & (q[..., 0] < w)
+        ok &= (q[..., 1] >= 0) & (q[..., 1] < h)
+        owner = np.broadcast_to(batch.owner[:, None], ok.shape)[ok]
+        x, y = q[..., 0][ok], q[..., 1][ok]
+        keep = ~occlusion.occluded(x, y, ranks[owner])
+        counts.append(
+            np.bincount(owner[keep] * n_bins + bins[y[keep], x[keep]], minlength=len(states) * n_bins).reshape(len(states), n_bins)
+        )
+    tables = np.full((len(states), n_bins), 0.5)
+    for i in kept:
+        s = states[i]
+        fresh = s.lines is None and not s.carried
+        rate = 1.0 if fresh else config.histogram_rate
+        for name, seen in (("foreground", counts[0][i]), ("background", counts[1][i])):
+            total = seen.sum()
+            if total:
+                setattr(s.histograms, name, (1 - rate) * getattr(s.histograms, name) + rate * seen.astype(np.float64) / total)
+        s.table = tables[i] = s.histograms.posterior()
+    return log_odds(tables)
+
+
+def _newton(states: Sequence[RefineState], kept: np.ndarray, batch: _Batch, mean: np.ndarray, variance: np.ndarray,
+            weight: np.ndarray, K: np.ndarray, config: RefineConfig) -> None:  # fmt: skip
+    """`newton_steps` steps of every kept state together: each line's contour offset pulled towards its
+    distribution's mean with its variance, the prior towards the start; a state whose step diverges stops."""
+    damping = np.diag(np.repeat(np.asarray(config.damping, dtype=float), 3))
+    active = {int(i) for i in kept}
+    for k in range(config.newton_steps):
+        lines = np.isin(batch.owner, sorted(active))
+        if not lines.any():
+            return
+        owner = batch.owner[lines]
+        R = np.stack([states[i].R for i in range(len(states))])
+        t = np.stack([states[i].t for i in range(len(states))])
+        g, H = _gradient_hessian(owner, batch.X[lines], batch.normals[lines], batch.centres[lines], batch.scale[lines],
+                                 mean[lines], variance[lines], weight[lines], R, t, K, len(states))  # fmt: skip
+        for i in sorted(active):
+            s = states[i]
+            if k == 0:
+                s.hessian = H[i]
+            e = np.concatenate([rotvec(s.R @ s.start.R.T), s.t - s.start.t])
+            step = np.linalg.solve(-H[i] + s.precision + damping, g[i] - s.precision @ e)
+            if not np.all(np.isfinite(step)):
+                s.reason = "run_away"
+                active.discard(i)
+                continue
+            s.R = cv2.Rodrigues(step[:3])[0] @ s.R
+            s.t = s.t + step[3:]
+            if s.t[2] <= 0:
+                s.reason = "run_away"
+                active.discard(i)
+
+
+def _gradient_hessian(owner: np.ndarray, X: np.ndarray, normals: np.ndarray, centres: np.ndarray, scale: np.ndarray,
+                      mean: np.ndarray, variance: np.ndarray, weight: np.ndarray, R: np.ndarray, t: np.ndarray,
+                      K: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray]:  # fmt: skip
+    """Per object (n), the log-likelihood gradient (n,6) and Gauss-Newton Hessian (n,6,6) in (ω, δ) of its lines
+    (each line's object `owner`) at the objects' poses R (n,3,3), t (n,3)."""
+    Ro, to = R[owner], t[owner]
+    p = np.einsum("nij,nj->ni", Ro, X) + to
+    q = p @ K.T
+    z = q[:, 2]
+    uv = q[:, :2] / z[:, None]
+    a = np.einsum("ni,nij->nj", normals, projection_jacobian(K, uv, z)) / scale[:, None]
+    J = np.concatenate([np.cross(p - to, a), a], axis=1)
+    offset = np.einsum("ni,ni->n", uv - centres, normals) / scale
+    first = np.flatnonzero(np.r_[True, owner[1:] != owner[:-1]])  # the lines come object after object
+    g, H = np.zeros((n, 6)), np.zeros((n, 36))
+    g[owner[first]] = np.add.reduceat((weight * (mean - offset) / variance)[:, None] * J, first)
+    H[owner[first]] = -np.add.reduceat((weight / variance)[:, None] * (J[:, :, None] * J[:, None, :]).reshape(-1, 36), first)
+    return g, H.reshape(n, 6, 6)
+
+
+def rotvec(R: np.ndarray) -> np.ndarray:
+    """The rotation vector of R (3,)."""
+    return cv2.Rodrigues(np.ascontiguousarray(R))[0][:, 0]
