@@ -12,6 +12,7 @@ from scipy.spatial.transform import Rotation
 from axispose_core.data.bop import GTInstance
 from axispose_core.tracking.config import TrackingConfig
 from axispose_core.tracking.filter import FilterConfig, PoseFilter
+from axispose_core.tracking.follow import follow_together
 from axispose_core.tracking.motion import camera_motion, scene_motion
 from axispose_core.tracking.tracker import Tracker
 from axispose_core.tracking.tracks import Crop, Sighting
@@ -690,8 +691,9 @@ def test_an_object_back_in_view_is_followed_from_where_its_views_put_it():
     assert {p.obj_id for p in step(3)} == {1} and tracker.counts["ended_unfollowable"] == 1
     scene.hidden = set()
     posed = len(scene.crops)
-    poses = step(4)  # back: followed from its views, found, no localiser, no AGM
-    assert asked[-2:] == [[1], [5]] and {p.obj_id for p in poses} == {1, 5} and tracker.counts["tracks_recalled"] == 1
+    calls = len(asked)
+    poses = step(4)  # back: followed from its views, found, no localiser, no AGM; with the track, in one batch
+    assert asked[calls:] == [[1, 5]] and {p.obj_id for p in poses} == {1, 5} and tracker.counts["tracks_recalled"] == 1
     assert scene.detect_calls == 1 and len(scene.crops) == posed
     np.testing.assert_allclose(next(p.t for p in poses if p.obj_id == 5), scene.poses[5][1], atol=0.01)
     scene.hidden = {5}
@@ -918,3 +920,25 @@ def test_a_posterior_is_folded_in_as_the_one_measurement_that_gives_it():
     np.testing.assert_allclose(by_posterior.R, by_measurement.R, atol=1e-6)
     np.testing.assert_allclose(by_posterior.v, by_measurement.v, atol=1e-4)
     np.testing.assert_allclose(by_posterior.P, by_measurement.P, rtol=1e-6, atol=1e-12)
+
+
+def test_parts_are_followed_in_one_call_and_each_takes_its_own_poses():
+    """`follow_together`: one call of the follower for every part's objects; a part that follows nothing returns at
+    once; each part gets its own poses back, in order; a follower that answers for fewer objects is an error."""
+    calls = []
+
+    def follow(last, predicted):
+        calls.append(list(last))
+        return [m * 10 for m in last]
+
+    def part(mine):
+        if not mine:
+            return ["none"]
+        got = yield mine, [None] * len(mine)
+        return [("got", g) for g in got]
+
+    assert follow_together(follow, part([1, 2]), part([]), part([3])) == [("got", 10), ("got", 20), "none", ("got", 30)]
+    assert calls == [[1, 2, 3]]
+    assert follow_together(follow, part([])) == ["none"] and len(calls) == 1
+    with pytest.raises(ValueError, match="2 poses for 3"):
+        follow_together(lambda last, predicted: last[:2], part([1, 2, 3]))

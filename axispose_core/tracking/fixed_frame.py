@@ -15,7 +15,7 @@ from dataclasses import replace
 
 import numpy as np
 
-from axispose_core.tracking.follow import Follower, holds, unseen
+from axispose_core.tracking.follow import FollowPart, holds, unseen
 from axispose_core.tracking.tracks import Box, Crop, Detected, Measurement, TrackedPose, Tracks, project
 from axispose_core.tracking.views import ObjectViews, Remembered, View, in_camera, in_fixed_frame
 
@@ -106,7 +106,7 @@ class FixedFrame:
         R, t, information = in_fixed_frame(camera, m.R, m.t, self._book.noise(m)[:3, :3])
         return self._views.add(obj_id, View(R, t, information, float(m.t[2]), frame, m, tuple(box), score), self._book.config.view_gate)
 
-    def recalled(self, follow: Follower, K: np.ndarray, stamp: float, camera: np.ndarray | None, held: set[int]) -> list[TrackedPose]:
+    def recalled(self, K: np.ndarray, stamp: float, camera: np.ndarray | None, held: set[int]) -> FollowPart:
         """The objects no track holds (nor `held` at the frame's start: one just lost is not looked for where it
         was lost), followed from where their views put them: one whose contour holds there starts a track
         (`tracks_recalled`), so an object back in view is posed before the localiser finds it; so does one posed
@@ -121,7 +121,7 @@ class FixedFrame:
         due = [(r, box) for r, box in due if _in_view(K, box)]
         if not due:
             return []
-        results = follow([r.latest.measurement for r, _ in due], [(r.R, r.t, r.covariance) for r, _ in due])
+        results = yield [r.latest.measurement for r, _ in due], [(r.R, r.t, r.covariance) for r, _ in due]
         out = []
         for (r, box), m in zip(due, results, strict=True):
             if m.ok and (holds(m, config.lost_agreement) or r.obj_id in observed):

@@ -16,7 +16,7 @@ follows both, and the track goes on from whichever of the two its contour agrees
 
 from __future__ import annotations
 
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Generator, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -28,6 +28,40 @@ from axispose_core.tracking.views import apart, in_camera, in_fixed_frame
 Follower = Callable[[list[Measurement], list[tuple[np.ndarray, np.ndarray, np.ndarray]]], Sequence[Measurement]]
 """(each track's last measurement, its predicted (R, t, covariance)) -> each track's pose on this frame by its contour
 (`Estimator.follow`): `ok` False where the contour was lost; its `contour_agreement` is read where it has one."""
+
+
+FollowPart = Generator[tuple[list[Measurement], list[tuple[np.ndarray, np.ndarray, np.ndarray]]], Sequence[Measurement], list[TrackedPose]]
+"""What follows objects on a frame: it yields what it follows (the `Follower`'s arguments), is sent their poses by
+their contours, and returns its tracked poses; one that follows nothing returns at once."""
+
+
+def follow_together(follow: Follower, *parts: FollowPart) -> list[TrackedPose]:
+    """The parts' objects followed in one call of `follow` (one refinement of every object the frame follows, each
+    masking the lines of those behind it, one batch); each part then takes its poses, in order. The parts' tracked
+    poses, in order."""
+    started = []
+    for part in parts:
+        try:
+            started.append((part, next(part), None))
+        except StopIteration as done:
+            started.append((None, ([], []), done.value))
+    lasts = [m for _, (mine, _), _ in started for m in mine]
+    predicted = [p for _, (_, mine), _ in started for p in mine]
+    results = list(follow(lasts, predicted)) if lasts else []
+    if len(results) != len(lasts):
+        raise ValueError(f"the follower gave {len(results)} poses for {len(lasts)} tracks")
+    out, at = [], 0
+    for part, (mine, _), value in started:
+        if part is not None:
+            try:
+                part.send(results[at : at + len(mine)])
+            except StopIteration as done:
+                value = done.value
+            else:
+                raise RuntimeError("a following part yielded twice")
+            at += len(mine)
+        out += value
+    return out
 
 
 @dataclass(frozen=True)
@@ -113,12 +147,12 @@ class Following:
         self._book.count("tracks_checked_apart")
         self._challengers[tr.id] = Challenger.posed(m, camera)
 
-    def followed(self, follow: Follower, K: np.ndarray, stamp: float, camera: np.ndarray | None = None) -> list[TrackedPose]:
+    def followed(self, K: np.ndarray, stamp: float, camera: np.ndarray | None = None) -> FollowPart:
         """Every track followed by its contour from its prediction (`_predicted_pose`): a pose whose contour held is
         the track's measurement; a track whose contour was lost after holding for a localiser's period gets a crop
         for the AGM on this frame, one lost sooner ends, unless no contour held on this frame (frames far apart, or
         a camera that jumped: every lost track is posed again). A track that missed its last frame is not followed
-        (its pose is stale): it stays lost until a detection finds it."""
+        (its pose is stale): it stays lost until a detection finds it. A `FollowPart` (`follow_together`)."""
         book = self._book
         for tr in book.tracks:
             tr.lost = tr.misses > 0
@@ -130,9 +164,7 @@ class Following:
         lasts = [tr.last for tr in tracks] + [challengers[tr.id].m for tr in challenged]
         predicted = [self._predicted_pose(tr, camera) for tr in tracks]
         predicted += [(*challengers[tr.id].in_camera(camera), book.noise(challengers[tr.id].m)) for tr in challenged]
-        results = list(follow(lasts, predicted))
-        if len(results) != len(lasts):
-            raise ValueError(f"the follower gave {len(results)} poses for {len(lasts)} tracks")
+        results = yield lasts, predicted
         results = self._settle(tracks, results[: len(tracks)], dict(zip([tr.id for tr in challenged], results[len(tracks) :], strict=True)))
         out, unfollowable = [], set()
         holding = [m.ok and holds(m, book.config.lost_agreement) for m in results]

@@ -17,7 +17,7 @@ import numpy as np
 
 from axispose_core.tracking.config import TrackingConfig
 from axispose_core.tracking.fixed_frame import FixedFrame
-from axispose_core.tracking.follow import Follower, Following
+from axispose_core.tracking.follow import Follower, Following, follow_together
 from axispose_core.tracking.search import detection_due, unfound_dropped, with_detections
 from axispose_core.tracking.tracks import Crop, Detected, Measurement, TrackedPose, Tracks
 
@@ -70,11 +70,8 @@ class Tracker(Tracks):
         self._start_frame(stamp, K)
         camera = np.asarray(camera, float) if camera is not None and np.all(np.isfinite(camera)) else None
         held = {tr.obj_id for tr in self.tracks}
-        out = (
-            self._following.followed(follow, K, stamp, camera) + self._fixed.recalled(follow, K, stamp, camera, held)
-            if follow is not None
-            else []
-        )
+        following = (self._following.followed(K, stamp, camera), self._fixed.recalled(K, stamp, camera, held))
+        out = follow_together(follow, *following) if follow is not None else []
         followed = {pose.track_id for pose in out}
         detecting = detect is not None and detection_due(self, following=follow is not None)
         crops = self.due_crops(K, every=detecting, skip=followed)
