@@ -20,7 +20,7 @@ from axispose_core.adapt.pseudo import PoseSettings, pose_frames, read_candidate
 from axispose_core.adapt.recording import RecordingError, read_recording
 from axispose_core.adapt.run import ADAPTED, Adaptation, AdaptConfig, AdaptError, object_geometry
 from axispose_core.adapt.scene import ConsistencyConfig, Prediction
-from axispose_core.adapt.train import AdaptTrainConfig
+from axispose_core.adapt.train import AdaptTrainConfig, blend
 from axispose_core.data.bop_scene import BopScene
 from axispose_core.data.synth.config import CameraPathConfig, PhotometricConfig, StreamConfig, SynthConfig
 from axispose_core.data.synth.stream import CropStream
@@ -31,6 +31,7 @@ from axispose_core.objects import lmo_objects
 from axispose_core.refine.config import RefineConfig
 from axispose_core.refine.refiner import ContourRefiner
 from axispose_core.train.loop import OptimConfig, RunOptions
+from axispose_core.train.resume import state_path
 
 OBJECTS = (1, 5, 6)
 
@@ -169,6 +170,13 @@ def test_a_round_runs_end_to_end_and_resumes_to_the_same_weights(recording, tmp_
     assert counts["frames"] == 4 and counts["total"]["labels"] > 0 and (tmp_path / "whole" / "round0" / "contact_sheet.png").is_file()
     adapted = Estimator.load(final)
     assert adapted.config.training["adapt"]["steps"] == 3 and adapted.localiser is not None and adapted.config.verifier is not None
+    # The checkpoint is the fine-tune's EMA blended with the source's weights, not the EMA itself.
+    ema = torch.load(state_path(tmp_path / "whole" / "round0" / ADAPTED), weights_only=False)["ema"]
+    tuned = {k.removeprefix("denoiser."): v for k, v in ema.items() if k.startswith("denoiser.")}
+    source, written = _weights(SHIPPED_ESTIMATOR), _weights(final)
+    expected = blend(source, tuned, AdaptTrainConfig().blend)
+    assert all(torch.allclose(written[k], expected[k], rtol=0, atol=1e-7) for k in written)
+    assert any(not torch.equal(written[k], tuned[k]) for k in written if written[k].is_floating_point())
     stopped = Adaptation(rec, SHIPPED_ESTIMATOR, lmo_dir / "models", tmp_path / "cut", _small(steps=3), RunOptions(device="cpu", stop_at=1))
     (tmp_path / "cut" / "round0").mkdir()
     lines = (tmp_path / "whole" / "round0" / "candidates.jsonl").read_text().splitlines()
@@ -191,6 +199,20 @@ def test_a_round_runs_end_to_end_and_resumes_to_the_same_weights(recording, tmp_
     assert len(rounds) == 2 and rounds[1]["labels"] > 0 and ("stopped" in rounds[1]) != bool(rounds[1].get("trained"))
     last = tmp_path / "whole" / ("round1" if rounds[1].get("trained") else "round0") / ADAPTED
     assert all(torch.equal(two[k], _weights(last)[k]) for k in two)
+
+
+def test_a_blend_lies_between_the_source_and_the_fine_tune():
+    torch.manual_seed(0)
+    source = {"w": torch.randn(4, 3), "b": torch.randn(3).to(torch.bfloat16), "count": torch.tensor(7)}
+    tuned = {"w": torch.randn(4, 3), "b": torch.randn(3).to(torch.bfloat16), "count": torch.tensor(9)}
+    assert all(torch.equal(blend(source, tuned, 1.0)[k], tuned[k]) for k in tuned)
+    assert torch.equal(blend(source, tuned, 0.0)["w"], source["w"]) and blend(source, tuned, 0.0)["count"] == 9
+    mid = blend(source, tuned, 0.7)
+    assert torch.allclose(mid["w"], 0.3 * source["w"] + 0.7 * tuned["w"], atol=1e-6) and mid["b"].dtype == torch.bfloat16
+    with pytest.raises(ValueError, match="differ"):
+        blend(source, {"w": tuned["w"]}, 0.5)
+    with pytest.raises(ValueError, match="blend"):
+        AdaptTrainConfig(blend=1.5)
 
 
 def test_a_config_changes_only_the_values_it_names(tmp_path):

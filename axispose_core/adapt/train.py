@@ -1,12 +1,15 @@
 """Training on the real pixels: the AGM fine-tuned from an estimator checkpoint on the recording's crops at their
 pseudo-poses, each batch mixed with the crop stream the checkpoint's AGM last trained on, so the synthetic skill
 stays (Self6D++: a low learning rate, an EMA of the weights, strong photometric augmentation on the student's
-input). Resumable as every trainer (`train/loop.py`): OUT.state.pt beside the checkpoint.
+input), and the checkpoint written a blend of the fine-tune's weights with the source's (`blend`). Resumable as
+every trainer (`train/loop.py`): OUT.state.pt beside the checkpoint.
 """
 
 from __future__ import annotations
 
+import copy
 import dataclasses
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -34,10 +37,11 @@ STRONG = PhotometricConfig(prob=0.8)
 class AdaptTrainConfig:
     """How the AGM adapts: `real_per_batch` of each batch's crops are the recording's (at least `min_visib` visible
     by the models at their labels), the rest the crop stream's (`stream`: None, the one the checkpoint's AGM last
-    trained on, as its training record says)."""
+    trained on, as its training record says); the checkpoint written holds `blend` of the fine-tune's (EMA) weights
+    and the rest of the source's."""
 
     optim: OptimConfig = field(
-        default_factory=lambda: OptimConfig(1200, 32, 1e-4, warmup=50, ema_decay=0.995, save_every=100, val_every=500, bf16=True),
+        default_factory=lambda: OptimConfig(600, 32, 1e-4, warmup=50, ema_decay=0.995, save_every=100, val_every=300, bf16=True),
         metadata=PRESET,
     )
     """A YAML's `optim` section changes these values; the keys it leaves out keep them."""
@@ -49,8 +53,14 @@ class AdaptTrainConfig:
     val_samples: int = 64
     val_steps: int = 2
     val_seed: int = 1_000_000
+    blend: float = 0.7
+    """The fine-tune's share of the weights written, the source's the rest (WiSE-FT, Wortsman et al. 2022: the
+    weights between the two keep most of the gain on the new domain at a fraction of the loss on the old; 1: the
+    fine-tune as trained). docs/BENCHMARKS.md, *Adaptation*, measures 0.5, 0.7 and 1."""
 
     def __post_init__(self) -> None:
+        if not 0.0 <= self.blend <= 1.0:
+            raise ValueError(f"blend must lie in [0, 1], got {self.blend}")
         if not 0 <= self.real_per_batch <= self.optim.batch:
             raise ValueError(f"real_per_batch must lie in 0..batch ({self.optim.batch}), got {self.real_per_batch}")
 
@@ -95,18 +105,40 @@ def adapt_agm(
         record = training_record([str(labels), f"crop stream of {models}"], step, cfg.optim.batch, seconds, dev, started_from)
         training = {**base.config.training, "adapt": {"config": dataclasses.asdict(cfg), **record}}
         config = dataclasses.replace(base.config, training=training)
-        Estimator(config, ema, base.reader, "cpu", base.localiser, base.meshes).save(out)
+        Estimator(config, written(ema).cpu(), base.reader, "cpu", base.localiser, base.meshes).save(out)
 
+    def written(ema: torch.nn.Module) -> torch.nn.Module:
+        net = copy.deepcopy(ema)
+        net.denoiser.load_state_dict(blend(base.agm.denoiser.state_dict(), net.denoiser.state_dict(), cfg.blend))
+        return net
+
+    held_out = Validation(VAL_COLUMNS, _held_out(cfg, stream_cfg, models, base, dev, written))
     job = TrainJob(
-        cfg, model, batches, loss, Path(out), save, validation=Validation(VAL_COLUMNS, _held_out(cfg, stream_cfg, models, base, dev)),
-        device=dev, desc="adapt agm", init=str(checkpoint), objective=AGMObjective,
+        cfg, model, batches, loss, Path(out), save, validation=held_out, device=dev, desc="adapt agm", init=str(checkpoint),
+        objective=AGMObjective,
     )  # fmt: skip
     return fit(job, run)
 
 
-def _held_out(cfg: AdaptTrainConfig, stream_cfg: StreamConfig, models: str | Path, base: Estimator, dev: torch.device):
-    """The stream's held-out crops (seed `val_seed`): what adapting costs on renders, as the AGM's own trainer
-    validates."""
+def blend(source: Mapping[str, torch.Tensor], tuned: Mapping[str, torch.Tensor], weight: float) -> dict[str, torch.Tensor]:
+    """`weight` of each tuned tensor and 1 - `weight` of the source's, in float64 before the tensors' own type;
+    integer buffers (counters) are the tuned ones."""
+    if source.keys() != tuned.keys():
+        raise ValueError(f"the weights differ in their tensors: {sorted(source.keys() ^ tuned.keys())[:5]}")
+    out = {}
+    for k, a in tuned.items():
+        if not a.is_floating_point():
+            out[k] = a.clone()
+            continue
+        s = source[k].to(device=a.device, dtype=torch.float64)
+        out[k] = ((1.0 - weight) * s + weight * a.to(torch.float64)).to(a.dtype)
+    return out
+
+
+def _held_out(cfg: AdaptTrainConfig, stream_cfg: StreamConfig, models: str | Path, base: Estimator, dev: torch.device,
+              written: Callable[[torch.nn.Module], torch.nn.Module]):  # fmt: skip
+    """The stream's held-out crops (seed `val_seed`) read by the weights a save would write: what adapting costs on
+    renders, as the AGM's own trainer validates."""
     from axispose_core.data.synth.stream import CropStreamDataset
 
     crops = CropStreamDataset(CropStream(dataclasses.replace(stream_cfg, seed=cfg.val_seed), models))
@@ -122,6 +154,6 @@ def _held_out(cfg: AdaptTrainConfig, stream_cfg: StreamConfig, models: str | Pat
     syms = [symmetries.get(o.obj_id, []) for o in held]
 
     def metrics(ema: torch.nn.Module) -> dict[str, float]:
-        return validate(ema, base.reader, batch, lengths, cfg.val_steps, syms)
+        return validate(written(ema), base.reader, batch, lengths, cfg.val_steps, syms)
 
     return metrics
