@@ -7,7 +7,7 @@ its own state and the frame's occlusion at the pass's start: the objects' passes
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields
 
 import cv2
 import numpy as np
@@ -98,6 +98,14 @@ class _Batch:
     inside: np.ndarray
     outside: np.ndarray
     scale: np.ndarray
+    mean: np.ndarray | None = None
+    """Where each line's contour lies (segments), its variance and the line's weight: set once found."""
+    variance: np.ndarray | None = None
+    weight: np.ndarray | None = None
+
+    def of(self, lines: np.ndarray) -> _Batch:
+        """The batch's `lines` (a mask or indices)."""
+        return _Batch(**{f.name: None if (v := getattr(self, f.name)) is None else v[lines] for f in fields(self)})
 
 
 def correspondence_pass(states: Sequence[RefineState], k: int, bins: np.ndarray, K: np.ndarray, occlusion: Occlusion,
@@ -111,7 +119,7 @@ def correspondence_pass(states: Sequence[RefineState], k: int, bins: np.ndarray,
         return
     kept = np.unique(batch.owner)
     tables = _learn(states, kept, batch, bins, occlusion, config)
-    mean, variance = np.empty(len(batch.owner)), np.empty(len(batch.owner))
+    batch.mean, batch.variance = np.empty(len(batch.owner)), np.empty(len(batch.owner))
     n_seg = config.function_length + config.distribution_length - 1
     for scale in np.unique(batch.scale):
         lines = batch.scale == scale
@@ -120,15 +128,15 @@ def correspondence_pass(states: Sequence[RefineState], k: int, bins: np.ndarray,
         odds = sample_posteriors(tables, bins, batch.centres[lines], batch.normals[lines], offsets, bilinear=scale == 1,
                                  rows=batch.owner[lines])  # fmt: skip
         dist = contour_distributions(odds, int(scale), step, config.distribution_length)
-        mean[lines], variance[lines] = dist.mean, dist.variance
+        batch.mean[lines], batch.variance[lines] = dist.mean, dist.variance
     sigma = np.array([states[i].schedule[1][k] for i in batch.owner])
-    weight = step.min_variance * batch.scale**2 / sigma**2
+    batch.weight = step.min_variance * batch.scale**2 / sigma**2
     bounds = np.searchsorted(batch.owner, np.append(kept, kept[-1] + 1))
     for j, i in enumerate(kept):
         part = slice(bounds[j], bounds[j + 1])
         states[i].lines = Lines(batch.X[part], batch.centres[part], batch.normals[part], float(scales[i]),
-                                Distributions(mean[part], variance[part]), weight[part])  # fmt: skip
-    _newton(states, kept, batch, mean, variance, weight, K, config)
+                                Distributions(batch.mean[part], batch.variance[part]), batch.weight[part])  # fmt: skip
+    _newton(states, kept, batch, K, config)
 
 
 def _place(states: Sequence[RefineState], scales: list[int], shape: tuple[int, int], K: np.ndarray, occlusion: Occlusion,
@@ -191,8 +199,7 @@ def _learn(states: Sequence[RefineState], kept: np.ndarray, batch: _Batch, bins:
     return log_odds(tables)
 
 
-def _newton(states: Sequence[RefineState], kept: np.ndarray, batch: _Batch, mean: np.ndarray, variance: np.ndarray,
-            weight: np.ndarray, K: np.ndarray, config: RefineConfig) -> None:  # fmt: skip
+def _newton(states: Sequence[RefineState], kept: np.ndarray, batch: _Batch, K: np.ndarray, config: RefineConfig) -> None:
     """`newton_steps` steps of every kept state together: each line's contour offset pulled towards its
     distribution's mean with its variance, the prior towards the start; a state whose step diverges stops."""
     damping = np.diag(np.repeat(np.asarray(config.damping, dtype=float), 3))
@@ -201,11 +208,9 @@ def _newton(states: Sequence[RefineState], kept: np.ndarray, batch: _Batch, mean
         lines = np.isin(batch.owner, sorted(active))
         if not lines.any():
             return
-        owner = batch.owner[lines]
-        R = np.stack([states[i].R for i in range(len(states))])
-        t = np.stack([states[i].t for i in range(len(states))])
-        g, H = _gradient_hessian(owner, batch.X[lines], batch.normals[lines], batch.centres[lines], batch.scale[lines],
-                                 mean[lines], variance[lines], weight[lines], R, t, K, len(states))  # fmt: skip
+        R = np.stack([s.R for s in states])
+        t = np.stack([s.t for s in states])
+        g, H = _gradient_hessian(batch.of(lines), R, t, K)
         for i in sorted(active):
             s = states[i]
             if k == 0:
@@ -223,23 +228,22 @@ def _newton(states: Sequence[RefineState], kept: np.ndarray, batch: _Batch, mean
                 active.discard(i)
 
 
-def _gradient_hessian(owner: np.ndarray, X: np.ndarray, normals: np.ndarray, centres: np.ndarray, scale: np.ndarray,
-                      mean: np.ndarray, variance: np.ndarray, weight: np.ndarray, R: np.ndarray, t: np.ndarray,
-                      K: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray]:  # fmt: skip
-    """Per object (n), the log-likelihood gradient (n,6) and Gauss-Newton Hessian (n,6,6) in (ω, δ) of its lines
-    (each line's object `owner`) at the objects' poses R (n,3,3), t (n,3)."""
+def _gradient_hessian(b: _Batch, R: np.ndarray, t: np.ndarray, K: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Per object, the log-likelihood gradient (n,6) and Gauss-Newton Hessian (n,6,6) in (ω, δ) of its lines in
+    `b` at the objects' poses R (n,3,3), t (n,3)."""
+    n, owner = len(R), b.owner
     Ro, to = R[owner], t[owner]
-    p = np.einsum("nij,nj->ni", Ro, X) + to
+    p = np.einsum("nij,nj->ni", Ro, b.X) + to
     q = p @ K.T
     z = q[:, 2]
     uv = q[:, :2] / z[:, None]
-    a = np.einsum("ni,nij->nj", normals, projection_jacobian(K, uv, z)) / scale[:, None]
+    a = np.einsum("ni,nij->nj", b.normals, projection_jacobian(K, uv, z)) / b.scale[:, None]
     J = np.concatenate([np.cross(p - to, a), a], axis=1)
-    offset = np.einsum("ni,ni->n", uv - centres, normals) / scale
+    offset = np.einsum("ni,ni->n", uv - b.centres, b.normals) / b.scale
     first = np.flatnonzero(np.r_[True, owner[1:] != owner[:-1]])  # the lines come object after object
     g, H = np.zeros((n, 6)), np.zeros((n, 36))
-    g[owner[first]] = np.add.reduceat((weight * (mean - offset) / variance)[:, None] * J, first)
-    H[owner[first]] = -np.add.reduceat((weight / variance)[:, None] * (J[:, :, None] * J[:, None, :]).reshape(-1, 36), first)
+    g[owner[first]] = np.add.reduceat((b.weight * (b.mean - offset) / b.variance)[:, None] * J, first)
+    H[owner[first]] = -np.add.reduceat((b.weight / b.variance)[:, None] * (J[:, :, None] * J[:, None, :]).reshape(-1, 36), first)
     return g, H.reshape(n, 6, 6)
 
 
