@@ -8,6 +8,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass, field, fields
+from itertools import pairwise
 
 import cv2
 import numpy as np
@@ -26,7 +27,8 @@ from axispose_core.refine.region import (
 )
 from axispose_core.refine.viewpoints import ViewpointModel
 
-NONE_NEARER = np.iinfo(np.int32).max
+NONE_NEARER = 255
+"""No object's outline covers the pixel (a frame of 255 objects or more ranks them in int32, this value among them)."""
 
 
 @dataclass
@@ -70,7 +72,7 @@ class Occlusion:
         """The objects' outline polygons drawn from the farthest to the nearest, each at its rank, and each state
         told its rank."""
         order = sorted(range(len(states)), key=lambda i: states[i].t[2])
-        nearest = np.full(shape, NONE_NEARER, dtype=np.int32)
+        nearest = np.full(shape, NONE_NEARER, dtype=np.uint8 if len(states) < NONE_NEARER else np.int32)
         for rank, i in reversed(list(enumerate(order))):
             s = states[i]
             s.rank = rank
@@ -203,29 +205,28 @@ def _newton(states: Sequence[RefineState], kept: np.ndarray, batch: _Batch, K: n
     """`newton_steps` steps of every kept state together: each line's contour offset pulled towards its
     distribution's mean with its variance, the prior towards the start; a state whose step diverges stops."""
     damping = np.diag(np.repeat(np.asarray(config.damping, dtype=float), 3))
-    active = {int(i) for i in kept}
+    active = np.zeros(len(states), dtype=bool)
+    active[kept] = True
     for k in range(config.newton_steps):
-        lines = np.isin(batch.owner, sorted(active))
+        lines = active[batch.owner]
         if not lines.any():
             return
         R = np.stack([s.R for s in states])
         t = np.stack([s.t for s in states])
         g, H = _gradient_hessian(batch.of(lines), R, t, K)
-        for i in sorted(active):
+        for i in np.flatnonzero(active):
             s = states[i]
             if k == 0:
                 s.hessian = H[i]
             e = np.concatenate([rotvec(s.R @ s.start.R.T), s.t - s.start.t])
             step = np.linalg.solve(-H[i] + s.precision + damping, g[i] - s.precision @ e)
             if not np.all(np.isfinite(step)):
-                s.reason = "run_away"
-                active.discard(i)
+                s.reason, active[i] = "run_away", False
                 continue
             s.R = cv2.Rodrigues(step[:3])[0] @ s.R
             s.t = s.t + step[3:]
             if s.t[2] <= 0:
-                s.reason = "run_away"
-                active.discard(i)
+                s.reason, active[i] = "run_away", False
 
 
 def _gradient_hessian(b: _Batch, R: np.ndarray, t: np.ndarray, K: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -240,11 +241,13 @@ def _gradient_hessian(b: _Batch, R: np.ndarray, t: np.ndarray, K: np.ndarray) ->
     a = np.einsum("ni,nij->nj", b.normals, projection_jacobian(K, uv, z)) / b.scale[:, None]
     J = np.concatenate([np.cross(p - to, a), a], axis=1)
     offset = np.einsum("ni,ni->n", uv - b.centres, b.normals) / b.scale
-    first = np.flatnonzero(np.r_[True, owner[1:] != owner[:-1]])  # the lines come object after object
-    g, H = np.zeros((n, 6)), np.zeros((n, 36))
-    g[owner[first]] = np.add.reduceat((b.weight * (b.mean - offset) / b.variance)[:, None] * J, first)
-    H[owner[first]] = -np.add.reduceat((b.weight / b.variance)[:, None] * (J[:, :, None] * J[:, None, :]).reshape(-1, 36), first)
-    return g, H.reshape(n, 6, 6)
+    bounds = np.flatnonzero(np.r_[True, owner[1:] != owner[:-1], True])  # the lines come object after object
+    g, H = np.zeros((n, 6)), np.zeros((n, 6, 6))
+    pull, w = (b.weight * (b.mean - offset) / b.variance)[:, None] * J, (b.weight / b.variance)[:, None] * J
+    for start, end in pairwise(bounds):
+        i = owner[start]
+        g[i], H[i] = pull[start:end].sum(axis=0), -(w[start:end].T @ J[start:end])
+    return g, H
 
 
 def rotvec(R: np.ndarray) -> np.ndarray:
