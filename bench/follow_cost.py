@@ -1,7 +1,7 @@
 """What following costs per frame against the number of objects (1, 3, 5, 8): LM-O's objects rendered apart over a
 textured background, the camera turning a little each frame, each frame's objects followed by their contours from
-the last frame's poses with the colours they learned (`ContourRefiner.refine` as `Estimator.follow` calls it), the
-passes batched over the objects and, for comparison, taken object after object.
+the last frame's poses with the colours they learned (`ContourRefiner.refine` as `Estimator.follow` calls it). It
+imports only what every refiner had, so an earlier tree runs it too (`PYTHONPATH=<worktree>`).
 
     python bench/follow_cost.py --threads 2 --out bench/results/follow_cost.json
 """
@@ -17,12 +17,11 @@ import numpy as np
 import torch
 from scipy.spatial.transform import Rotation
 
+import axispose_core
 from axispose_core.data.meshes import load_render_mesh
 from axispose_core.data.synth.raster import Light, render
 from axispose_core.estimator import SHIPPED_ESTIMATOR, Estimator
 from axispose_core.lmo import LMO_K
-from axispose_core.refine import passes
-from axispose_core.refine import refiner as refiner_module
 from axispose_core.refine.refiner import Start
 
 K = np.asarray(LMO_K, dtype=np.float64)
@@ -63,11 +62,6 @@ def follow_times(refiner, seq) -> list[float]:
     return times
 
 
-def one_by_one(states, k, bins, K_, occlusion, config, step) -> None:
-    for s in states:
-        passes.correspondence_pass([s], k, bins, K_, occlusion, config, step)
-
-
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--models", default="../shared/data/lmo/models", help="the objects' BOP models (rendered)")
@@ -79,19 +73,12 @@ def main() -> None:
     torch.set_num_threads(args.threads)
     refiner = Estimator.load(args.checkpoint).refiner
     refiner.prepare()
-    batched = refiner_module.correspondence_pass
     rows = {}
     for n in (1, 3, 5, 8):
-        seq = frames(Path(args.models), args.frames, n)
-        row = {}
-        for name, passing in (("batched", batched), ("one_by_one", one_by_one)):
-            refiner_module.correspondence_pass = passing
-            t = 1000 * np.asarray(follow_times(refiner, seq))
-            row[name] = {"median_ms": float(np.median(t)), "p90_ms": float(np.percentile(t, 90)), "per_object_ms": float(np.median(t)) / n}
-        refiner_module.correspondence_pass = batched
-        rows[str(n)] = row
-        print(n, json.dumps(row))
-    result = {"threads": args.threads, "frames": args.frames - 1, "objects": rows}
+        t = 1000 * np.asarray(follow_times(refiner, frames(Path(args.models), args.frames, n)))
+        rows[str(n)] = {"median_ms": float(np.median(t)), "p90_ms": float(np.percentile(t, 90)), "per_object_ms": float(np.median(t)) / n}
+        print(n, json.dumps(rows[str(n)]))
+    result = {"threads": args.threads, "frames": args.frames - 1, "refiner": axispose_core.__file__, "objects": rows}
     if args.out:
         Path(args.out).write_text(json.dumps(result, indent=1) + "\n")
 

@@ -123,8 +123,9 @@ def correspondence_pass(states: Sequence[RefineState], k: int, bins: np.ndarray,
     tables = _learn(states, kept, batch, bins, occlusion, config)
     batch.mean, batch.variance = np.empty(len(batch.owner)), np.empty(len(batch.owner))
     n_seg = config.function_length + config.distribution_length - 1
-    for scale in np.unique(batch.scale):
-        lines = batch.scale == scale
+    groups = np.unique(batch.scale)
+    for scale in groups:
+        lines = batch.scale == scale if len(groups) > 1 else slice(None)
         offsets = (np.arange(n_seg * scale) + 0.5) - n_seg * scale / 2
         # Sub-pixel (bilinear) where a segment is a pixel; at coarser scales the nearest pixel, a quarter of the work.
         odds = sample_posteriors(tables, bins, batch.centres[lines], batch.normals[lines], offsets, bilinear=scale == 1,
@@ -164,7 +165,7 @@ def _place(states: Sequence[RefineState], scales: list[int], shape: tuple[int, i
                       placed.inside_px[valid], placed.outside_px[valid], np.full(n, float(scale))))  # fmt: skip
     if not parts:
         return None
-    return _Batch(*(np.concatenate(column) for column in zip(*parts, strict=True)))
+    return _Batch(*(np.concatenate(column) if len(parts) > 1 else column[0] for column in zip(*parts, strict=True)))
 
 
 def _learn(states: Sequence[RefineState], kept: np.ndarray, batch: _Batch, bins: np.ndarray, occlusion: Occlusion,
@@ -213,7 +214,7 @@ def _newton(states: Sequence[RefineState], kept: np.ndarray, batch: _Batch, K: n
             return
         R = np.stack([s.R for s in states])
         t = np.stack([s.t for s in states])
-        g, H = _gradient_hessian(batch.of(lines), R, t, K)
+        g, H = _gradient_hessian(batch if lines.all() else batch.of(lines), R, t, K)
         for i in np.flatnonzero(active):
             s = states[i]
             if k == 0:
