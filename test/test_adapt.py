@@ -150,7 +150,7 @@ def test_a_prediction_becomes_a_label_only_where_the_contour_agrees(recording, l
 
 
 def _small(rounds: int = 1, steps: int = 2) -> AdaptConfig:
-    optim = OptimConfig(steps=steps, batch=4, lr=1e-4, warmup=1, workers=0, save_every=1, val_every=1000)
+    optim = OptimConfig(steps=steps, batch=4, lr=1e-4, warmup=1, workers=0, save_every=1000, val_every=1000)
     train = AdaptTrainConfig(optim=optim, real_per_batch=2, val_samples=2)
     return AdaptConfig(rounds=rounds, pose=PoseSettings(threshold=0.3), train=train)
 
@@ -198,7 +198,8 @@ def test_a_round_runs_end_to_end_and_resumes_to_the_same_weights(recording, tmp_
     rounds = json.loads((tmp_path / "whole" / "report.json").read_text())["rounds"]
     assert len(rounds) == 2 and rounds[1]["labels"] > 0 and ("stopped" in rounds[1]) != bool(rounds[1].get("trained"))
     last = tmp_path / "whole" / ("round1" if rounds[1].get("trained") else "round0") / ADAPTED
-    assert all(torch.equal(two[k], _weights(last)[k]) for k in two)
+    last_weights = _weights(last)
+    assert all(torch.equal(two[k], last_weights[k]) for k in two)
 
 
 def test_a_blend_lies_between_the_source_and_the_fine_tune():

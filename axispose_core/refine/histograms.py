@@ -33,10 +33,14 @@ class ColourHistograms:
     def learn(self, foreground_bins: np.ndarray, background_bins: np.ndarray, rate: float) -> None:
         """Blend in the colours seen now (bin indices of foreground and background samples) with weight `rate`
         (1: forget what was learned); a side with no samples keeps what it had."""
-        for name, seen in (("foreground", foreground_bins), ("background", background_bins)):
-            if len(seen):
-                h = np.bincount(seen, minlength=len(self.foreground)).astype(np.float64)
-                setattr(self, name, (1 - rate) * getattr(self, name) + rate * h / h.sum())
+        n = len(self.foreground)
+        self.learn_counts(np.bincount(foreground_bins, minlength=n), np.bincount(background_bins, minlength=n), rate)
+
+    def learn_counts(self, foreground: np.ndarray, background: np.ndarray, rate: float) -> None:
+        """`learn` from the samples' counts per bin."""
+        for name, seen in (("foreground", foreground), ("background", background)):
+            if total := seen.sum():
+                setattr(self, name, (1 - rate) * getattr(self, name) + rate * seen.astype(np.float64) / total)
 
     def posterior(self) -> np.ndarray:
         """P(foreground | colour) per bin with equal priors, 0.5 where neither side has seen the colour."""

@@ -194,10 +194,7 @@ def _learn(states: Sequence[RefineState], kept: np.ndarray, batch: _Batch, bins:
         s = states[i]
         fresh = s.lines is None and not s.carried
         rate = 1.0 if fresh else config.histogram_rate
-        for name, seen in (("foreground", counts[0][i]), ("background", counts[1][i])):
-            total = seen.sum()
-            if total:
-                setattr(s.histograms, name, (1 - rate) * getattr(s.histograms, name) + rate * seen.astype(np.float64) / total)
+        s.histograms.learn_counts(counts[0][i], counts[1][i], rate)
         s.table = tables[i] = s.histograms.posterior()
     return log_odds(tables)
 

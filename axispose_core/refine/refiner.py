@@ -1,11 +1,11 @@
 """Region-based refinement of a frame's poses on the image itself: each object's contour is moved until it
 separates the colours the image shows inside it from those around it (after ICG's tracker, Stoiber et al. 2022).
 
-Per frame: the colour-bin image once; per object: colour histograms learned at its current pose, then passes
-from coarse to fine line scales, each placing correspondence lines across the contour of the nearest view of the
-object's viewpoint model, finding where along each line the contour lies, and taking Newton steps on their
-log-likelihood with the starting pose (and its covariance) as a prior. The frame's objects mask each other's lines
-in their depth order. A pose that cannot be refined (too small, off the image, too few lines, a jump its
+Per frame: the colour-bin image once; then passes from coarse to fine line scales, each taking the frame's objects
+together (`passes.py`): per object, colour histograms learned at its current pose, correspondence lines across the
+contour of the nearest view of its viewpoint model, where along each line the contour lies, and Newton steps on
+their log-likelihood with the starting pose (and its covariance) as a prior. The frame's objects mask each other's
+lines in their depth order. A pose that cannot be refined (too small, off the image, too few lines, a jump its
 covariance does not allow) is kept as it came, with the reason. A tracked object brings the colours it learned on
 earlier frames and is followed on a short schedule from its predicted pose.
 """

@@ -111,7 +111,7 @@ class FixedFrame:
         was lost), followed from where their views put them: one whose contour holds there starts a track
         (`tracks_recalled`), so an object back in view is posed before the localiser finds it; so does one posed
         elsewhere since the last recall (`observe`) whose contour does not agree (`recalled_unconfirmed`: partly
-        hidden, say): its track ends when its contour is lost, as one the AGM started would."""
+        hidden, say): its track ends when its contour is lost, as one the AGM started would. A `FollowPart`."""
         book, config = self._book, self._book.config
         observed, self._observed = self._observed, set()
         if config.view_window <= 0 or camera is None:
