@@ -16,15 +16,7 @@ import numpy as np
 from axispose_core.camera import projection_jacobian
 from axispose_core.refine.config import RefineConfig
 from axispose_core.refine.histograms import ColourHistograms
-from axispose_core.refine.region import (
-    Distributions,
-    Lines,
-    StepFunction,
-    contour_distributions,
-    log_odds,
-    place_lines,
-    sample_posteriors,
-)
+from axispose_core.refine.region import StepFunction, contour_distributions, log_odds, place_lines, sample_posteriors
 from axispose_core.refine.viewpoints import ViewpointModel
 
 NONE_NEARER = 255
@@ -51,7 +43,8 @@ class RefineState:
     table: np.ndarray | None = None
     """The histograms' P(foreground | colour), as last learned."""
     hessian: np.ndarray = field(default_factory=lambda: np.zeros((6, 6)))
-    lines: Lines | None = None
+    stepped: bool = False
+    """A pass learned its colours and took Newton steps (False: every pass had too few lines)."""
     occlusion: Occlusion | None = None
     """The frame's objects in depth order at its last pass."""
     rank: int = 0
@@ -109,6 +102,11 @@ class _Batch:
         """The batch's `lines` (a mask or indices)."""
         return _Batch(**{f.name: None if (v := getattr(self, f.name)) is None else v[lines] for f in fields(self)})
 
+    def blocks(self) -> list[tuple[int, slice]]:
+        """Each object with lines here and where its lines lie (they come object after object)."""
+        bounds = np.flatnonzero(np.r_[True, self.owner[1:] != self.owner[:-1], True])
+        return [(int(self.owner[a]), slice(a, b)) for a, b in pairwise(bounds)]
+
 
 def correspondence_pass(states: Sequence[RefineState], k: int, bins: np.ndarray, K: np.ndarray, occlusion: Occlusion,
                         config: RefineConfig, step: StepFunction) -> None:  # fmt: skip
@@ -119,7 +117,7 @@ def correspondence_pass(states: Sequence[RefineState], k: int, bins: np.ndarray,
     batch = _place(states, scales, bins.shape, K, occlusion, config)
     if batch is None:
         return
-    kept = np.unique(batch.owner)
+    kept = np.array([i for i, _ in batch.blocks()])
     tables = _learn(states, kept, batch, bins, occlusion, config)
     batch.mean, batch.variance = np.empty(len(batch.owner)), np.empty(len(batch.owner))
     n_seg = config.function_length + config.distribution_length - 1
@@ -134,11 +132,6 @@ def correspondence_pass(states: Sequence[RefineState], k: int, bins: np.ndarray,
         batch.mean[lines], batch.variance[lines] = dist.mean, dist.variance
     sigma = np.array([states[i].schedule[1][k] for i in batch.owner])
     batch.weight = step.min_variance * batch.scale**2 / sigma**2
-    bounds = np.searchsorted(batch.owner, np.append(kept, kept[-1] + 1))
-    for j, i in enumerate(kept):
-        part = slice(bounds[j], bounds[j + 1])
-        states[i].lines = Lines(batch.X[part], batch.centres[part], batch.normals[part], float(scales[i]),
-                                Distributions(batch.mean[part], batch.variance[part]), batch.weight[part])  # fmt: skip
     _newton(states, kept, batch, K, config)
 
 
@@ -192,7 +185,7 @@ def _learn(states: Sequence[RefineState], kept: np.ndarray, batch: _Batch, bins:
     tables = np.full((len(states), n_bins), 0.5)
     for i in kept:
         s = states[i]
-        fresh = s.lines is None and not s.carried
+        fresh = not s.stepped and not s.carried
         rate = 1.0 if fresh else config.histogram_rate
         s.histograms.learn_counts(counts[0][i], counts[1][i], rate)
         s.table = tables[i] = s.histograms.posterior()
@@ -205,6 +198,8 @@ def _newton(states: Sequence[RefineState], kept: np.ndarray, batch: _Batch, K: n
     damping = np.diag(np.repeat(np.asarray(config.damping, dtype=float), 3))
     active = np.zeros(len(states), dtype=bool)
     active[kept] = True
+    for i in kept:
+        states[i].stepped = True
     for k in range(config.newton_steps):
         lines = active[batch.owner]
         if not lines.any():
@@ -239,12 +234,10 @@ def _gradient_hessian(b: _Batch, R: np.ndarray, t: np.ndarray, K: np.ndarray) ->
     a = np.einsum("ni,nij->nj", b.normals, projection_jacobian(K, uv, z)) / b.scale[:, None]
     J = np.concatenate([np.cross(p - to, a), a], axis=1)
     offset = np.einsum("ni,ni->n", uv - b.centres, b.normals) / b.scale
-    bounds = np.flatnonzero(np.r_[True, owner[1:] != owner[:-1], True])  # the lines come object after object
     g, H = np.zeros((n, 6)), np.zeros((n, 6, 6))
     pull, w = (b.weight * (b.mean - offset) / b.variance)[:, None] * J, (b.weight / b.variance)[:, None] * J
-    for start, end in pairwise(bounds):
-        i = owner[start]
-        g[i], H[i] = pull[start:end].sum(axis=0), -(w[start:end].T @ J[start:end])
+    for i, lines in b.blocks():
+        g[i], H[i] = pull[lines].sum(axis=0), -(w[lines].T @ J[lines])
     return g, H
 
 

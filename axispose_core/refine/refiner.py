@@ -150,9 +150,9 @@ class ContourRefiner:
 
     def _finish(self, start: Start, s: RefineState | None, bins: np.ndarray, K: np.ndarray, reason: str) -> Refinement:
         """The refined pose with its covariance and agreement, or the start kept with the reason."""
-        if s is None or s.reason or s.lines is None:
+        if s is None or s.reason or not s.stepped:
             return Refinement(start.R, start.t, start.covariance, False, reason or (s.reason if s else "") or "few_lines",
-                              s.valid if s else 0.0, colours=s.histograms if s and s.lines is not None else None)  # fmt: skip
+                              s.valid if s else 0.0, colours=s.histograms if s and s.stepped else None)  # fmt: skip
         cfg = self.config
         H = -s.hessian + s.precision
         jump = (rotvec(s.R @ s.start.R.T), s.t - s.start.t)

@@ -137,16 +137,3 @@ def contour_distributions(odds: np.ndarray, scale: int, step: StepFunction, leng
     mean = p @ places
     variance = np.maximum(np.einsum("nd,nd->n", p, (places[None] - mean[:, None]) ** 2), step.min_variance)
     return Distributions(mean - (length - 1) / 2, variance)
-
-
-@dataclass(frozen=True)
-class Lines:
-    """One object's valid lines at one pass, ready for Newton steps: model points, fixed centres and normals, the
-    segment length, each line's contour distribution and weight."""
-
-    model_points: np.ndarray
-    centres: np.ndarray
-    normals: np.ndarray
-    scale: float
-    dist: Distributions
-    weight: np.ndarray
