@@ -16,9 +16,10 @@ import torch
 from axispose_core.adapt.command import AdaptRequest, adapt_config, run_adapt
 from axispose_core.adapt.crops import KEYS, LabelledCrops, mixed_batches
 from axispose_core.adapt.labels import FillConfig, Label, label_frame, write_labels
+from axispose_core.adapt.localiser import AdaptLocaliserConfig, RenderedFrames
 from axispose_core.adapt.pseudo import PoseSettings, pose_frames, read_candidates
 from axispose_core.adapt.recording import RecordingError, read_recording
-from axispose_core.adapt.run import ADAPTED, Adaptation, AdaptConfig, AdaptError, object_geometry
+from axispose_core.adapt.run import ADAPTED, AGM, Adaptation, AdaptConfig, AdaptError, object_geometry
 from axispose_core.adapt.scene import ConsistencyConfig, Prediction
 from axispose_core.adapt.train import AdaptTrainConfig, blend
 from axispose_core.data.bop_scene import BopScene
@@ -152,7 +153,9 @@ def test_a_prediction_becomes_a_label_only_where_the_contour_agrees(recording, l
 def _small(rounds: int = 1, steps: int = 2) -> AdaptConfig:
     optim = OptimConfig(steps=steps, batch=4, lr=1e-4, warmup=1, workers=0, save_every=1000, val_every=1000)
     train = AdaptTrainConfig(optim=optim, real_per_batch=2, val_samples=2)
-    return AdaptConfig(rounds=rounds, pose=PoseSettings(threshold=0.3), train=train)
+    frames = RenderedFrames(desk_scenes=1, plain_scenes=0, images_per_scene=2)
+    localiser = AdaptLocaliserConfig(optim=dataclasses.replace(optim, batch=2), val_frames=1, frames=frames)
+    return AdaptConfig(rounds=rounds, pose=PoseSettings(threshold=0.3), train=train, localiser=localiser)
 
 
 def _weights(path: Path) -> dict[str, torch.Tensor]:
@@ -171,12 +174,17 @@ def test_a_round_runs_end_to_end_and_resumes_to_the_same_weights(recording, tmp_
     adapted = Estimator.load(final)
     assert adapted.config.training["adapt"]["steps"] == 3 and adapted.localiser is not None and adapted.config.verifier is not None
     # The checkpoint is the fine-tune's EMA blended with the source's weights, not the EMA itself.
-    ema = torch.load(state_path(tmp_path / "whole" / "round0" / ADAPTED), weights_only=False)["ema"]
+    ema = torch.load(state_path(tmp_path / "whole" / "round0" / AGM), weights_only=False)["ema"]
     tuned = {k.removeprefix("denoiser."): v for k, v in ema.items() if k.startswith("denoiser.")}
     source, written = _weights(SHIPPED_ESTIMATOR), _weights(final)
     expected = blend(source, tuned, AdaptTrainConfig().blend)
     assert all(torch.allclose(written[k], expected[k], rtol=0, atol=1e-7) for k in written)
     assert any(not torch.equal(written[k], tuned[k]) for k in written if written[k].is_floating_point())
+    # ... and its localiser the localiser's fine-tune on the labelled frames and the rendered ones.
+    rendered = list((tmp_path / "whole" / "frames" / "desk").glob("*/rgb/*"))
+    assert adapted.config.training["adapt_localiser"]["steps"] == 3 and len(rendered) == 2
+    shipped = Estimator.load(SHIPPED_ESTIMATOR).localiser.state_dict()
+    assert any(not torch.allclose(v, shipped[k]) for k, v in adapted.localiser.state_dict().items() if v.is_floating_point())
     stopped = Adaptation(rec, SHIPPED_ESTIMATOR, lmo_dir / "models", tmp_path / "cut", _small(steps=3), RunOptions(device="cpu", stop_at=1))
     (tmp_path / "cut" / "round0").mkdir()
     lines = (tmp_path / "whole" / "round0" / "candidates.jsonl").read_text().splitlines()

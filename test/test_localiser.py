@@ -2,7 +2,9 @@
 
 import argparse
 import json
+import shutil
 from dataclasses import replace
+from pathlib import Path
 
 import cv2
 import numpy as np
@@ -10,6 +12,7 @@ import pytest
 import torch
 from conftest import TINY_AGM
 
+from axispose_core.adapt.localiser import AdaptLocaliserConfig, PartlyLabelled, adapt_localiser
 from axispose_core.agm.model import AxisGenerator
 from axispose_core.camera import crop_transform, instance_crop, project
 from axispose_core.checkpoint import CheckpointError, read_checkpoint, stored_half
@@ -391,3 +394,60 @@ def test_load_localiser_reads_an_estimator_checkpoint_and_refuses_one_without_a_
 def test_warm_start_from_a_checkpoint_without_a_localiser_is_refused():
     with pytest.raises(CheckpointError, match="without a localiser"):
         warm_start(Localiser(TINY), SHIPPED_READER)
+
+
+def _partly_labelled(frames: Path, dst: Path, keep: int) -> Path:
+    """A copy of `frames`' scene whose labels name object `keep` alone (as pseudo-labels name what was accepted)."""
+    scene = next(p for p in sorted(frames.iterdir()) if (p / "scene_gt.json").exists())
+    shutil.copytree(scene, dst, ignore=shutil.ignore_patterns("mask", "mask_visib", "scene_gt_info.json", "depth"))
+    gt = json.loads((dst / "scene_gt.json").read_text())
+    (dst / "scene_gt.json").write_text(json.dumps({k: [e for e in v if e["obj_id"] == keep] for k, v in gt.items()}))
+    return dst
+
+
+def test_a_class_a_frame_does_not_label_is_no_negative_there():
+    target = torch.zeros(1, 2, 6, 8)
+    target[0, 0, 2, 3] = 1.0
+    pred = torch.full((1, 2, 6, 8), 0.3)
+    louder = pred.clone()
+    louder[0, 1] = 0.9  # the unlabelled class fires everywhere
+    known = torch.tensor([[1.0, 0.0]])
+    assert torch.allclose(focal_loss(pred, target, known=known), focal_loss(louder, target, known=known))
+    assert focal_loss(louder, target) > focal_loss(pred, target)
+    louder[0, 0, 0, 0] = 0.9  # the labelled class fires away from its object: still a negative
+    assert focal_loss(louder, target, known=known) > focal_loss(pred, target, known=known)
+
+
+def test_a_partly_labelled_frame_knows_only_its_labelled_objects(frames, tmp_path, lmo_dir):
+    labels = _partly_labelled(frames, tmp_path / "labels", keep=1)
+    partial = PartlyLabelled([labels], TINY, 0.1, models_dir=lmo_dir / "models")
+    full = LocaliserDataset([frames], TINY, 0.1)
+    assert all(partial.known(i).tolist() == [1.0, 0.0] for i in range(len(partial)))
+    assert torch.equal(partial[0]["known"], torch.tensor([1.0, 0.0])) and torch.equal(full[0]["known"], torch.ones(2))
+    assert all(c == 0 for i in range(len(partial)) for c, _, _ in partial.boxes(i))
+
+
+def test_the_adapted_localiser_is_written_into_the_whole_estimator(estimator_with_localiser, frames, tmp_path, lmo_dir):
+    labels = _partly_labelled(frames, tmp_path / "labels", keep=1)
+    optim = OptimConfig(steps=4, batch=2, lr=1e-3, warmup=1, workers=0, save_every=1000, val_every=1000)
+    source = Estimator.load(estimator_with_localiser)
+
+    def adapted(name: str, **changes) -> Estimator:
+        cfg = AdaptLocaliserConfig(optim=optim, val_frames=2, **changes)
+        out = tmp_path / f"{name}.safetensors"
+        assert adapt_localiser(estimator_with_localiser, labels, [frames], lmo_dir / "models", out, cfg, RunOptions(progress=False)) == 4
+        return Estimator.load(out)
+
+    tuned, kept = adapted("tuned"), adapted("kept", blend=0.0)
+    for est in (tuned, kept):
+        assert all(torch.equal(a, b) for a, b in zip(est.agm.state_dict().values(), source.agm.state_dict().values(), strict=True))
+        assert "adapt_localiser" in est.config.training
+    moved = [
+        not torch.allclose(a, b) for a, b in zip(tuned.localiser.state_dict().values(), source.localiser.state_dict().values(), strict=True)
+    ]
+    assert any(moved)
+    assert all(
+        torch.allclose(a, b, atol=1e-3)
+        for a, b in zip(kept.localiser.state_dict().values(), source.localiser.state_dict().values(), strict=True)
+        if a.is_floating_point()
+    )  # blend 0: the source's weights (its counters the fine-tune's)

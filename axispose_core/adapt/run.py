@@ -1,8 +1,9 @@
 """`axispose adapt`: a checkpoint adapted to the user's scene from their own unlabeled recording, in rounds.
 
 Each round poses every frame with the round's estimator (`pseudo`), makes the poses consistent across the
-recording (`scene`), turns the scene's predictions into labels on the frames' pixels (`labels`), and fine-tunes the
-AGM on those crops mixed with the crop stream (`train`); the next round poses with the adapted estimator. Rounds
+recording (`scene`), turns the scene's predictions into labels on the frames' pixels (`labels`), fine-tunes the
+AGM on those crops mixed with the crop stream (`train`), then the localiser on those frames' boxes mixed with
+rendered frames (`localiser`); the next round poses with the adapted estimator. Rounds
 stop when the labels stop growing. Everything a round makes lives in OUT/round<k>/; OUT/adapt.json says what is
 done, so a stopped or killed run goes on where it stopped (`resume`), and a checkpoint is only ever written whole.
 """
@@ -22,6 +23,7 @@ from tqdm import tqdm
 
 from axispose_core.adapt.geometry import IDENTITY, ObjectGeometry
 from axispose_core.adapt.labels import FillConfig, Label, label_frame, write_labels
+from axispose_core.adapt.localiser import AdaptLocaliserConfig, adapt_localiser, render_frames
 from axispose_core.adapt.pseudo import AcceptConfig, Candidate, PoseSettings, pose_frames
 from axispose_core.adapt.recording import Recording
 from axispose_core.adapt.report import contact_sheet, round_counts
@@ -35,6 +37,10 @@ from axispose_core.train.resume import state_path
 STATE = "adapt.json"
 REPORT = "report.json"
 ADAPTED = "adapted.safetensors"
+AGM = "agm.safetensors"
+"""A round's checkpoint with its AGM adapted (its localiser as it was): what the localiser's stage starts from."""
+FRAMES = "frames"
+"""OUT's folder of the rendered frames the localiser's stage mixes in."""
 
 
 class AdaptError(ValueError):
@@ -54,6 +60,7 @@ class AdaptConfig:
     consistency: ConsistencyConfig = field(default_factory=ConsistencyConfig)
     fill: FillConfig = field(default_factory=FillConfig)
     train: AdaptTrainConfig = field(default_factory=AdaptTrainConfig)
+    localiser: AdaptLocaliserConfig = field(default_factory=AdaptLocaliserConfig)
 
     def __post_init__(self) -> None:
         if self.rounds < 1:
@@ -144,7 +151,7 @@ class Adaptation:
                 self._save()
                 break
             if not entry.get("trained"):
-                if not self._train(k):
+                if not self._train(k, progress):
                     return None
                 entry["trained"] = True
                 self._save()
@@ -205,16 +212,36 @@ class Adaptation:
                     unfilled[p.obj_id] = unfilled.get(p.obj_id, 0) + 1
         return labels, unfilled
 
-    def _train(self, k: int) -> bool:
-        """Round k's fine-tune; False where the time cap stopped it first."""
-        out = self.round_dir(k) / ADAPTED
+    def _train(self, k: int, progress: bool) -> bool:
+        """Round k's fine-tunes, the AGM's then the localiser's (where the checkpoint has one and `localiser`
+        trains); False where the time cap stopped them first."""
+        entry, folder = self.state["rounds"][k], self.round_dir(k)
+        labels = folder / "labels"
+        if not entry.get("agm"):
+            if not self._fit(lambda run: adapt_agm(self.estimator_of(k), labels, self.models, folder / AGM, self.cfg.train, run),
+                             folder / AGM, self.cfg.train.optim.steps):  # fmt: skip
+                return False
+            entry["agm"] = True
+            self._save()
+        est = Estimator.load(folder / AGM)
+        if not (self.cfg.localiser.trains and est.localiser is not None):
+            shutil.copyfile(folder / AGM, folder / ADAPTED)
+            return True
+        frame = self.recording.frames[0]
+        h, w = frame.rgb().shape[:2]
+        objects = tuple(o.obj_id for o in est.config.objects)
+        frames = render_frames(self.cfg.localiser.frames, self.models, objects, frame.K, (w, h), self.out / FRAMES, progress)
+        return self._fit(lambda run: adapt_localiser(folder / AGM, labels, frames, self.models, folder / ADAPTED, self.cfg.localiser, run),
+                         folder / ADAPTED, self.cfg.localiser.optim.steps)  # fmt: skip
+
+    def _fit(self, train: Callable[[RunOptions], int], out: Path, steps: int) -> bool:
+        """One fine-tune into `out`, resumed from its state where an earlier call left one, within the time cap;
+        whether it reached its `steps`."""
         state = state_path(out)
         left = None if self.deadline is None else (self.deadline - time.time()) / 60
         if left is not None and left <= 0:
             return False
-        run = dataclasses.replace(self.run_options, resume=state if state.is_file() else None, max_minutes=left)
-        step = adapt_agm(self.estimator_of(k), self.round_dir(k) / "labels", self.models, out, self.cfg.train, run)
-        return step >= self.cfg.train.optim.steps
+        return train(dataclasses.replace(self.run_options, resume=state if state.is_file() else None, max_minutes=left)) >= steps
 
 
 def _fresh(path: Path) -> Path:

@@ -97,15 +97,19 @@ def draw_targets(
 
 
 def focal_loss(
-    pred: torch.Tensor, target: torch.Tensor, pos_weight: torch.Tensor | None = None, alpha: float = 2.0, beta: float = 4.0
-) -> torch.Tensor:
+    pred: torch.Tensor, target: torch.Tensor, pos_weight: torch.Tensor | None = None, alpha: float = 2.0, beta: float = 4.0,
+    known: torch.Tensor | None = None,
+) -> torch.Tensor:  # fmt: skip
     """CenterNet's penalty-reduced focal loss on heatmaps in (0, 1), normalised by the number of centres;
-    `pos_weight` (broadcast to the heatmap) scales the term of each centre, so that hard instances can count more."""
+    `pos_weight` (broadcast to the heatmap) scales the term of each centre, so that hard instances can count more;
+    `known` (batch, classes) of 0 leaves a frame's class out of the negatives: a partly labelled frame says
+    nothing of where its unlabelled objects are not."""
     pred = pred.clamp(1e-4, 1 - 1e-4)
     pos = target.eq(1).to(pred.dtype)
     weighted = pos if pos_weight is None else pos * pos_weight
+    negative = 1 - pos if known is None else (1 - pos) * known[:, :, None, None].to(pred.dtype)
     pos_loss = -(torch.log(pred) * (1 - pred) ** alpha * weighted).sum()
-    neg_loss = -(torch.log(1 - pred) * pred**alpha * (1 - target) ** beta * (1 - pos)).sum()
+    neg_loss = -(torch.log(1 - pred) * pred**alpha * (1 - target) ** beta * negative).sum()
     return (pos_loss + neg_loss) / pos.sum().clamp(min=1)
 
 

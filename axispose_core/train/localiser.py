@@ -127,7 +127,13 @@ class LocaliserDataset(Dataset):
             "log_size": torch.from_numpy(log_size),
             "offset": torch.from_numpy(offset),
             "mask": torch.from_numpy(mask),
+            "known": torch.from_numpy(self.known(i)),
         }
+
+    def known(self, i: int) -> np.ndarray:
+        """Per class, 1 where the frame's labels say where the object is, and so where it is not: every class of
+        an annotated frame (`focal_loss`'s `known`)."""
+        return np.ones(len(self.classes), np.float32)
 
     def _surfaces(self, rng: np.random.Generator, scene: BopScene, im_id: int, image: np.ndarray) -> np.ndarray:
         """`appearance.surface` on each known instance's visible pixels (its mask's box only: the cost follows the
@@ -150,7 +156,7 @@ def localiser_loss(model: Localiser, batch: dict[str, torch.Tensor], cfg: Locali
     n = mask.sum().clamp(min=1)
     size_loss = (F.l1_loss(log_size, batch["log_size"], reduction="none") * mask).sum() / n
     off_loss = (F.l1_loss(offset, batch["offset"], reduction="none") * mask).sum() / n
-    return focal_loss(heat, batch["heat"], mask) + cfg.size_weight * size_loss + cfg.offset_weight * off_loss
+    return focal_loss(heat, batch["heat"], mask, known=batch.get("known")) + cfg.size_weight * size_loss + cfg.offset_weight * off_loss
 
 
 def train_localiser(
