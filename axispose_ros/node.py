@@ -54,6 +54,7 @@ from sensor_msgs.msg import CameraInfo, Image, RegionOfInterest
 from axispose_core.camera import Camera
 from axispose_core.checkpoint import CheckpointError
 from axispose_core.estimator import Estimator
+from axispose_core.tracking.poser import FramePoser
 from axispose_ros import params
 from axispose_ros.conversions import InputError, Undistorter, check_frame, image_to_rgb, stamp_seconds
 from axispose_ros.counters import Counters
@@ -62,7 +63,6 @@ from axispose_ros.odometry import CameraPoses
 from axispose_ros.outputs import PoseOutputs
 from axispose_ros.params import DEFAULT_CHECKPOINT as DEFAULT_CHECKPOINT  # re-exported: the node's default
 from axispose_ros.params import NodeSettings
-from axispose_ros.posing import FramePoser
 from axispose_ros.sync import RoiStore, StampAudit, StampSynchronizer
 from axispose_ros.warmup import warm_up
 from axispose_ros.worker import InferenceWorker
@@ -220,8 +220,9 @@ class AxisPoseNode(Node):
         if outside:
             self.stats.add("roi_outside", outside)
         stamp = stamp_seconds(frame.image.header)
-        camera_pose = self.camera_poses.wait(stamp, s.sync_slop) if FramePoser.uses_odometry(s) else None
-        posed = self.poser.pose(rgb, camera.K, stamp, rois, s, self.worker.cancelled, camera_pose)
+        settings = s.poser(self.published)
+        camera_pose = self.camera_poses.wait(stamp, s.sync_slop) if FramePoser.uses_odometry(settings) else None
+        posed = self.poser.pose(rgb, camera.K, stamp, rois, settings, self.worker.cancelled, camera_pose)
         refused = self.outputs.publish(frame.image.header, posed, self.estimator, rgb, camera.K, s.marker_lifetime)
         if refused:
             self.stats.add("pose_refused", refused)

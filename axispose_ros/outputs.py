@@ -15,9 +15,9 @@ from axispose_core.axis_image import draw_axes
 from axispose_core.camera import crop_transform
 from axispose_core.estimator import Estimator
 from axispose_core.pose_estimate import PoseEstimate
+from axispose_core.tracking.poser import Box, Posed
 from axispose_msgs.msg import Detection, DetectionArray
 from axispose_ros.conversions import rgb_to_image
-from axispose_ros.posing import Box, Posed
 
 
 class PoseOutputs:

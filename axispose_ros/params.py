@@ -9,7 +9,7 @@ next one. `object_scales.<name>` exist once the checkpoint's object names are kn
 from __future__ import annotations
 
 from collections.abc import Iterable, Mapping
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields
 from typing import Any
 
 import torch
@@ -21,6 +21,7 @@ from rclpy.parameter import Parameter
 from axispose_core.checkpoint import CheckpointError
 from axispose_core.estimator import SHIPPED_ESTIMATOR
 from axispose_core.tracking.mode import Mode
+from axispose_core.tracking.poser import PoserSettings
 
 DEFAULT_CHECKPOINT = SHIPPED_ESTIMATOR
 OBJECT_SCALES = "object_scales."
@@ -165,6 +166,11 @@ class NodeSettings:
             if own > 0 or self.object_scale > 0:
                 out[obj_id] = own if own > 0 else self.object_scale
         return out
+
+    def poser(self, published: Mapping[int, str]) -> PoserSettings:
+        """What the frame poser reads of these settings, λ_O resolved for the `published` objects (id -> name)."""
+        names = {f.name for f in fields(PoserSettings)} - {"scales"}
+        return PoserSettings(**{n: getattr(self, n) for n in names}, scales=self.scales(published))
 
 
 def declare(node: Node) -> NodeSettings:

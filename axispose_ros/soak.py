@@ -132,7 +132,8 @@ def _node_process(checkpoint: str, opts: SoakOptions, env: dict, log_path: Path)
 
 
 def _rss_mb(pid: int) -> float:
-    """Resident memory (MB) of the node and the processes it started (its background search, `background.py`)."""
+    """Resident memory (MB) of the node and the processes it started (its background search,
+    `axispose_core/tracking/background.py`)."""
     return sum(_own_rss_mb(p) for p in [pid, *_descendants(pid)])
 
 

@@ -7,13 +7,13 @@ tracks by their contours (`Estimator.follow`), the AGM posing only new and lost 
 without contour refinement; `"live": true` feeds the frames at `--fps` in real time, the newest taken whenever the
 last is done (the node's latest-frame-wins), and scores only those it took; `"view_window": n` gives the tracker the
 camera's pose the scene records (scene_camera.json's `cam_R_w2c`, as odometry would) to fuse each pose over its
-object's views; `"background": true` runs the node's own poser (`axispose_ros.posing.FramePoser`,
+object's views; `"background": true` runs the node's own poser (`axispose_core.tracking.poser.FramePoser`,
 `video_odometry`: the localiser and the AGM in a process of their own) on frames delivered in real time at
 `--fps`, the newest taken whenever the last is done, with the node's defaults but for the setting's
 `redetect_period`, `view_window` and `follow_passes` (`"follow_passes": n` follows with the last n passes of the
 refiner's schedule, in any setting); `"search_delay": n` runs that poser lock-step, its search in this process, each
-search's result coming n frames after the frame it searched (the same run every time, unlike real time); `[a, b]`:
-after a + b x the boxes it posed seconds.
+search's result coming n frames after the frame it searched (`LockStepFinder`: the same run every time, unlike real
+time); `[a, b]`: after a + b x the boxes it posed seconds.
 Each GT instance is matched to the nearest pose of its object in its frame. Prints, per setting, ADD(-S)@0.1d and
 Reproj@15px (mean over scenes), and per scene jitter (`tracking/jitter.py`), drift and recovery
 (`tracking/stream_scores.py`; an instance's visibility counts the part of it outside the image as unseen), the median
@@ -36,23 +36,20 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from rclpy.parameter import Parameter
 
 from axispose_core.data.bop_models import model_path
 from axispose_core.data.bop_scene import BopScene
 from axispose_core.data.meshes import load_ply
 from axispose_core.estimator import SHIPPED_ESTIMATOR, EstimateOptions, Estimator
 from axispose_core.evaluation.records import instance_scores, object_symmetries
-from axispose_core.pose_estimate import Found
+from axispose_core.tracking.background import LockStepFinder
 from axispose_core.tracking.config import TrackingConfig
 from axispose_core.tracking.filter import FilterConfig
 from axispose_core.tracking.jitter import PosePair, jitter
+from axispose_core.tracking.poser import FramePoser, PoserSettings
 from axispose_core.tracking.stream_scores import Seen, drift, recovery, visibility
 from axispose_core.tracking.tracker import Tracker
 from axispose_core.tracking.tracks import Sighting
-from axispose_ros.background import Search
-from axispose_ros.params import SPECS, NodeSettings
-from axispose_ros.posing import FramePoser
 
 Pose = tuple[int, np.ndarray, np.ndarray]
 
@@ -102,7 +99,7 @@ class Bench:
         turn, the search done in this process and handed over that many frames after the frame searched (the same
         run every time, for choosing between designs: live runs differ by the machine's timing)."""
         live = "search_delay" not in setting
-        finder = None if live else _DelayedFinder(self.est, _frames_late(setting["search_delay"], self.fps))
+        finder = None if live else LockStepFinder(self.est, _frames_late(setting["search_delay"], self.fps))
         poser, settings, counts = self._poser(setting, finder)
         if live:
             poser.start_background(settings, wait=120.0)  # the search process loaded before the first frame comes
@@ -122,15 +119,13 @@ class Bench:
             poser.stop()
         return self._summary(rows, pairs, times, len(frames), counts)
 
-    def _poser(self, setting: dict, finder: _DelayedFinder | None = None) -> tuple[FramePoser, NodeSettings, dict[str, int]]:
+    def _poser(self, setting: dict, finder: LockStepFinder | None = None) -> tuple[FramePoser, PoserSettings, dict[str, int]]:
         """The node's poser and settings for background detection (searching with `finder`, None: the node's
         process): its defaults but for the setting's `redetect_period`, `view_window` and `follow_passes`; and the
         counts it reports."""
-        defaults = {spec.name: spec.default for spec in SPECS if not isinstance(spec.default, Parameter.Type)}
         chosen = {k: setting.get(k, default) for k, default in (("redetect_period", 5), ("view_window", 80), ("follow_passes", 0))}
-        settings = NodeSettings(**defaults | chosen | {"checkpoint": self.checkpoint, "objects": (), "mode": "video_odometry",
-                                                       "ddim_steps": self.options.steps,
-                                                       "num_threads": torch.get_num_threads()})  # fmt: skip
+        settings = PoserSettings(**chosen, checkpoint=self.checkpoint, mode="video_odometry", ddim_steps=self.options.steps,
+                                 num_threads=torch.get_num_threads())  # fmt: skip
         counts: dict[str, int] = {}
         poser = FramePoser(
             self.est, {i: str(i) for i in self.specs}, lambda key, n: counts.__setitem__(key, counts.get(key, 0) + n), finder=finder
@@ -199,38 +194,6 @@ def _frames_late(delay: int | list[float], fps: float) -> Callable[[int], int]:
         a, b = delay
         return lambda boxes: max(1, int(np.ceil(fps * (a + b * boxes))))
     return lambda boxes: max(1, int(delay))
-
-
-class _DelayedFinder:
-    """`BackgroundFinder` as `FramePoser` uses it, in this process and counted in frames: a search offered is done
-    at once (`Estimator.find_each`), its k-th detection handed over by the n-th `collect` after it (the poser
-    collects once a frame), n the `delay` of k boxes, and its end with its last detection."""
-
-    def __init__(self, est: Estimator, delay: Callable[[int], int]) -> None:
-        self.est, self.delay = est, delay
-        self._due: list[tuple[int, Search, Found | None]] = []
-        """What the search hands over, each with the collect it is due at."""
-        self._collects = 0
-
-    def offer(self, search: Search) -> None:
-        found = list(self.est.find_each(search.rgb, search.K, search.threshold, search.options, objects=search.objects))
-        self._collects = 0
-        self._due = [(self.delay(k + 1), search, f) for k, f in enumerate(found)] + [(self.delay(len(found)), search, None)]
-
-    def idle(self) -> bool:
-        return not self._due
-
-    def collect(self) -> list[tuple[Search, Found | None]]:
-        self._collects += 1
-        done = [(search, found) for due, search, found in self._due if due <= self._collects]
-        self._due = [d for d in self._due if d[0] > self._collects]
-        return done
-
-    def wait_ready(self, timeout: float = 0.0) -> bool:
-        return True
-
-    def stop(self) -> None:
-        self._due = []
 
 
 def _camera_to_world(scene: BopScene, im_id: int) -> np.ndarray | None:

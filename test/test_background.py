@@ -1,4 +1,5 @@
-"""The node's background search process: the newest frame offered, what it found handed back once, failures counted."""
+"""The search beside the frames: the node's process (the newest frame offered, what it found handed back once, failures
+counted) and the offline lock-step one."""
 
 import time
 
@@ -7,7 +8,7 @@ import pytest
 
 from axispose_core.estimator import EstimateOptions
 from axispose_core.lmo import LMO_K
-from axispose_ros.background import BackgroundFinder, Search, Searcher
+from axispose_core.tracking.background import BackgroundFinder, LockStepFinder, Search, Searcher
 
 
 @pytest.fixture(scope="module")
@@ -92,7 +93,7 @@ def test_a_search_looks_for_the_untracked_objects_and_one_tracked_object_in_turn
     object each time, the one looked for longest ago (its track checked against a fresh pose)."""
     from types import SimpleNamespace
 
-    from axispose_ros.posing import FramePoser
+    from axispose_core.tracking.poser import FramePoser
 
     poser = FramePoser(None, {1: "ape", 5: "can", 6: "cat", 8: "driller"}, lambda key, n: None)
     poser.tracker.tracks = [SimpleNamespace(obj_id=1), SimpleNamespace(obj_id=5)]
@@ -111,7 +112,7 @@ def test_a_searchs_detections_join_the_views_as_they_come_and_challenge_tracks_o
     from types import SimpleNamespace
 
     from axispose_core.pose_estimate import Found
-    from axispose_ros.posing import FramePoser
+    from axispose_core.tracking.poser import FramePoser
 
     def found(obj_id: int, ok: bool = True) -> Found:
         return Found([SimpleNamespace(obj_id=obj_id)], [SimpleNamespace(ok=ok, refined=False, refine_kept=None)])
@@ -127,3 +128,22 @@ def test_a_searchs_detections_join_the_views_as_they_come_and_challenge_tracks_o
     assert calls == [("observe", [1]), ("observe", [])]
     poser._take_found(_search(2.0))
     assert calls[2:] == [("observe", [1]), ("challenge", [1, 1])]  # the search at 9.0 is from before a reset
+
+
+def test_the_lock_step_search_hands_each_detection_over_its_delay_in_frames_later():
+    """Offline, the search runs at once in the caller's process: its k-th detection comes with the delay(k)-th
+    `collect` after it, its end with its last (default: all on the next frame), the same every run."""
+    from types import SimpleNamespace
+
+    from axispose_core.pose_estimate import Found
+
+    found = [Found([SimpleNamespace(obj_id=i)], [SimpleNamespace(ok=True)]) for i in (1, 5)]
+    estimator = SimpleNamespace(find_each=lambda *args, **kwargs: iter(found))
+    finder = LockStepFinder(estimator, delay=lambda boxes: boxes)
+    finder.offer(_search(1.0))
+    assert not finder.idle() and finder.wait_ready(0.0)
+    assert [f for _, f in finder.collect()] == [found[0]]
+    assert [f for _, f in finder.collect()] == [found[1], None] and finder.idle()
+    finder = LockStepFinder(estimator)
+    finder.offer(_search(2.0))
+    assert [(s.stamp, f) for s, f in finder.collect()] == [(2.0, found[0]), (2.0, found[1]), (2.0, None)] and finder.idle()

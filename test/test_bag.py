@@ -23,6 +23,7 @@ from axispose_core.estimator_checkpoint import EstimatorConfig
 from axispose_core.objects import objects_from_models
 from axispose_core.pose_estimate import PoseEstimate
 from axispose_core.tbm.reader import SHIPPED_READER, load_reader
+from axispose_core.tracking.poser import FramePoser
 from axispose_ros.bag import (
     FRAME_ID,
     IMAGE_TOPIC,
@@ -38,7 +39,6 @@ from axispose_ros.bag import (
 )
 from axispose_ros.cli import main
 from axispose_ros.odometry import pose_matrix
-from axispose_ros.posing import FramePoser
 from axispose_ros.replay import ReplayOptions, replay
 
 OBJECTS = (1, 5, 8)  # ape, can, driller

@@ -1,5 +1,5 @@
 """From a frame to the poses the node publishes: the boxes of fresh ROIs, else, in the frame's `mode`
-(`tracking/mode.py`), what the localiser finds (`stills`: each posed on its own, rescored by the checkpoint's verifier
+(`mode.py`), what the localiser finds (`stills`: each posed on its own, rescored by the checkpoint's verifier
 where it has one: `Estimator.find`) or every object followed by a `Tracker` (`video`: crops from predicted poses, the
 localiser only where due, filtered poses with their filter's covariance and a track id, tracks followed by their
 contours; `video_odometry`: the camera's pose fusing each object's views, the localiser and the AGM in a process of
@@ -8,27 +8,59 @@ their own and the frames only followed: `background.py`)."""
 from __future__ import annotations
 
 import dataclasses
-from collections.abc import Callable, Sequence
-from dataclasses import dataclass
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass, field
 from typing import Protocol
 
 import numpy as np
 
-from axispose_core.estimator import EstimateOptions, Estimator
+from axispose_core.estimator import SHIPPED_ESTIMATOR, EstimateOptions, Estimator
 from axispose_core.localiser.decode import Detection
 from axispose_core.pose_estimate import Found, PoseEstimate
+from axispose_core.tracking.background import BackgroundFinder, Search, Searcher
 from axispose_core.tracking.config import TrackingConfig
 from axispose_core.tracking.mode import Choice, Mode, ModeChooser
 from axispose_core.tracking.tracker import Tracker
 from axispose_core.tracking.tracks import Crop, Sighting
-from axispose_ros.background import BackgroundFinder, Search, Searcher
-from axispose_ros.params import NodeSettings
 
 Box = tuple[float, float, float, float]
 
 
+@dataclass(frozen=True)
+class PoserSettings:
+    """What `FramePoser` reads of a frame's settings: the node's parameters of these names (`NodeSettings.poser`),
+    its defaults the node's, with λ_O resolved per object id (`scales`)."""
+
+    mode: str = "auto"
+    ddim_steps: int = 3
+    hypotheses: int = 1
+    guidance_scale: float | None = 0.0
+    """Run-time guidance (None: the checkpoint's)."""
+    scales: Mapping[int, float] = field(default_factory=dict)
+    """λ_O (m) by object id where it overrides the checkpoint's."""
+    batch_boxes: int | None = 8
+    """Most boxes in one AGM batch (None: all of a frame's in one)."""
+    refine: bool = True
+    follow_passes: int = 0
+    score_threshold: float = 0.3
+    redetect_period: int = 5
+    measure_every: int = 1
+    track_timeout: float = 1.0
+    view_window: int = 160
+    checkpoint: str = str(SHIPPED_ESTIMATOR)
+    """What the search process of `video_odometry` loads (the estimator's own checkpoint)."""
+    num_threads: int = 2
+    """The frame's threads: the search process takes one fewer."""
+
+    def options(self) -> EstimateOptions:
+        """The estimator's options for this frame."""
+        return EstimateOptions(steps=self.ddim_steps, guidance_scale=self.guidance_scale, scales=self.scales,
+                               hypotheses=self.hypotheses, max_boxes=self.batch_boxes, refine=self.refine,
+                               follow_passes=self.follow_passes)  # fmt: skip
+
+
 class Finder(Protocol):
-    """What `FramePoser` asks of a search beside the frames (`BackgroundFinder`)."""
+    """What `FramePoser` asks of a search beside the frames (`BackgroundFinder`, offline `LockStepFinder`)."""
 
     def offer(self, search: Search) -> None: ...
     def idle(self) -> bool: ...
@@ -76,7 +108,7 @@ class FramePoser:
         """What the running search has posed so far (its detections come one at a time)."""
 
     @staticmethod
-    def uses_odometry(s: NodeSettings) -> bool:
+    def uses_odometry(s: PoserSettings) -> bool:
         """Whether a frame in `s.mode` wants the camera's pose (its frame then waits briefly for camera_odom)."""
         return Mode(s.mode) in (Mode.AUTO, Mode.VIDEO_ODOMETRY) and s.view_window > 0
 
@@ -86,14 +118,12 @@ class FramePoser:
             self._finder.stop()
 
     def pose(
-        self, rgb: np.ndarray, K: np.ndarray, stamp: float, rois: Sequence[tuple[int, Box]], s: NodeSettings, cancelled: Callable[[], bool],
-        camera_pose: np.ndarray | None = None,
+        self, rgb: np.ndarray, K: np.ndarray, stamp: float, rois: Sequence[tuple[int, Box]], s: PoserSettings,
+        cancelled: Callable[[], bool], camera_pose: np.ndarray | None = None,
     ) -> Posed:  # fmt: skip
         """ROIs where fresh ones came; else the localiser's boxes, each posed on its own or through the tracker (with
         `camera_pose`, the camera's pose in a fixed frame at this frame, averaged over views: `view_window`)."""
-        options = EstimateOptions(steps=s.ddim_steps, guidance_scale=s.guidance_scale, scales=s.scales(self.published),
-                                  hypotheses=s.hypotheses, max_boxes=s.batch_boxes, refine=s.refine,
-                                  follow_passes=s.follow_passes)  # fmt: skip
+        options = s.options()
 
         def estimate(boxes: list[tuple[int, Box]]) -> list[PoseEstimate]:
             return self._count_refined(self.estimator.estimate(rgb, K, boxes, options=options, cancelled=cancelled))
@@ -175,7 +205,7 @@ class FramePoser:
         estimates = [dataclasses.replace(tp.measurement, R=tp.R, t=tp.t, covariance=tp.covariance) for tp in tracked]
         return Posed(estimates, [tp.score for tp in tracked], [tp.box for tp in tracked], [tp.track_id for tp in tracked])
 
-    def _in_background(self, search: Search, s: NodeSettings, estimate, follow) -> Posed:
+    def _in_background(self, search: Search, s: PoserSettings, estimate, follow) -> Posed:
         """Tracking with the localiser and the AGM in a process of their own (`background.py`): what they found on
         earlier frames joins the objects' views (`_take_found`), this frame is followed (its objects recalled from
         their views), and it is searched next where the last search is done and `redetect_period` frames have
@@ -220,7 +250,7 @@ class FramePoser:
             self._checked[checked] = self._searches
         return tuple(o for o in objects if o not in held or o == checked)
 
-    def start_background(self, s: NodeSettings, wait: float = 0.0) -> None:
+    def start_background(self, s: PoserSettings, wait: float = 0.0) -> None:
         """Start the search process of `video_odometry` now (else the first frame that needs it does), and
         wait up to `wait` s for it to load its checkpoint."""
         if self._finder is None:

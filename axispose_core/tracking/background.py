@@ -4,7 +4,8 @@ camera stream. A process, not a thread: the search's Python and NumPy work (deco
 found) would otherwise take turns with the following's for the interpreter's lock. It runs at a lower CPU priority,
 so the frames come first and the search takes the time left. What it finds on a frame comes back with that frame's
 camera pose and joins the objects' views in the fixed frame (`Tracker.observe`), from where the tracker follows them
-on the frame at hand."""
+on the frame at hand. Offline (benches), `LockStepFinder` searches in the caller's process
+instead, each search handed over a set number of frames later: the same run every time."""
 
 from __future__ import annotations
 
@@ -163,6 +164,40 @@ class BackgroundFinder:
         if self._waiting is not None:
             search, self._waiting = self._waiting, None
             self._send(search)
+
+
+class LockStepFinder:
+    """`BackgroundFinder` in this process, counted in frames rather than time: a search offered is done at once
+    (`Estimator.find_each`), its k-th detection handed over by the n-th `collect` after it (`FramePoser` collects
+    once a frame), n = `delay(k)` (default: 1, the next frame), and its end with its last detection. Frames wait
+    for the search, so a run repeats exactly whatever the machine's speed."""
+
+    def __init__(self, estimator: Estimator, delay: Callable[[int], int] = lambda boxes: 1) -> None:
+        self.estimator, self.delay = estimator, delay
+        self._due: list[tuple[int, Search, Found | None]] = []
+        """What the search hands over, each with the collect it is due at."""
+        self._collects = 0
+
+    def offer(self, search: Search) -> None:
+        est = self.estimator
+        found = list(est.find_each(search.rgb, search.K, search.threshold, search.options, objects=search.objects))
+        self._collects = 0
+        self._due = [(self.delay(k + 1), search, f) for k, f in enumerate(found)] + [(self.delay(len(found)), search, None)]
+
+    def idle(self) -> bool:
+        return not self._due
+
+    def collect(self) -> list[tuple[Search, Found | None]]:
+        self._collects += 1
+        done = [(search, found) for due, search, found in self._due if due <= self._collects]
+        self._due = [d for d in self._due if d[0] > self._collects]
+        return done
+
+    def wait_ready(self, timeout: float = 0.0) -> bool:
+        return True
+
+    def stop(self) -> None:
+        self._due = []
 
 
 def _serve(conn: Connection, searcher: Searcher) -> None:
