@@ -3,9 +3,10 @@
 Renders cannot show how a design transfers to a camera, so every design is also scored on the real validation
 slice (`../shared/data/lmo_real_val`: 40 real LM-O frames, validation only). One call runs `evaluate` twice on
 the same scenes: with the square around each GT box (the AGM and the TBM alone) and through the checkpoint's
-localiser at the node's defaults (what a robot gets). Visibility comes from the models (the slice ships no
-`scene_gt_info.json`). The report holds both, with the depth's spread and bias, BOP19 average recall and the
-covariance's calibration, and `format_validation` prints them as one table.
+localiser at the node's defaults (what a robot gets): the node's own poser in a `mode` (`stills`: each frame on its
+own; the video modes follow each scene's frames in order: `evaluation/node_path.py`). Visibility comes from the
+models (the slice ships no `scene_gt_info.json`). The report holds both, with the depth's spread and bias, BOP19
+average recall and the covariance's calibration, and `format_validation` prints them as one table.
 """
 
 from __future__ import annotations
@@ -16,10 +17,13 @@ from pathlib import Path
 import numpy as np
 
 from axispose_core.estimator import EstimateOptions, Estimator
+from axispose_core.evaluation.node_path import NodePath
 from axispose_core.evaluation.records import Record
 from axispose_core.evaluation.report import plot_cdfs
 from axispose_core.evaluation.run import MIN_VISIB, EvalOptions, estimator_runs, evaluate
 from axispose_core.evaluation.summary import summarize
+from axispose_core.tracking.mode import Mode
+from axispose_core.tracking.poser import PoserSettings
 
 CROPS = ("gt", "detect")
 
@@ -36,19 +40,36 @@ class ValidationSettings:
     visib: tuple[float, float] = (MIN_VISIB, 1.0)
     refine: bool = True
     """Contour refinement where the checkpoint carries a refiner (the report gives the poses before it too)."""
+    mode: str = Mode.STILLS.value
+    """How the localiser's pass treats the frames (`tracking/mode.py`); GT crops are posed each on its own."""
+
+    def __post_init__(self) -> None:
+        Mode.parse(self.mode)
+
+    def poser(self) -> PoserSettings:
+        """The node's poser at these settings and the node's others, but with the checkpoint's guidance and each
+        frame's boxes in one AGM batch, as `axispose eval` poses them."""
+        return PoserSettings(mode=self.mode, ddim_steps=self.steps, hypotheses=self.hypotheses, guidance_scale=None,
+                             batch_boxes=None, refine=self.refine, score_threshold=self.score_threshold)  # fmt: skip
 
 
 def run_crops(
     est: Estimator, crops: str, data: Path, models: Path, settings: ValidationSettings, progress: bool
 ) -> tuple[list[Record], dict]:
-    """One pass over `data` with GT crops or the localiser's; the records and the summary report."""
+    """One pass over `data` with GT crops or the localiser's (through the node's poser: `NodePath`, what it
+    counted under "poser"); the records and the summary report."""
     objects = list(est.config.objects)
 
     options = EstimateOptions(steps=settings.steps, hypotheses=settings.hypotheses, refine=settings.refine)
-    predict, find = estimator_runs(est, options, settings.score_threshold)
-    detector = find if crops == "detect" else None
-    run = evaluate(predict, data, models, objects, EvalOptions(progress=progress, detector=detector, visib=settings.visib, bop=True))
-    return run.records, summarize(run.records, objects, {"crops": crops, **run.notes}, run.detection_counts, run.bop)
+    predict, _ = estimator_runs(est, options)
+    path = NodePath(est, settings.poser()) if crops == "detect" else None
+    try:
+        run = evaluate(predict, data, models, objects, EvalOptions(progress=progress, detector=path, visib=settings.visib, bop=True))
+    finally:
+        if path is not None:
+            path.stop()
+    report = summarize(run.records, objects, {"crops": crops, **run.notes}, run.detection_counts, run.bop)
+    return run.records, report | ({"poser": path.counts} if path is not None else {})
 
 
 def validate(
@@ -150,5 +171,6 @@ def format_validation(report: dict) -> str:
     c = report["config"]
     scored = " (the verifier's)" if c.get("verifier") else ""
     lines.append(f"{c['steps']} DDIM steps, {c['hypotheses']} hypothesis/es, {c['precision']}, score threshold {c['score_threshold']}"
-                 f"{scored}, visib {c['visib'][0]}-{c['visib'][1]}; n: GT instances")  # fmt: skip
+                 f"{scored}, visib {c['visib'][0]}-{c['visib'][1]}, localiser's pass in mode {c.get('mode', 'stills')}; "
+                 "n: GT instances")  # fmt: skip
     return "\n".join(lines)

@@ -10,6 +10,7 @@ from typing import TYPE_CHECKING
 
 from axispose_core.command_args import AddParser, object_ids
 from axispose_core.lmo import REAL_SLICE, SHARED_LMO
+from axispose_core.tracking.mode import Mode
 
 if TYPE_CHECKING:
     from axispose_core.bop19 import ImageErrors
@@ -85,7 +86,7 @@ def _validate(args: argparse.Namespace) -> int:
     if not Path(args.data).is_dir():
         print(f"axispose validate: no BOP scenes at {args.data}", file=sys.stderr)
         return 2
-    given = {k: getattr(args, k) for k in ("steps", "hypotheses", "precision", "score_threshold") if getattr(args, k) is not None}
+    given = {k: getattr(args, k) for k in ("steps", "hypotheses", "precision", "score_threshold", "mode") if getattr(args, k) is not None}
     given["refine"] = args.refine == "on"
     settings = ValidationSettings(**given)
     try:
@@ -207,5 +208,7 @@ def add_validate(add_parser: AddParser) -> None:
     va.add_argument("--precision", choices=["float32", "bfloat16", "auto"], help="the AGM's arithmetic (default: float32)")
     va.add_argument("--refine", choices=["on", "off"], default="on", help="contour refinement where the checkpoint carries a "
                     "refiner (the report also gives the poses before it)")  # fmt: skip
+    va.add_argument("--mode", choices=[m.value for m in Mode], help="how the localiser's pass treats each scene's frames, "
+                    "as the node's mode parameter (default: stills, each frame on its own; GT crops: always so)")  # fmt: skip
     va.add_argument("--threads", type=int, default=2)
     va.set_defaults(func=_validate)

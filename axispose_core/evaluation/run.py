@@ -36,26 +36,30 @@ from axispose_core.objects import ObjectSpec
 
 if TYPE_CHECKING:  # evaluate scores any predictor; `estimator_runs` adapts the estimator's
     from axispose_core.estimator import EstimateOptions, Estimator
+    from axispose_core.pose_estimate import PoseEstimate
 
 MIN_VISIB = 0.1
 """The least visible fraction of an instance that counts (BOP19's)."""
 
 
-Finder = Callable[[np.ndarray, np.ndarray], tuple[list[Detection], list[Prediction]]]
-"""(rgb image, K) -> the objects the localiser finds, each with its pose (`Estimator.find`)."""
+Finder = Callable[[np.ndarray, np.ndarray, BopScene, int], tuple[list[Detection], list[Prediction]]]
+"""(rgb image, K, its scene, its image id) -> the objects the localiser finds, each with its pose (`Estimator.find`).
+The scene and id let a finder that follows a stream (`node_path.NodePath`) take each scene's frames in order."""
+
+
+def predictions(poses: list[PoseEstimate]) -> list[Prediction]:
+    """The estimator's poses as `evaluate` scores them."""
+    return [Prediction(p.R, p.t, p.ok, p.spread_deg, p.covariance, p.unrefined, p.refine_kept) for p in poses]
 
 
 def estimator_runs(est: Estimator, options: EstimateOptions, threshold: float | None = None) -> tuple[Predictor, Finder]:
     """The estimator's poses of given boxes and what it finds itself (at `threshold`, None: its own), as `evaluate`
     takes them."""
 
-    def predictions(poses: list) -> list[Prediction]:
-        return [Prediction(p.R, p.t, p.ok, p.spread_deg, p.covariance, p.unrefined, p.refine_kept) for p in poses]
-
     def predict(image: np.ndarray, K: np.ndarray, boxes: list[ObjectBox]) -> list[Prediction]:
         return predictions(est.estimate(image, K, boxes, options))
 
-    def find(image: np.ndarray, K: np.ndarray) -> tuple[list[Detection], list[Prediction]]:
+    def find(image: np.ndarray, K: np.ndarray, scene: BopScene, im_id: int) -> tuple[list[Detection], list[Prediction]]:
         found = est.find(image, K, threshold, options)
         return found.detections, predictions(found.poses)
 
@@ -179,7 +183,7 @@ class _Evaluator:
     ) -> tuple[list[ObjectBox], list[float], list[Prediction], dict[int, int | None]]:
         """The objects found of those evaluated as boxes with their scores and poses, which detection (if any) each
         GT instance got (by id of its GTInstance), and the detection counts of the instances that count."""
-        found_dets, found_poses = self.options.detector(rgb, K)
+        found_dets, found_poses = self.options.detector(rgb, K, frame.scene, frame.im_id)
         pairs = [(d, p) for d, p in zip(found_dets, found_poses, strict=True) if d.obj_id in self.specs]
         dets, posed = [d for d, _ in pairs], [p for _, p in pairs]
         everyone = [(g.obj_id, info.bbox_obj) for g, info in frame.pairs]

@@ -4,7 +4,7 @@ camera stream. A process, not a thread: the search's Python and NumPy work (deco
 found) would otherwise take turns with the following's for the interpreter's lock. It runs at a lower CPU priority,
 so the frames come first and the search takes the time left. What it finds on a frame comes back with that frame's
 camera pose and joins the objects' views in the fixed frame (`Tracker.observe`), from where the tracker follows them
-on the frame at hand. Offline (benches), `LockStepFinder` searches in the caller's process
+on the frame at hand. Offline (`axispose validate`, benches), `LockStepFinder` searches in the caller's process
 instead, each search handed over a set number of frames later: the same run every time."""
 
 from __future__ import annotations

@@ -3,7 +3,8 @@
 where it has one: `Estimator.find`) or every object followed by a `Tracker` (`video`: crops from predicted poses, the
 localiser only where due, filtered poses with their filter's covariance and a track id, tracks followed by their
 contours; `video_odometry`: the camera's pose fusing each object's views, the localiser and the AGM in a process of
-their own and the frames only followed: `background.py`)."""
+their own and the frames only followed: `background.py`). The node and `axispose validate` both pose frames
+through it, so what is validated is what runs on the robot."""
 
 from __future__ import annotations
 
