@@ -14,7 +14,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from axispose_core.data.bop import BopFormatError, load_camera_poses, load_scene_camera, read_bgr
+from axispose_core.data.bop import BopFormatError, camera_to_fixed, load_camera_poses, load_scene_camera, read_bgr
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg")
 
@@ -53,14 +53,6 @@ class Recording:
     def select(self, im_ids: set[int] | None) -> Recording:
         """The recording cut down to the frames of `im_ids` (None: all of them)."""
         return self if im_ids is None else Recording(self.root, tuple(f for f in self.frames if f.im_id in im_ids))
-
-
-def camera_to_fixed(R_w2c: np.ndarray, t_w2c: np.ndarray) -> np.ndarray:
-    """The 4x4 camera-to-fixed pose of a world-to-camera one."""
-    T = np.eye(4)
-    T[:3, :3] = R_w2c.T
-    T[:3, 3] = -R_w2c.T @ t_w2c
-    return T
 
 
 def _image_file(rgb_dir: Path, im_id: int) -> Path | None:

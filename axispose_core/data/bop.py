@@ -212,6 +212,14 @@ def load_camera_poses(path: str | Path) -> dict[int, tuple[np.ndarray, np.ndarra
     return poses
 
 
+def camera_to_fixed(R_w2c: np.ndarray, t_w2c: np.ndarray) -> np.ndarray:
+    """The 4x4 camera-to-fixed pose of a world-to-camera one."""
+    T = np.eye(4)
+    T[:3, :3] = R_w2c.T
+    T[:3, 3] = -R_w2c.T @ t_w2c
+    return T
+
+
 def load_depth_scales(path: str | Path) -> dict[int, float]:
     """scene_camera.json's depth_scale per image id (mm per depth-image unit; 1.0 where absent)."""
     path = Path(path)

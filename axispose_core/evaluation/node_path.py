@@ -15,7 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
-from axispose_core.adapt.recording import camera_to_fixed
+from axispose_core.data.bop import camera_to_fixed
 from axispose_core.data.bop_scene import BopScene
 from axispose_core.estimator import Estimator
 from axispose_core.evaluation.records import Prediction
