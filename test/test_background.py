@@ -147,3 +147,28 @@ def test_the_lock_step_search_hands_each_detection_over_its_delay_in_frames_late
     finder = LockStepFinder(estimator)
     finder.offer(_search(2.0))
     assert [(s.stamp, f) for s, f in finder.collect()] == [(2.0, found[0]), (2.0, found[1]), (2.0, None)] and finder.idle()
+
+
+def test_a_tracked_pose_is_boxed_by_its_models_projection_not_the_crop_it_trails():
+    """A track's own box is the one it was last cropped from; the poser gives each tracked pose the box of its
+    model projected at the pose (a refused pose, or a checkpoint without meshes, keeps the track's)."""
+    from types import SimpleNamespace
+
+    from axispose_core.pose_estimate import PoseEstimate
+    from axispose_core.tracking.poser import FramePoser
+
+    K = np.array([[600.0, 0, 320], [0, 600, 240], [0, 0, 1]])
+    cube = np.array([[x, y, z] for x in (-0.05, 0.05) for y in (-0.05, 0.05) for z in (-0.05, 0.05)])
+
+    def tracked(ok: bool, track_id: int) -> SimpleNamespace:
+        t = np.array([0.1, -0.05, 1.0])
+        pose = PoseEstimate(1, np.eye(3), t, ok, "", np.zeros((1, 1, 3)), np.eye(3), (0.0, 0.0), 1.0)
+        return SimpleNamespace(measurement=pose, R=np.eye(3), t=t, covariance=None, score=0.9, box=(0.0, 0.0, 5.0, 5.0), track_id=track_id)
+
+    tracks = [tracked(True, 1), tracked(False, 2)]
+    for meshes, first in (({1: (cube, None)}, (320 + 600 * 0.05 / 1.05, 240 - 600 * 0.1 / 0.95)), (None, (0.0, 0.0))):
+        poser = FramePoser(SimpleNamespace(meshes=meshes), {1: "ape"}, lambda key, n: None)
+        poser.tracker.step = lambda *args: tracks
+        posed = poser._tracked(0.0, K, None, None, None, 0.3)
+        assert posed.boxes[0][:2] == pytest.approx(first) and posed.boxes[1] == (0.0, 0.0, 5.0, 5.0)
+    assert posed.track_ids == [1, 2]

@@ -15,6 +15,7 @@ from typing import Protocol
 
 import numpy as np
 
+from axispose_core.camera import project_model
 from axispose_core.estimator import SHIPPED_ESTIMATOR, EstimateOptions, Estimator
 from axispose_core.localiser.decode import Detection
 from axispose_core.pose_estimate import Found, PoseEstimate
@@ -72,8 +73,8 @@ class Finder(Protocol):
 
 @dataclass(frozen=True)
 class Posed:
-    """One frame's poses, one entry per box: the estimate (refused ones included), its score, its box, its track
-    (0: untracked)."""
+    """One frame's poses, one entry per box: the estimate (refused ones included), its score, its box (a tracked
+    pose's: its model's projection), its track (0: untracked)."""
 
     estimates: list[PoseEstimate]
     scores: list[float]
@@ -204,7 +205,19 @@ class FramePoser:
             self.count(f"tracking_{key}", n)
         self.chooser.record(new.get("followed", 0), new.get("contour_lost", 0) + new.get("ended_unfollowable", 0))
         estimates = [dataclasses.replace(tp.measurement, R=tp.R, t=tp.t, covariance=tp.covariance) for tp in tracked]
-        return Posed(estimates, [tp.score for tp in tracked], [tp.box for tp in tracked], [tp.track_id for tp in tracked])
+        boxes = [self._pose_box(e, K) or tp.box for e, tp in zip(estimates, tracked, strict=True)]
+        return Posed(estimates, [tp.score for tp in tracked], boxes, [tp.track_id for tp in tracked])
+
+    def _pose_box(self, estimate: PoseEstimate, K: np.ndarray) -> Box | None:
+        """A tracked pose's box as a localiser draws one: its model's projection at the pose (the track's own box
+        is the one it was last cropped from, which trails a pose followed by its contour); None without the
+        checkpoint's meshes or a pose."""
+        meshes = None if self.estimator is None else self.estimator.meshes
+        if meshes is None or not estimate.ok:
+            return None
+        uv = project_model(K, estimate.R, estimate.t, np.asarray(meshes[estimate.obj_id][0]))
+        (x0, y0), (x1, y1) = uv.min(axis=0), uv.max(axis=0)
+        return float(x0), float(y0), float(x1 - x0), float(y1 - y0)
 
     def _in_background(self, search: Search, s: PoserSettings, estimate, follow) -> Posed:
         """Tracking with the localiser and the AGM in a process of their own (`background.py`): what they found on
