@@ -79,7 +79,11 @@ def _replay(args: argparse.Namespace) -> int:
     if result.report is not None:
         print(format_table(result.report))
         lat = result.report["frame_latency_ms"]
-        print(f"frame latency: median {lat['median']:.0f} ms, p90 {lat['p90']:.0f} ms")
+        own = result.report["node_frame_ms"]
+        print(
+            f"frame latency: median {lat['median']:.0f} ms, p90 {lat['p90']:.0f} ms (published to recorded); the node's own, "
+            f"received to published, of its last {own['frames']} frames: median {own['median']:.0f} ms, p90 {own['p90']:.0f} ms"
+        )
         jit = result.report["tracking"]
         print(f"modes {jit['modes']}: jitter {jit['jitter_mm']:.1f} mm, {jit['jitter_deg']:.2f} deg "
               f"(median over {jit['n']} consecutive frame pairs)")  # fmt: skip

@@ -67,5 +67,7 @@ def replay_report(node: AxisPoseNode, truth: Truth, poses: dict, latency: dict[i
     report["tracking"] = {"modes": modes, **_jitter(records, syms)}
     lat = np.array(list(latency.values())) if latency else np.zeros(1)
     report["frame_latency_ms"] = {"median": float(np.median(lat)), "p90": float(np.percentile(lat, 90))}
+    own = 1000 * np.array(node.stats.latency or [0.0])  # the node's own (its last frames): received to all published
+    report["node_frame_ms"] = {"median": float(np.median(own)), "p90": float(np.percentile(own, 90)), "frames": len(node.stats.latency)}
     report["counts"] = counts
     return report

@@ -164,9 +164,11 @@ def test_replay_cli_with_a_real_checkpoint(bag, checkpoint, tmp_path, capsys):
     report = json.loads((tmp_path / "r.json").read_text())
     assert {"objects", "mean", "ms_per_object", "config", "frame_latency_ms", "counts"} <= set(report)
     assert report["counts"]["frames_processed"] == 3
+    # the node's own latency of each frame (received to all published, the overlay drawn for --overlays included)
+    assert report["node_frame_ms"]["frames"] == 3 and report["node_frame_ms"]["median"] > 0
     assert len(list((tmp_path / "png").glob("*.png"))) == 3
     out = capsys.readouterr().out
-    assert "replayed 3 frames" in out and "mean" in out
+    assert "replayed 3 frames" in out and "mean" in out and "the node's own" in out
 
 
 def test_replay_at_a_rate_keeps_bag_timing(bag, checkpoint, tmp_path):

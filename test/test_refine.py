@@ -340,6 +340,23 @@ def test_a_tracked_object_is_followed_with_the_colours_it_learned(lmo_dir, meshe
         refiner.refine(image, K, [start], colours=[first.colours], passes=-1)
 
 
+def test_a_followed_object_learns_its_colours_once_a_frame(lmo_dir, refiner, monkeypatch):
+    """Refined from scratch, an object learns its colours at every pass (the first from nothing); followed with the
+    colours of earlier frames it reads them through its passes and blends this frame's in once, at its last (ICG's
+    histogram update once a tracking step), at `histogram_rate`."""
+    R1, t1 = Rotation.random(random_state=11).as_matrix(), np.array([0.02, 0.0, 0.65])
+    image = scene(lmo_dir, 8, R1, t1)
+    rates = []
+    learn = ColourHistograms.learn_counts
+    monkeypatch.setattr(ColourHistograms, "learn_counts", lambda self, f, b, rate: rates.append(rate) or learn(self, f, b, rate))
+    first = refiner.refine(image, K, [Start(8, *moved(R1, t1, 11, 3, 0.02, 3))])[0]
+    assert first.refined and rates == [1.0] + [refiner.config.histogram_rate] * (len(refiner.config.scales) - 1)
+    rates.clear()
+    followed = refiner.refine(image, K, [Start(8, first.R, first.t, PRIOR)], colours=[first.colours])[0]
+    assert followed.refined and rates == [refiner.config.histogram_rate]
+    assert not np.array_equal(followed.colours.foreground, first.colours.foreground)
+
+
 def test_the_estimator_follows_its_poses_by_their_contours(tmp_path, lmo_dir):
     """`Estimator.follow`: each last pose moved to this frame by its contour alone, `ok` False where it was lost."""
     from conftest import save_tiny_estimator

@@ -33,8 +33,8 @@ class RefineConfig:
     histogram_reach: float = 20.0
     """Most pixels along a line, each side, that feed the histograms."""
     histogram_rate: float = 0.2
-    """Weight of the colours sampled at the current pose against those already learned, at each pass (the first
-    learns them from scratch)."""
+    """Weight of the colours sampled at the current pose against those already learned: at each pass of a
+    refinement (the first learns them from scratch), once a frame when following (ICG's learning rate)."""
     scales: tuple[float, ...] = (0.04, 0.02, 0.01, 0.0, 0.0, 0.0, 0.0)
     """Per correspondence pass: the segment length as a fraction of the object's projected diameter (at least one
     pixel): coarse passes reach far, fine ones place the contour to the pixel."""

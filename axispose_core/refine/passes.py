@@ -39,7 +39,7 @@ class RefineState:
     schedule: tuple[tuple[float, ...], tuple[float, ...]]
     """Its passes' scales and sigmas."""
     carried: bool = False
-    """The histograms came from earlier frames: blend this frame's colours in from the first pass."""
+    """The histograms came from earlier frames: the passes read them, the last blends this frame's colours in."""
     table: np.ndarray | None = None
     """The histograms' P(foreground | colour), as last learned."""
     hessian: np.ndarray = field(default_factory=lambda: np.zeros((6, 6)))
@@ -118,7 +118,7 @@ def correspondence_pass(states: Sequence[RefineState], k: int, bins: np.ndarray,
     if batch is None:
         return
     kept = np.array([i for i, _ in batch.blocks()])
-    tables = _learn(states, kept, batch, bins, occlusion, config)
+    tables = _learn(states, kept, batch, bins, occlusion, config, k)
     batch.mean, batch.variance = np.empty(len(batch.owner)), np.empty(len(batch.owner))
     n_seg = config.function_length + config.distribution_length - 1
     groups = np.unique(batch.scale)
@@ -162,10 +162,31 @@ def _place(states: Sequence[RefineState], scales: list[int], shape: tuple[int, i
 
 
 def _learn(states: Sequence[RefineState], kept: np.ndarray, batch: _Batch, bins: np.ndarray, occlusion: Occlusion,
-           config: RefineConfig) -> np.ndarray:  # fmt: skip
+           config: RefineConfig, k: int) -> np.ndarray:  # fmt: skip
     """The colours along each line into its object's histograms (inwards foreground, outwards background, each side
     from `histogram_margin` to its silhouette run or `histogram_reach`, unoccluded); each object's posterior table
-    (rows: objects)."""
+    (rows: objects). An object followed with the colours of earlier frames (`carried`) learns once a frame, at its
+    last pass, as ICG updates its histograms once a tracking step; its earlier passes read the carried colours."""
+    learning = [i for i in kept if not states[i].carried or k == len(states[i].schedule[0]) - 1]
+    n_bins = config.histogram_bins**3
+    counts = _colour_counts(states, batch.of(np.isin(batch.owner, learning)), bins, occlusion, config) if learning else None
+    tables = np.full((len(states), n_bins), 0.5)
+    for i in kept:
+        s = states[i]
+        if i in learning:
+            fresh = not s.stepped and not s.carried
+            rate = 1.0 if fresh else config.histogram_rate
+            s.histograms.learn_counts(counts[0][i], counts[1][i], rate)
+            s.table = s.histograms.posterior()
+        elif s.table is None:
+            s.table = s.histograms.posterior()
+        tables[i] = s.table
+    return log_odds(tables)
+
+
+def _colour_counts(states: Sequence[RefineState], batch: _Batch, bins: np.ndarray, occlusion: Occlusion,
+                   config: RefineConfig) -> tuple[np.ndarray, np.ndarray]:  # fmt: skip
+    """Per object (rows), the counts of the colour bins along its lines inwards and outwards (`_learn`)."""
     m = config.histogram_margin
     steps = m + np.arange(int(np.ceil(config.histogram_reach)))
     h, w = bins.shape
@@ -182,14 +203,7 @@ def _learn(states: Sequence[RefineState], kept: np.ndarray, batch: _Batch, bins:
         counts.append(
             np.bincount(owner[keep] * n_bins + bins[y[keep], x[keep]], minlength=len(states) * n_bins).reshape(len(states), n_bins)
         )
-    tables = np.full((len(states), n_bins), 0.5)
-    for i in kept:
-        s = states[i]
-        fresh = not s.stepped and not s.carried
-        rate = 1.0 if fresh else config.histogram_rate
-        s.histograms.learn_counts(counts[0][i], counts[1][i], rate)
-        s.table = tables[i] = s.histograms.posterior()
-    return log_odds(tables)
+    return counts[0], counts[1]
 
 
 def _newton(states: Sequence[RefineState], kept: np.ndarray, batch: _Batch, K: np.ndarray, config: RefineConfig) -> None:
