@@ -32,4 +32,4 @@ lint: $(STAMP)
 	$(VENV)/bin/ruff format --check .
 
 test: lint
-	$(PY) -m pytest -q test
+	$(PY) -m pytest -q test --durations=15

@@ -150,12 +150,12 @@ def test_a_prediction_becomes_a_label_only_where_the_contour_agrees(recording, l
     assert proj(labels[0].R, labels[0].t, g.R, g.t, frame.K, points) < 0.5 * proj(turned, moved, g.R, g.t, frame.K, points)
 
 
-def _small(rounds: int = 1, steps: int = 2) -> AdaptConfig:
+def _small(rounds: int = 1, steps: int = 2, localiser: bool = True) -> AdaptConfig:
     optim = OptimConfig(steps=steps, batch=4, lr=1e-4, warmup=1, workers=0, save_every=1000, val_every=1000)
     train = AdaptTrainConfig(optim=optim, real_per_batch=2, val_samples=2)
-    frames = RenderedFrames(desk_scenes=1, plain_scenes=0, images_per_scene=2)
-    localiser = AdaptLocaliserConfig(optim=dataclasses.replace(optim, batch=2), val_frames=1, frames=frames)
-    return AdaptConfig(rounds=rounds, pose=PoseSettings(threshold=0.3), train=train, localiser=localiser)
+    frames = RenderedFrames(desk_scenes=0, plain_scenes=1, images_per_scene=2)
+    tuned = AdaptLocaliserConfig(optim=dataclasses.replace(optim, batch=2, steps=steps if localiser else 0), val_frames=1, frames=frames)
+    return AdaptConfig(rounds=rounds, pose=PoseSettings(threshold=0.3), train=train, localiser=tuned)
 
 
 def _weights(path: Path) -> dict[str, torch.Tensor]:
@@ -181,23 +181,25 @@ def test_a_round_runs_end_to_end_and_resumes_to_the_same_weights(recording, tmp_
     assert all(torch.allclose(written[k], expected[k], rtol=0, atol=1e-7) for k in written)
     assert any(not torch.equal(written[k], tuned[k]) for k in written if written[k].is_floating_point())
     # ... and its localiser the localiser's fine-tune on the labelled frames and the rendered ones.
-    rendered = list((tmp_path / "whole" / "frames" / "desk").glob("*/rgb/*"))
+    rendered = list((tmp_path / "whole" / "frames" / "plain").glob("*/rgb/*"))
     assert adapted.config.training["adapt_localiser"]["steps"] == 3 and len(rendered) == 2
     shipped = Estimator.load(SHIPPED_ESTIMATOR).localiser.state_dict()
     assert any(not torch.allclose(v, shipped[k]) for k, v in adapted.localiser.state_dict().items() if v.is_floating_point())
-    stopped = Adaptation(rec, SHIPPED_ESTIMATOR, lmo_dir / "models", tmp_path / "cut", _small(steps=3), RunOptions(device="cpu", stop_at=1))
+    # interrupted and resumed (the AGM's stage: the localiser's resumes by the same loop)
+    stopped = Adaptation(rec, SHIPPED_ESTIMATOR, lmo_dir / "models", tmp_path / "cut", _small(steps=3, localiser=False),
+                         RunOptions(device="cpu", stop_at=1))  # fmt: skip
     (tmp_path / "cut" / "round0").mkdir()
     lines = (tmp_path / "whole" / "round0" / "candidates.jsonl").read_text().splitlines()
     (tmp_path / "cut" / "round0" / "candidates.jsonl").write_text("\n".join(lines[:-1]) + "\n")  # killed before the last frame
     assert stopped.run(progress=False) is None and not (tmp_path / "cut" / ADAPTED).exists()
     with pytest.raises(AdaptError, match="--resume"):
-        Adaptation(rec, SHIPPED_ESTIMATOR, lmo_dir / "models", tmp_path / "cut", _small(steps=3))
-    resumed = Adaptation(rec, SHIPPED_ESTIMATOR, lmo_dir / "models", tmp_path / "cut", _small(steps=3), RunOptions(device="cpu"),
-                         resume=True)  # fmt: skip
+        Adaptation(rec, SHIPPED_ESTIMATOR, lmo_dir / "models", tmp_path / "cut", _small(steps=3, localiser=False))
+    resumed = Adaptation(rec, SHIPPED_ESTIMATOR, lmo_dir / "models", tmp_path / "cut", _small(steps=3, localiser=False),
+                         RunOptions(device="cpu"), resume=True)  # fmt: skip
     a, b = _weights(final), _weights(resumed.run(progress=False))
     assert all(torch.equal(a[k], b[k]) for k in a)
     with pytest.raises(AdaptError, match="another config"):
-        Adaptation(rec, SHIPPED_ESTIMATOR, lmo_dir / "models", tmp_path / "cut", _small(steps=5), resume=True)
+        Adaptation(rec, SHIPPED_ESTIMATOR, lmo_dir / "models", tmp_path / "cut", _small(steps=5, localiser=False), resume=True)
     # A finished run resumed with more rounds goes on from its last: round 1 poses and trains from round 0's model.
     more = Adaptation(rec, SHIPPED_ESTIMATOR, lmo_dir / "models", tmp_path / "whole", _small(rounds=2, steps=3),
                       RunOptions(device="cpu"), resume=True)  # fmt: skip

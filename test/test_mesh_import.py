@@ -146,3 +146,23 @@ def test_synth_from_user_meshes(tmp_path):
     assert any(i.visib_fract > 0 for infos in scene.gt_info.values() for i in infos)
     saved = SynthConfig.load(out / "synth_config.json")  # the default recipe is the desk
     assert (saved.scene, saved.randomization) == recipe("desk")
+
+
+def test_a_ply_read_again_is_the_same_mesh_unless_the_file_changed(tmp_path):
+    """load_ply parses a file version once a process: the caller gets its own arrays each time, and a rewritten
+    file is read anew."""
+    import os
+
+    from axispose_core.data.meshes import Mesh, write_ply
+
+    path = tmp_path / "tri.ply"
+    tri = Mesh(np.array([[0.0, 0, 0], [1, 0, 0], [0, 1, 0]]), np.array([[0, 1, 2]]), np.full((3, 3), 7, np.uint8))
+    write_ply(path, tri)
+    first = load_ply(path)
+    first.vertices[0, 0] = 99.0  # the caller's copy
+    again = load_ply(path)
+    assert again.vertices[0, 0] == 0.0 and np.array_equal(again.faces, tri.faces) and np.array_equal(again.colors, tri.colors)
+    assert again.vertices[1, 0] == pytest.approx(1.0) and load_ply(path, units=1.0).vertices[1, 0] == pytest.approx(1000.0)
+    write_ply(path, Mesh(tri.vertices * 2, tri.faces, tri.colors))
+    os.utime(path, ns=(1, 1))  # another version, even within the clock's resolution
+    assert load_ply(path).vertices[1, 0] == pytest.approx(2.0)

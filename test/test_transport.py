@@ -20,7 +20,7 @@ from axispose_msgs.msg import DetectionArray
 from axispose_ros.node import PROFILE_VARIABLES, shipped_fastdds_profile, use_shipped_fastdds_profile
 
 REPO = Path(__file__).resolve().parents[1]
-FRAMES, RATE = 300, 15.0
+FRAMES, RATE = 150, 15.0
 
 
 def test_the_shipped_profile_is_found_and_a_users_choice_is_kept():
@@ -40,7 +40,7 @@ def _counters(msg: DiagnosticArray) -> dict[str, int]:
 
 @pytest.mark.slow
 def test_full_size_frames_from_another_process_all_arrive_and_are_answered(tmp_path):
-    """300 frames of 640x480 rgb8 (921,600 B) with their CameraInfo at 15 Hz, from a camera process that carries
+    """150 frames of 640x480 rgb8 (921,600 B) with their CameraInfo at 15 Hz, from a camera process that carries
     the shipped profile (as the README tells), to `axispose_node` started by its entry point: every frame arrives,
     every one is answered (a DetectionArray) or counted (`dropped_stale`: a newer frame replaced it), and each
     answered frame's box came back as a pose or was counted as refused (the tiny random checkpoint's are)."""

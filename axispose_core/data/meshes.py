@@ -3,6 +3,7 @@ renderer's mesh. Lengths become metres here, as `data/bop.py` does for BOP's oth
 
 from __future__ import annotations
 
+import functools
 import logging
 from collections.abc import Iterable, Iterator
 from dataclasses import dataclass
@@ -29,8 +30,22 @@ class Mesh:
 
 
 def load_ply(path: str | Path, units: float = MM) -> Mesh:
-    """Read an ASCII or binary PLY; `units` is metres per file unit (BOP models are in mm)."""
+    """Read an ASCII or binary PLY; `units` is metres per file unit (BOP models are in mm). A file read before in
+    this process (same size and modification time) is not parsed again: an ASCII model takes about a second, and a
+    run's stages (labels, crops, stream, validation) each load every model. The arrays are the caller's own copies."""
     path = Path(path)
+    try:
+        stat = path.stat()
+    except OSError as err:
+        raise BopFormatError(f"{path}: cannot read PLY ({err})") from err
+    mesh = _parsed(str(path.resolve()), stat.st_size, stat.st_mtime_ns, units)
+    return Mesh(*(None if a is None else a.copy() for a in (mesh.vertices, mesh.faces, mesh.colors, mesh.normals)))
+
+
+@functools.lru_cache(maxsize=64)
+def _parsed(path_name: str, size: int, mtime_ns: int, units: float) -> Mesh:
+    """`load_ply`'s parse of one version of a file (the size and time key the version)."""
+    path = Path(path_name)
     try:
         ply = plyfile.PlyData.read(str(path))
     except (OSError, plyfile.PlyParseError, ValueError) as err:
