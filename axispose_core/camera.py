@@ -9,6 +9,7 @@ from dataclasses import dataclass
 
 import cv2
 import numpy as np
+from scipy.spatial import ConvexHull
 
 
 class IntrinsicsError(ValueError):
@@ -64,6 +65,13 @@ def projection_jacobian(K: np.ndarray, proj: np.ndarray, z: np.ndarray) -> np.nd
     """d (image point) / d (camera-frame point) (N,2,3) at image points proj (N,2) of homogeneous depth z = (K p)_z
     (N,)."""
     return (K[None, :2, :] - proj[:, :, None] * K[None, 2:3, :]) / z[:, None, None]
+
+
+def hull_points(points: np.ndarray) -> np.ndarray:
+    """The points on their convex hull (all of them where fewer than 4): a body's extent, and the box of its
+    projection, from a fraction of its vertices."""
+    points = np.asarray(points)
+    return points[ConvexHull(points).vertices] if len(points) >= 4 else points
 
 
 def project_model(K: np.ndarray, R: np.ndarray, t: np.ndarray, pts: np.ndarray) -> np.ndarray:

@@ -172,3 +172,12 @@ def test_a_tracked_pose_is_boxed_by_its_models_projection_not_the_crop_it_trails
         posed = poser._tracked(0.0, K, None, None, None, 0.3)
         assert posed.boxes[0][:2] == pytest.approx(first) and posed.boxes[1] == (0.0, 0.0, 5.0, 5.0)
     assert posed.track_ids == [1, 2]
+    # a body's cloud of points: the box of all of them (the poser projects their hull's only)
+    cloud = np.random.default_rng(3).normal(scale=0.03, size=(500, 3))
+    poser = FramePoser(SimpleNamespace(meshes={1: (cloud, None)}), {1: "ape"}, lambda key, n: None)
+    poser.tracker.step = lambda *args: tracks
+    uv = (cloud + tracks[0].t) @ K.T
+    uv = uv[:, :2] / uv[:, 2:]
+    x0, y0 = uv.min(axis=0)
+    x1, y1 = uv.max(axis=0)
+    assert poser._tracked(0.0, K, None, None, None, 0.3).boxes[0] == pytest.approx((x0, y0, x1 - x0, y1 - y0))

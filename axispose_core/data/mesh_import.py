@@ -10,10 +10,10 @@ from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
-from scipy.spatial import ConvexHull
 from scipy.spatial.distance import pdist
 from scipy.spatial.transform import Rotation
 
+from axispose_core.camera import hull_points
 from axispose_core.data.bop import MM, BopFormatError
 from axispose_core.data.bop_models import ObjectInfo, model_path, write_models_info
 from axispose_core.data.meshes import Mesh, load_mesh, write_ply
@@ -23,7 +23,7 @@ from axispose_core.objects import NAMES_FILE, object_name
 def object_info(obj_id: int, mesh: Mesh) -> ObjectInfo:
     """Diameter (largest vertex distance, over the convex hull) and axis-aligned box, in metres."""
     pts = mesh.vertices
-    hull = pts[ConvexHull(pts).vertices] if len(pts) >= 4 else pts
+    hull = hull_points(pts)
     diameter = float(pdist(hull).max()) if len(hull) > 1 else 0.0
     if diameter <= 0:
         raise BopFormatError(f"object {obj_id}: mesh has no extent")

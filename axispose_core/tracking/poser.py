@@ -15,7 +15,7 @@ from typing import Protocol
 
 import numpy as np
 
-from axispose_core.camera import project_model
+from axispose_core.camera import hull_points, project_model
 from axispose_core.estimator import SHIPPED_ESTIMATOR, EstimateOptions, Estimator
 from axispose_core.localiser.decode import Detection
 from axispose_core.pose_estimate import Found, PoseEstimate
@@ -104,6 +104,8 @@ class FramePoser:
         self._since_search = 0
         """Frames since the background's last search was offered."""
         self._searches = 0
+        self._hulls: dict[int, np.ndarray] = {}
+        """Per object, its mesh's convex-hull vertices (`_pose_box`)."""
         self._checked: dict[int, int] = {}
         """Per tracked object, the search that last looked for it (`_searched_objects`)."""
         self._search_posed: list[tuple[Detection, PoseEstimate]] = []
@@ -215,7 +217,9 @@ class FramePoser:
         meshes = None if self.estimator is None else self.estimator.meshes
         if meshes is None or not estimate.ok:
             return None
-        uv = project_model(K, estimate.R, estimate.t, np.asarray(meshes[estimate.obj_id][0]))
+        if estimate.obj_id not in self._hulls:  # the box of the hull's projection is the mesh's, at a fraction of the cost
+            self._hulls[estimate.obj_id] = hull_points(meshes[estimate.obj_id][0])
+        uv = project_model(K, estimate.R, estimate.t, self._hulls[estimate.obj_id])
         (x0, y0), (x1, y1) = uv.min(axis=0), uv.max(axis=0)
         return float(x0), float(y0), float(x1 - x0), float(y1 - y0)
 

@@ -29,13 +29,12 @@ import cv2
 import numpy as np
 import torch
 from scipy.signal import fftconvolve
-from scipy.spatial import ConvexHull
 from scipy.spatial.transform import Rotation
 from scipy.stats import t as student_t
 from torch.utils.data import DataLoader, Dataset
 
 from axispose_core.axis_image import axis_keypoints, render_axis_keypoints
-from axispose_core.camera import crop_intrinsics, square_around_box
+from axispose_core.camera import crop_intrinsics, hull_points, square_around_box
 from axispose_core.data.bop import bbox_from_model
 from axispose_core.data.bop_models import load_models_info, model_path
 from axispose_core.data.meshes import load_render_mesh, ply_vertex_properties
@@ -132,7 +131,7 @@ class CropStream:
             mesh = load_render_mesh(models_dir, spec.obj_id, mesh_cache)
             own_faces.add(len(mesh.faces))
             _check_mesh(mesh, model_path(models_dir, spec.obj_id))
-            hull = mesh.vertices[ConvexHull(mesh.vertices).vertices]
+            hull = hull_points(mesh.vertices)
             cell = cfg.mesh_cell * spec.diameter * cfg.framing.pad / cfg.size  # metres per mesh_cell px at usual size
             lods = tuple(decimate(mesh, cell * 2**level) for level in range(LODS)) if cfg.mesh_cell > 0 else (mesh,)
             self.models[spec.obj_id] = _Model(spec, lods, hull)
