@@ -81,8 +81,9 @@ def _replay(args: argparse.Namespace) -> int:
         lat = result.report["frame_latency_ms"]
         own = result.report["node_frame_ms"]
         print(
-            f"frame latency: median {lat['median']:.0f} ms, p90 {lat['p90']:.0f} ms (published to recorded); the node's own, "
-            f"received to published, of its last {own['frames']} frames: median {own['median']:.0f} ms, p90 {own['p90']:.0f} ms"
+            f"frame latency: median {lat['median']:.0f} ms, p90 {lat['p90']:.0f} ms (image published to ~/pose_array received); "
+            f"the node's own, received to published, of its last {own['frames']} frames: "
+            f"median {own['median']:.0f} ms, p90 {own['p90']:.0f} ms"
         )
         jit = result.report["tracking"]
         print(f"modes {jit['modes']}: jitter {jit['jitter_mm']:.1f} mm, {jit['jitter_deg']:.2f} deg "

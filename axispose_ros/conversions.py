@@ -8,6 +8,8 @@ other than by a uniform scale, a distortion model OpenCV cannot invert.
 
 from __future__ import annotations
 
+import struct
+
 import cv2
 import numpy as np
 from sensor_msgs.msg import CameraInfo, Image
@@ -35,6 +37,16 @@ def stamp_seconds(header: Header) -> float:
 def stamp_ns(header: Header) -> int:
     """A message header's stamp in nanoseconds, exact: the key frames and poses are matched by."""
     return int(header.stamp.sec) * 10**9 + int(header.stamp.nanosec)
+
+
+def cdr_stamp(raw: bytes) -> int | None:
+    """The stamp (ns) of a serialized message whose first field is a std_msgs/Header, read from its CDR bytes
+    without deserialising it: the 4-byte encapsulation, then the stamp's int32 sec and uint32 nanosec in the byte
+    order it names. None for bytes too short to hold one."""
+    if len(raw) < 12:
+        return None
+    sec, nanosec = struct.unpack_from("<iI" if raw[1] & 1 else ">iI", raw, 4)
+    return sec * 10**9 + nanosec
 
 
 def printable(text: str, limit: int = 32) -> str:

@@ -42,7 +42,7 @@ from visualization_msgs.msg import MarkerArray
 import axispose_msgs
 from axispose_msgs.msg import DetectionArray
 from axispose_ros.bag import FORMATS, ROI_PREFIX, TYPESTORE, BagError, bag_topics, camera_topics, read_bag, register_types
-from axispose_ros.conversions import image_to_rgb, stamp_ns, stamp_seconds
+from axispose_ros.conversions import cdr_stamp, image_to_rgb, stamp_ns, stamp_seconds
 from axispose_ros.node import AxisPoseNode
 from axispose_ros.replay_bag import Truth, by_stamp, pose_rt, ros_message
 from axispose_ros.replay_report import replay_report
@@ -133,10 +133,10 @@ class _Session:
 @dataclass
 class _Recording:
     """What the player heard from the node: per-object poses (stamp -> name -> [(R, t)]), when each stamp's
-    PoseArray arrived (perf_counter s), and the overlay PNGs written."""
+    PoseArray reached the player (DDS receipt, ns since the epoch), and the overlay PNGs written."""
 
     poses: dict[int, dict[str, list]] = field(default_factory=lambda: defaultdict(lambda: defaultdict(list)))
-    arrays: dict[int, float] = field(default_factory=dict)
+    arrays: dict[int, int] = field(default_factory=dict)
     overlays: list[Path] = field(default_factory=list)
 
 
@@ -160,7 +160,7 @@ def replay(bag: str | Path, checkpoint: str | Path, out_bag: str | Path, options
             parameter_overrides=_overrides(checkpoint, opts.params, (image_topic, info_topic)),
             cli_args=["--ros-args", *[a for r in remaps for a in ("-r", r)]],
         )
-        player = rclpy.create_node("axispose_replay", context=ctx)
+        player = rclpy.create_node("axispose_replay", context=ctx, start_parameter_services=False, enable_rosout=False)
         exe = SingleThreadedExecutor(context=ctx)
         exe.add_node(node)
         exe.add_node(player)
@@ -198,7 +198,7 @@ def _run(bag: str | Path, s: _Session, out_bag: Path, opts: ReplayOptions) -> Re
             _spin_until(s.exe, lambda: len(rec.arrays) >= s.node.counts["frames_processed"], 5.0)
             _spin_until(s.exe, lambda: False, 0.3)  # last per-object poses and debug images
 
-    latency = {t: 1000 * (rec.arrays[t] - player.published_at[t]) for t in sorted(rec.arrays) if t in player.published_at}
+    latency = {t: (rec.arrays[t] - player.published_at[t]) / 1e6 for t in sorted(rec.arrays) if t in player.published_at}
     counts = dict(s.node.counts)
     report = None
     if player.truth.gt and player.truth.points:
@@ -208,25 +208,32 @@ def _run(bag: str | Path, s: _Session, out_bag: Path, opts: ReplayOptions) -> Re
 
 def _record(s: _Session, writer: Writer, opts: ReplayOptions) -> _Recording:
     """Subscribe the player to the node's outputs: every message into `writer` (stamped by its header), and what
-    the result and the report need into the returned _Recording."""
+    the result and the report need into the returned _Recording. Messages no hook reads are taken as their
+    serialized bytes and written as they came: the player shares the node's process and interpreter, and
+    deserialising every marker and detection would take the node's time."""
     rec = _Recording()
     conns: dict[str, object] = {}
 
     def record(msg_class: type, topic: str, msgtype: str, hook: Callable | None = None, depth: int = 100) -> None:
-        def on_msg(msg) -> None:
+        def write(raw: bytes, stamp: int | None) -> None:
             if topic not in conns:
                 conns[topic] = writer.add_connection(topic, msgtype, typestore=TYPESTORE)
-            stamp = stamp_ns(msg.header) if hasattr(msg, "header") else time.time_ns()
-            writer.write(conns[topic], stamp or time.time_ns(), serialize_message(msg))
-            if hook:
-                hook(msg)
+            writer.write(conns[topic], stamp or time.time_ns(), raw)
 
-        s.player.create_subscription(msg_class, topic, on_msg, depth)
+        def on_msg(msg, info: dict) -> None:
+            write(serialize_message(msg), stamp_ns(msg.header))
+            hook(msg, info.get("received_timestamp") or time.time_ns())
 
-    def on_array(msg: PoseArray) -> None:
-        rec.arrays[stamp_ns(msg.header)] = time.perf_counter()
+        if hook is None:
+            stamped = next(iter(msg_class.get_fields_and_field_types()), None) == "header"
+            s.player.create_subscription(msg_class, topic, lambda raw: write(raw, cdr_stamp(raw) if stamped else None), depth, raw=True)
+        else:
+            s.player.create_subscription(msg_class, topic, on_msg, depth)
 
-    def on_debug(msg: Image) -> None:
+    def on_array(msg: PoseArray, received_ns: int) -> None:
+        rec.arrays[stamp_ns(msg.header)] = received_ns
+
+    def on_debug(msg: Image, _: int) -> None:
         if opts.overlays is not None and len(rec.overlays) < opts.overlay_count:
             path = Path(opts.overlays) / f"overlay_{len(rec.overlays):02d}.png"
             path.parent.mkdir(parents=True, exist_ok=True)
@@ -240,7 +247,7 @@ def _record(s: _Session, writer: Writer, opts: ReplayOptions) -> _Recording:
     record(DetectionArray, f"{ns}/detections", "axispose_msgs/msg/DetectionArray")
     record(PoseWithCovarianceStamped, f"{ns}/pose_cov", "geometry_msgs/msg/PoseWithCovarianceStamped")
     for name in s.node.published.values():
-        hook = (lambda n: lambda m: rec.poses[stamp_ns(m.header)][n].append(pose_rt(m.pose)))(name)
+        hook = (lambda n: lambda m, _: rec.poses[stamp_ns(m.header)][n].append(pose_rt(m.pose)))(name)
         record(PoseStamped, f"{ns}/poses/{name}", "geometry_msgs/msg/PoseStamped", hook)
     record(MarkerArray, f"{ns}/markers", "visualization_msgs/msg/MarkerArray")
     record(DiagnosticArray, "/diagnostics", "diagnostic_msgs/msg/DiagnosticArray")
@@ -266,7 +273,7 @@ class _Player:
         for name in self.by_name:
             self.pubs[ROI_PREFIX + name] = s.player.create_publisher(RegionOfInterest, s.node.resolve_topic_name(f"~/roi/{name}"), 10)
         self.truth = Truth()
-        self.published_at: dict[int, float] = {}
+        self.published_at: dict[int, int] = {}
         self.frames = 0
         self._start = 0.0
         self._first_ns: int | None = None
@@ -299,7 +306,7 @@ class _Player:
                 self.pubs[topic].publish(msg)
         for topic, msg in stream:
             if topic == s.image_topic:
-                self.published_at[stamp_ns(msg.header)] = time.perf_counter()
+                self.published_at[stamp_ns(msg.header)] = time.time_ns()
                 self.pubs[topic].publish(msg)
                 self.frames += 1
                 bar.update(1)

@@ -140,7 +140,10 @@ def test_replay_of_ground_truth_scores_perfectly(bag, scene, checkpoint, monkeyp
     assert [m.stamp_ns for m in arrays] == in_stamps
     assert deserialize(arrays[0]).header.frame_id == "camera_color_optical_frame"
     assert recorded["/axispose/detections"] == "axispose_msgs/msg/DetectionArray"
-    detections = [deserialize(m) for m in read_bag(tmp_path / "out", ["/axispose/detections"])]
+    raw_written = list(read_bag(tmp_path / "out", ["/axispose/detections"]))  # taken serialized, stamped from the bytes
+    assert [m.stamp_ns for m in raw_written] == in_stamps
+    assert {m.stamp_ns for m in read_bag(tmp_path / "out", ["/axispose/pose"])} == set(in_stamps)
+    detections = [deserialize(m) for m in raw_written]
     assert [len(d.detections) for d in detections] == [len(deserialize(m).poses) for m in arrays]
     names = {d.name for msg in detections for d in msg.detections}
     assert names == {"ape", "can", "driller"} and all(d.score == 1.0 for msg in detections for d in msg.detections)
@@ -166,6 +169,8 @@ def test_replay_cli_with_a_real_checkpoint(bag, checkpoint, tmp_path, capsys):
     assert report["counts"]["frames_processed"] == 3
     # the node's own latency of each frame (received to all published, the overlay drawn for --overlays included)
     assert report["node_frame_ms"]["frames"] == 3 and report["node_frame_ms"]["median"] > 0
+    # image published to ~/pose_array received (before the overlay is drawn), in ms: a frame takes more than 1 ms
+    assert 1 < report["frame_latency_ms"]["median"] < 60_000
     assert len(list((tmp_path / "png").glob("*.png"))) == 3
     out = capsys.readouterr().out
     assert "replayed 3 frames" in out and "mean" in out and "the node's own" in out

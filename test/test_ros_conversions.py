@@ -1,5 +1,10 @@
+import struct
+
 import numpy as np
 import pytest
+from diagnostic_msgs.msg import DiagnosticArray
+from geometry_msgs.msg import PoseStamped
+from rclpy.serialization import serialize_message
 from sensor_msgs.msg import CameraInfo, Image
 from std_msgs.msg import Header
 
@@ -9,6 +14,7 @@ from axispose_ros.conversions import (
     Undistorter,
     camera_for_image,
     camera_from_info,
+    cdr_stamp,
     check_frame,
     image_to_rgb,
     rgb_to_image,
@@ -45,6 +51,16 @@ def test_round_trip_keeps_the_header(rng):
     msg = rgb_to_image(rgb, header)
     assert msg.header.frame_id == "camera_optical" and msg.header.stamp.nanosec == 345
     np.testing.assert_array_equal(image_to_rgb(msg), rgb)
+
+
+def test_a_stamp_is_read_from_serialized_bytes():
+    header = Header(frame_id="camera_optical")
+    header.stamp.sec, header.stamp.nanosec = 1_700_000_123, 999_999_999
+    assert cdr_stamp(serialize_message(PoseStamped(header=header))) == 1_700_000_123_999_999_999
+    assert cdr_stamp(serialize_message(DiagnosticArray(header=header))) == 1_700_000_123_999_999_999
+    big_endian = bytes([0, 0, 0, 0]) + struct.pack(">iI", 42, 7)  # CDR_BE encapsulation
+    assert cdr_stamp(big_endian) == 42 * 10**9 + 7
+    assert cdr_stamp(bytes(8)) is None
 
 
 @pytest.mark.parametrize(
