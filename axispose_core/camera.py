@@ -67,6 +67,18 @@ def projection_jacobian(K: np.ndarray, proj: np.ndarray, z: np.ndarray) -> np.nd
     return (K[None, :2, :] - proj[:, :, None] * K[None, 2:3, :]) / z[:, None, None]
 
 
+def jacobian_times(K: np.ndarray, proj: np.ndarray, z: np.ndarray, d: np.ndarray) -> np.ndarray:
+    """`projection_jacobian(K, proj, z) @ d` per row (N,2): how the image point moves as its camera-frame point moves
+    along d (N,3); without forming the (N,2,3) Jacobians."""
+    return (d @ K[:2].T - proj * (d @ K[2])[:, None]) / z[:, None]
+
+
+def times_jacobian(K: np.ndarray, proj: np.ndarray, z: np.ndarray, n: np.ndarray) -> np.ndarray:
+    """`n @ projection_jacobian(K, proj, z)` per row (N,3): the camera-frame gradient of the image point's component
+    along n (N,2); without forming the (N,2,3) Jacobians."""
+    return (n @ K[:2] - np.einsum("ni,ni->n", n, proj)[:, None] * K[2]) / z[:, None]
+
+
 def hull_points(points: np.ndarray) -> np.ndarray:
     """The points on their convex hull (all of them where fewer than 4): a body's extent, and the box of its
     projection, from a fraction of its vertices."""

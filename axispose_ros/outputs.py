@@ -42,12 +42,12 @@ class PoseOutputs:
         detections = DetectionArray(header=header)
         markers = MarkerArray(markers=[Marker(header=header, action=Marker.DELETEALL)])  # the last frame's go
         best: dict[int, tuple[float, PoseStamped, np.ndarray | None]] = {}
-        refused = 0
+        refused = sum(not est.ok for est in estimates)
+        poses = iter(_poses([est for est in estimates if est.ok]))
         for k, (est, score, box, track) in enumerate(zip(estimates, posed.scores, posed.boxes, posed.track_ids, strict=True)):
             if not est.ok:
-                refused += 1
                 continue
-            pose = _pose(est.R, est.t)
+            pose = next(poses)
             array.poses.append(pose)
             detections.detections.append(_detection(est, self.names[est.obj_id], score, pose, box, track))
             stamped = PoseStamped(header=header, pose=pose)
@@ -70,12 +70,18 @@ class PoseOutputs:
         return refused
 
 
-def _pose(R: np.ndarray, t: np.ndarray) -> Pose:
-    pose = Pose()
-    pose.position.x, pose.position.y, pose.position.z = (float(v) for v in t)
-    q = Rotation.from_matrix(R).as_quat()  # x, y, z, w
-    pose.orientation.x, pose.orientation.y, pose.orientation.z, pose.orientation.w = (float(v) for v in q)
-    return pose
+def _poses(estimates: list[PoseEstimate]) -> list[Pose]:
+    """The estimates' poses as messages, their quaternions converted together (one scipy call a frame)."""
+    if not estimates:
+        return []
+    quats = Rotation.from_matrix(np.stack([est.R for est in estimates])).as_quat()  # x, y, z, w
+    out = []
+    for est, q in zip(estimates, quats, strict=True):
+        pose = Pose()
+        pose.position.x, pose.position.y, pose.position.z = (float(v) for v in est.t)
+        pose.orientation.x, pose.orientation.y, pose.orientation.z, pose.orientation.w = (float(v) for v in q)
+        out.append(pose)
+    return out
 
 
 def _detection(est: PoseEstimate, name: str, score: float, pose: Pose, box: Box, track: int) -> Detection:

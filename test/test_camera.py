@@ -7,14 +7,31 @@ from axispose_core.camera import (
     crop_image,
     crop_intrinsics,
     crop_transform,
+    jacobian_times,
     off_axis,
     project,
     project_model,
+    projection_jacobian,
     square_around_box,
+    times_jacobian,
     validate_intrinsics,
 )
 from axispose_core.lmo import LMO_K
 from axispose_core.pose_sampling import sample_pose
+
+
+def test_projection_jacobian_matches_finite_differences_and_its_products(rng):
+    K = np.array([[572.4, 0.3, 325.3], [0.0, 573.6, 242.0], [0.0, 0.0, 1.0]])
+    p = rng.uniform([-0.2, -0.2, 0.5], [0.2, 0.2, 1.5], (50, 3))
+    q = p @ K.T
+    uv, z = q[:, :2] / q[:, 2:], q[:, 2]
+    J = projection_jacobian(K, uv, z)
+    h = 1e-6
+    numeric = np.stack([(project(K, p + h * e) - project(K, p - h * e)) / (2 * h) for e in np.eye(3)], axis=2)
+    np.testing.assert_allclose(J, numeric, rtol=1e-6, atol=1e-3)
+    d, n = rng.normal(size=(50, 3)), rng.normal(size=(50, 2))
+    np.testing.assert_allclose(jacobian_times(K, uv, z, d), np.einsum("nij,nj->ni", J, d), rtol=1e-12, atol=1e-9)
+    np.testing.assert_allclose(times_jacobian(K, uv, z, n), np.einsum("ni,nij->nj", n, J), rtol=1e-12, atol=1e-9)
 
 
 def test_crop_intrinsics_match_projection_then_crop(rng):

@@ -13,7 +13,7 @@ from itertools import pairwise
 import cv2
 import numpy as np
 
-from axispose_core.camera import projection_jacobian
+from axispose_core.camera import times_jacobian
 from axispose_core.refine.config import RefineConfig
 from axispose_core.refine.histograms import ColourHistograms
 from axispose_core.refine.region import StepFunction, contour_distributions, log_odds, place_lines, sample_posteriors
@@ -141,24 +141,24 @@ def _place(states: Sequence[RefineState], scales: list[int], shape: tuple[int, i
     fewer than `min_lines` stops here. None where no state has enough."""
     n_seg = config.function_length + config.distribution_length - 1
     h, w = shape
-    parts = []
-    for i, (s, scale) in enumerate(zip(states, scales, strict=True)):
-        s.occlusion = occlusion
-        placed = place_lines(s.model, s.R, s.t, K, config.lines, s.start.scale)
-        c = np.round(placed.centres).astype(np.int64)
-        valid = placed.usable(n_seg * scale / 2, config.min_continuous * scale, shape)
-        valid &= (c[:, 0] >= 0) & (c[:, 0] < w) & (c[:, 1] >= 0) & (c[:, 1] < h)
-        valid[valid] &= ~occlusion.occluded(c[valid, 0], c[valid, 1], s.rank)
-        s.valid = float(valid.mean())
-        if valid.sum() < config.min_lines:
+    placed = place_lines([(s.model, s.R, s.t, s.start.scale) for s in states], K, config.lines)
+    owner = placed.owner
+    scale = np.asarray(scales, dtype=np.float64)[owner]
+    c = np.round(placed.centres).astype(np.int64)
+    valid = placed.usable(n_seg * scale / 2, config.min_continuous * scale, shape)
+    valid &= (c[:, 0] >= 0) & (c[:, 0] < w) & (c[:, 1] >= 0) & (c[:, 1] < h)
+    ranks = np.array([s.rank for s in states])
+    valid[valid] &= ~occlusion.occluded(c[valid, 0], c[valid, 1], ranks[owner[valid]])
+    counts = np.bincount(owner[valid], minlength=len(states))
+    for s, n in zip(states, counts, strict=True):
+        s.occlusion, s.valid = occlusion, n / config.lines
+        if n < config.min_lines:
             s.reason = "few_lines"
-            continue
-        n = int(valid.sum())
-        parts.append((np.full(n, i), placed.model_points[valid], placed.centres[valid], placed.normals[valid],
-                      placed.inside_px[valid], placed.outside_px[valid], np.full(n, float(scale))))  # fmt: skip
-    if not parts:
+    valid &= (counts >= config.min_lines)[owner]
+    if not valid.any():
         return None
-    return _Batch(*(np.concatenate(column) if len(parts) > 1 else column[0] for column in zip(*parts, strict=True)))
+    return _Batch(owner[valid], placed.model_points[valid], placed.centres[valid], placed.normals[valid], placed.inside_px[valid],
+                  placed.outside_px[valid], scale[valid])  # fmt: skip
 
 
 def _learn(states: Sequence[RefineState], kept: np.ndarray, batch: _Batch, bins: np.ndarray, occlusion: Occlusion,
@@ -194,11 +194,12 @@ def _colour_counts(states: Sequence[RefineState], batch: _Batch, bins: np.ndarra
     ranks = np.array([s.rank for s in states])
     counts = []
     for sign, run in ((-1.0, batch.inside), (1.0, batch.outside)):
-        q = np.round(batch.centres[:, None, :] + sign * steps[None, :, None] * batch.normals[:, None, :]).astype(np.int64)
-        ok = (steps[None, :] <= np.minimum(run - m, config.histogram_reach)[:, None]) & (q[..., 0] >= 0) & (q[..., 0] < w)
-        ok &= (q[..., 1] >= 0) & (q[..., 1] < h)
+        along = sign * steps
+        qx = np.round(batch.centres[:, :1] + along * batch.normals[:, :1]).astype(np.int64)
+        qy = np.round(batch.centres[:, 1:] + along * batch.normals[:, 1:]).astype(np.int64)
+        ok = (steps[None, :] <= np.minimum(run - m, config.histogram_reach)[:, None]) & (qx >= 0) & (qx < w) & (qy >= 0) & (qy < h)
         owner = np.broadcast_to(batch.owner[:, None], ok.shape)[ok]
-        x, y = q[..., 0][ok], q[..., 1][ok]
+        x, y = qx[ok], qy[ok]
         keep = ~occlusion.occluded(x, y, ranks[owner])
         counts.append(
             np.bincount(owner[keep] * n_bins + bins[y[keep], x[keep]], minlength=len(states) * n_bins).reshape(len(states), n_bins)
@@ -221,12 +222,14 @@ def _newton(states: Sequence[RefineState], kept: np.ndarray, batch: _Batch, K: n
         R = np.stack([s.R for s in states])
         t = np.stack([s.t for s in states])
         g, H = _gradient_hessian(batch if lines.all() else batch.of(lines), R, t, K)
-        for i in np.flatnonzero(active):
+        moving = np.flatnonzero(active)
+        prior = np.stack([states[i].precision for i in moving])
+        e = np.stack([np.concatenate([rotvec(states[i].R @ states[i].start.R.T), states[i].t - states[i].start.t]) for i in moving])
+        steps = np.linalg.solve(-H[moving] + prior + damping, (g[moving] - np.einsum("nij,nj->ni", prior, e))[..., None])[..., 0]
+        for i, step in zip(moving, steps, strict=True):
             s = states[i]
             if k == 0:
                 s.hessian = H[i]
-            e = np.concatenate([rotvec(s.R @ s.start.R.T), s.t - s.start.t])
-            step = np.linalg.solve(-H[i] + s.precision + damping, g[i] - s.precision @ e)
             if not np.all(np.isfinite(step)):
                 s.reason, active[i] = "run_away", False
                 continue
@@ -240,17 +243,21 @@ def _gradient_hessian(b: _Batch, R: np.ndarray, t: np.ndarray, K: np.ndarray) ->
     """Per object, the log-likelihood gradient (n,6) and Gauss-Newton Hessian (n,6,6) in (ω, δ) of its lines in
     `b` at the objects' poses R (n,3,3), t (n,3)."""
     n, owner = len(R), b.owner
-    Ro, to = R[owner], t[owner]
-    p = np.einsum("nij,nj->ni", Ro, b.X) + to
+    blocks = b.blocks()
+    p = np.empty_like(b.X)
+    for i, lines in blocks:
+        p[lines] = b.X[lines] @ R[i].T + t[i]
     q = p @ K.T
     z = q[:, 2]
     uv = q[:, :2] / z[:, None]
-    a = np.einsum("ni,nij->nj", b.normals, projection_jacobian(K, uv, z)) / b.scale[:, None]
-    J = np.concatenate([np.cross(p - to, a), a], axis=1)
+    a = times_jacobian(K, uv, z, b.normals) / b.scale[:, None]
+    r = p - t[owner]  # R X: d(exp([ω]×) R X)/dω = -[R X]×, so the rotation's row is R X × a
+    rx, ry, rz, ax, ay, az = r[:, 0], r[:, 1], r[:, 2], a[:, 0], a[:, 1], a[:, 2]
+    J = np.column_stack([ry * az - rz * ay, rz * ax - rx * az, rx * ay - ry * ax, a])
     offset = np.einsum("ni,ni->n", uv - b.centres, b.normals) / b.scale
     g, H = np.zeros((n, 6)), np.zeros((n, 6, 6))
     pull, w = (b.weight * (b.mean - offset) / b.variance)[:, None] * J, (b.weight / b.variance)[:, None] * J
-    for i, lines in b.blocks():
+    for i, lines in blocks:
         g[i], H[i] = pull[lines].sum(axis=0), -(w[lines].T @ J[lines])
     return g, H
 

@@ -135,10 +135,9 @@ class ContourRefiner:
             live = [s for s in states if s is not None and not s.reason and k < len(s.schedule[0])]
             if live:
                 correspondence_pass(live, k, bins, K, Occlusion.of(live, K, shape), cfg, self.step)
-        out = []
-        for i, (start, s) in enumerate(zip(starts, states, strict=True)):
-            out.append(self._finish(start, s, bins, K, kept.get(i, "")))
-        return out
+        agreements = self._agreements([s for s in states if s is not None and s.stepped and not s.reason], bins, K)
+        pairs = enumerate(zip(starts, states, strict=True))
+        return [self._finish(start, s, agreements.get(id(s), 0.5), kept.get(i, "")) for i, (start, s) in pairs]
 
     def _state(self, s: Start, colours: ColourHistograms | None, passes: int = 0) -> RefineState:
         info = _information(s.covariance) if self.config.prior else None
@@ -148,8 +147,8 @@ class ContourRefiner:
         return RefineState(s, self.model(s.obj_id), self.diameters[s.obj_id] * s.scale, np.asarray(s.R, float), np.asarray(s.t, float),
                       np.zeros((6, 6)) if info is None else info, learned, schedule, carried=colours is not None)  # fmt: skip
 
-    def _finish(self, start: Start, s: RefineState | None, bins: np.ndarray, K: np.ndarray, reason: str) -> Refinement:
-        """The refined pose with its covariance and agreement, or the start kept with the reason."""
+    def _finish(self, start: Start, s: RefineState | None, agreement: float, reason: str) -> Refinement:
+        """The refined pose with its covariance and `agreement`, or the start kept with the reason."""
         if s is None or s.reason or not s.stepped:
             return Refinement(start.R, start.t, start.covariance, False, reason or (s.reason if s else "") or "few_lines",
                               s.valid if s else 0.0, colours=s.histograms if s and s.stepped else None)  # fmt: skip
@@ -161,7 +160,6 @@ class ContourRefiner:
             d2 = (float(jump[1] @ np.linalg.solve(C[:3, :3], jump[1])), float(jump[0] @ np.linalg.solve(C[3:, 3:], jump[0])))
             if max(d2) > cfg.max_jump:
                 return Refinement(start.R, start.t, start.covariance, False, "run_away", s.valid, colours=s.histograms)
-        agreement = self._agreement(s, bins, K)
         if agreement < cfg.min_agreement:
             return Refinement(start.R, start.t, start.covariance, False, "no_contrast", s.valid, agreement, s.histograms)
         d = np.sqrt(np.repeat(cfg.covariance_scale, 3))
@@ -173,16 +171,23 @@ class ContourRefiner:
         information = -s.hessian[np.ix_(_ORDER, _ORDER)] / np.outer(d, d)
         return Refinement(s.R, s.t, cov, True, "", s.valid, agreement, s.histograms, (information + information.T) / 2)
 
-    def _agreement(self, s: RefineState, bins: np.ndarray, K: np.ndarray) -> float:
-        """Mean over the object's unoccluded lines at its final pose of P(foreground) in the four pixels inside the
-        contour and P(background) in the four outside it, under the learned colours (0.5: no contrast)."""
+    def _agreements(self, states: list[RefineState], bins: np.ndarray, K: np.ndarray) -> dict[int, float]:
+        """Per state (by id), the mean over its unoccluded lines at its final pose of P(foreground) in the four pixels
+        inside the contour and P(background) in the four outside it, under its learned colours (0.5: no contrast,
+        or no line left); the states' lines taken together."""
+        if not states:
+            return {}
         offsets = np.arange(-3.5, 4.0, 1.0)
-        placed = place_lines(s.model, s.R, s.t, K, self.config.lines, s.start.scale)
+        placed = place_lines([(s.model, s.R, s.t, s.start.scale) for s in states], K, self.config.lines)
         c = np.round(placed.centres).astype(np.int64)
         valid = placed.usable(4.0, 4.0, bins.shape)
-        valid[valid] &= ~s.occlusion.occluded(c[valid, 0], c[valid, 1], s.rank)
-        if not valid.any():
-            return 0.5
-        pf = sample_posteriors(s.table, bins, placed.centres[valid], placed.normals[valid], offsets)
+        for k, s in enumerate(states):  # each against the occlusion of its own last pass
+            mine = valid & (placed.owner == k)
+            valid[mine] = ~s.occlusion.occluded(c[mine, 0], c[mine, 1], s.rank)
+        owner = placed.owner[valid]
+        tables = np.stack([s.table for s in states])
+        pf = sample_posteriors(tables, bins, placed.centres[valid], placed.normals[valid], offsets, rows=owner)
         inner, outer = pf[:, offsets < 0].mean(axis=1), 1 - pf[:, offsets > 0].mean(axis=1)
-        return float(np.mean((inner + outer) / 2))
+        lines = np.bincount(owner, minlength=len(states))
+        total = np.bincount(owner, weights=(inner + outer) / 2, minlength=len(states))
+        return {id(s): float(total[k] / lines[k]) if lines[k] else 0.5 for k, s in enumerate(states)}

@@ -9,12 +9,14 @@ Along a line, positions are in segments of `scale` pixels, 0 at the line's centr
 
 from __future__ import annotations
 
+import functools
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
 from numpy.lib.stride_tricks import sliding_window_view
 
-from axispose_core.camera import projection_jacobian
+from axispose_core.camera import jacobian_times
 from axispose_core.refine.config import RefineConfig
 from axispose_core.refine.viewpoints import ViewpointModel
 
@@ -42,9 +44,11 @@ class StepFunction:
 
 @dataclass(frozen=True)
 class LinePlacement:
-    """One object's lines at one pose: model points (N,3), their camera-frame points (N,3), centres (N,2, px), unit
-    outward normals (N,2), and how far the silhouette runs inwards and outwards from each (N,; px)."""
+    """Objects' lines at their poses, object after object (`owner` (N,): each line's object): model points (N,3),
+    their camera-frame points (N,3), centres (N,2, px), unit outward normals (N,2), and how far the silhouette runs
+    inwards and outwards from each (N,; px)."""
 
+    owner: np.ndarray
     model_points: np.ndarray
     camera_points: np.ndarray
     centres: np.ndarray
@@ -52,30 +56,45 @@ class LinePlacement:
     inside_px: np.ndarray
     outside_px: np.ndarray
 
-    def usable(self, reach_px: float, min_run_px: float, shape: tuple[int, int]) -> np.ndarray:
+    def usable(self, reach_px: float | np.ndarray, min_run_px: float | np.ndarray, shape: tuple[int, int]) -> np.ndarray:
         """(N,) bool: in front of the camera, the whole line (`reach_px` each side) inside an image of `shape`,
-        and the silhouette's runs inwards and outwards at least `min_run_px` (a shorter one sees the far side)."""
+        and the silhouette's runs inwards and outwards at least `min_run_px` (a shorter one sees the far side);
+        both one for all lines or one per line."""
         h, w = shape
-        ends = self.centres[:, None, :] + np.array([-reach_px, reach_px])[None, :, None] * self.normals[:, None, :]
-        on_image = np.all((ends[..., 0] >= 0) & (ends[..., 0] <= w - 1) & (ends[..., 1] >= 0) & (ends[..., 1] <= h - 1), axis=1)
+        reach = np.asarray(reach_px, dtype=np.float64).reshape(-1, 1) * np.array([-1.0, 1.0])
+        x, y = self.centres[:, :1] + reach * self.normals[:, :1], self.centres[:, 1:] + reach * self.normals[:, 1:]
+        on_image = np.all((x >= 0) & (x <= w - 1) & (y >= 0) & (y <= h - 1), axis=1)
         return (self.camera_points[:, 2] > 1e-6) & on_image & (np.minimum(self.inside_px, self.outside_px) >= min_run_px)
 
 
-def place_lines(model: ViewpointModel, R: np.ndarray, t: np.ndarray, K: np.ndarray, count: int, scale: float = 1.0) -> LinePlacement:
-    """`count` contour points of the view nearest the pose (R, t), projected through K, with their normals' image
-    directions; `scale` sizes the model (an object of another size than its mesh)."""
-    v = model.closest_view(R, t)
-    pick = np.linspace(0, model.points.shape[1], count, endpoint=False).astype(int)
-    X = model.points[v, pick] * scale
-    p = X @ R.T + t
+def place_lines(objects: Sequence[tuple[ViewpointModel, np.ndarray, np.ndarray, float]], K: np.ndarray, count: int) -> LinePlacement:
+    """For each object (its model, pose R, t, and scale: an object of another size than its mesh), `count` contour
+    points of the view nearest its pose, projected through K, with their normals' image directions. The objects
+    are placed together: only the choice of view is per object."""
+    parts = []
+    for model, R, t, scale in objects:
+        v = model.closest_view(R, t)
+        pick = _picks(model.points.shape[1], count)
+        X = model.points[v, pick] * scale
+        parts.append((X, X @ R.T + t, model.normals[v, pick] @ R.T, model.inside[v, pick] * scale, model.outside[v, pick] * scale))
+    X, p, normals, inside, outside = (np.concatenate(c) if len(parts) > 1 else c[0] for c in zip(*parts, strict=True))
     safe = np.where(p[:, 2] > 1e-6, p[:, 2], 1.0)
     q = p @ K.T
     uv = q[:, :2] / np.where(q[:, 2:] > 1e-9, q[:, 2:], 1.0)
     # The normal's image direction: the projection's Jacobian applied to the 3D normal.
-    n = np.einsum("nij,nj->ni", projection_jacobian(K, uv, safe), model.normals[v, pick] @ R.T)
+    n = jacobian_times(K, uv, safe, normals)
     n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-12)
-    px_per_m = K[0, 0] * scale / safe
-    return LinePlacement(X, p, uv, n, model.inside[v, pick] * px_per_m, model.outside[v, pick] * px_per_m)
+    px_per_m = K[0, 0] / safe
+    owner = np.repeat(np.arange(len(parts)), count)
+    return LinePlacement(owner, X, p, uv, n, inside * px_per_m, outside * px_per_m)
+
+
+@functools.lru_cache(maxsize=8)
+def _picks(points: int, count: int) -> np.ndarray:
+    """`count` of a view's `points` contour points, evenly spread along it."""
+    pick = np.linspace(0, points, count, endpoint=False).astype(int)
+    pick.setflags(write=False)
+    return pick
 
 
 def sample_posteriors(
@@ -87,18 +106,23 @@ def sample_posteriors(
     (positions clipped to the image). With `rows` (N,), `table` holds one row per object and each line reads its
     object's."""
     h, w = bins.shape
-    q = centres[:, None, :] + offsets[None, :, None] * normals[:, None, :]
+    # x and y apart: (N,L) arrays broadcast far faster than an (N,L,2) one with its innermost axis of 2
+    qx, qy = centres[:, :1] + offsets * normals[:, :1], centres[:, 1:] + offsets * normals[:, 1:]
     flat = bins.reshape(-1)
+    if rows is None:
+        values, base = table, 0
+    else:  # one flat table, each line's row its offset into it: one index array per lookup, not two
+        values, base = table.reshape(-1), (rows * table.shape[1])[:, None]
 
     def at(k: np.ndarray) -> np.ndarray:
-        return table[flat[k]] if rows is None else table[rows[:, None], flat[k]]
+        return values[flat[k] + base]
 
     if not bilinear:
-        x = np.clip(np.rint(q[..., 0]), 0, w - 1).astype(np.int64)
-        y = np.clip(np.rint(q[..., 1]), 0, h - 1).astype(np.int64)
+        x = np.clip(np.rint(qx), 0, w - 1).astype(np.int64)
+        y = np.clip(np.rint(qy), 0, h - 1).astype(np.int64)
         return at(y * w + x)
-    x = np.clip(q[..., 0], 0, w - 1.001)
-    y = np.clip(q[..., 1], 0, h - 1.001)
+    x = np.clip(qx, 0, w - 1.001, out=qx)
+    y = np.clip(qy, 0, h - 1.001, out=qy)
     x0, y0 = x.astype(np.int64), y.astype(np.int64)
     fx, fy = x - x0, y - y0
     i = y0 * w + x0
@@ -125,14 +149,16 @@ def contour_distributions(odds: np.ndarray, scale: int, step: StepFunction, leng
     probability of being foreground (the product of its pixels' odds), then for each of the D places the window of
     F segments around it scored against the step function (ICG's distribution and moments)."""
     n = len(odds)
-    odds = odds.reshape(n, -1, scale).sum(axis=2)  # (N,S) segment log odds
+    odds = odds.reshape(n, -1, scale).sum(axis=2) if scale > 1 else odds  # (N,S) segment log odds
     seg_f = 1 / (1 + np.exp(-odds))
     f = step.foreground
     windows = sliding_window_view(seg_f, len(f), axis=1)  # (N,D,F)
-    log_p = np.log(windows * f + (1 - windows) * (1 - f)).sum(axis=2)
-    log_p -= log_p.max(axis=1, keepdims=True)
-    log_p -= np.log(np.exp(log_p).sum(axis=1, keepdims=True))
-    p = np.exp(log_p)
+    # P(segment's colour | the step's foreground f there) = w f + (1 - w)(1 - f) = (1 - f) + w (2f - 1)
+    like = windows * (2 * f - 1)
+    like += 1 - f
+    log_p = np.log(like, out=like).sum(axis=2)
+    p = np.exp(log_p - log_p.max(axis=1, keepdims=True))
+    p /= p.sum(axis=1, keepdims=True)
     places = np.arange(length, dtype=np.float64)
     mean = p @ places
     variance = np.maximum(np.einsum("nd,nd->n", p, (places[None] - mean[:, None]) ** 2), step.min_variance)
