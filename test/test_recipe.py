@@ -132,6 +132,9 @@ def test_a_short_recipe_builds_resumes_and_records_itself(lmo_dir, tmp_path):
         (lambda r: r["estimator"].update(verifier={"data": ["frames"], "min_scor": 0.2}), "min_scor"),
         (lambda r: r["estimator"].update(verifier={"data": ["frames"], "min_score": 1.5}), "min_score must lie in"),
         (lambda r: r["estimator"]["config"].update(verifier={"weights": [1, 0, 0, 0]}), "verifier"),  # fitted, not set
+        (lambda r: r.update(adapt={"config": {}}), "adapt: needs recording"),
+        (lambda r: r.update(adapt={"recording": "x", "config": {"rounds": 0}}), "rounds must be >= 1"),
+        (lambda r: r.update(adapt={"recording": "x", "config": {"train": {"blnd": 0.5}}}), "blnd"),
     ],
 )
 def test_a_recipe_with_a_mistake_is_refused_before_training(lmo_dir, tmp_path, capsys, edit, message):
@@ -279,3 +282,41 @@ def test_a_data_entry_changes_only_the_part_of_its_frame_recipes_scenes_and_look
     scene, _ = synth_recipe("desk")
     alike = synth_config({**spec, "scene": {"lookalike_prob": 0.5}})
     assert alike.scene == dataclasses.replace(scene, lookalike_prob=0.5) and alike.randomization == cfg.randomization
+
+
+@pytest.mark.slow
+def test_a_recipe_that_adapts_writes_the_adapted_checkpoint_and_resumes(lmo_dir, tmp_path):
+    """`adapt` adapts the assembled checkpoint on its recording (OUT/adapt): the checkpoint written is the adapted
+    one and its record holds the recipe with the recording; a call stopped by the time cap writes none, the next goes
+    on without assembling or training anew; an unreadable recording is one RecipeError."""
+    from axispose_core.data.synth.config import CameraPathConfig, SynthConfig
+    from axispose_core.data.synth.generate import generate
+    from axispose_core.estimator import SHIPPED_ESTIMATOR
+
+    generate(SynthConfig(seed=5, scenes=1, images_per_scene=4, objects=(1, 5, 6), camera_path=CameraPathConfig(orbit_deg=6.0)),
+             lmo_dir / "models", tmp_path / "recording", progress=False)  # fmt: skip
+    recipe = _recipe(lmo_dir / "models")
+    recipe["estimator"]["config"]["refine"] = {}  # adaptation refines its labels on the checkpoint's meshes
+    optim = {**OPTIM, "steps": 2, "batch": 4, "save_every": 1000, "val_every": 1000}
+    recipe["adapt"] = {"recording": str(tmp_path / "recording" / "000000"),
+                       "config": {"pose": {"threshold": 0.3}, "train": {"optim": optim, "real_per_batch": 2, "val_samples": 2},
+                                  "localiser": {"optim": {"steps": 0}}}}  # fmt: skip
+    path = _write(tmp_path, recipe)
+    adopt = {"reader": str(SHIPPED_READER), "agm_more": str(SHIPPED_ESTIMATOR), "localiser": str(SHIPPED_ESTIMATOR)}
+    out = tmp_path / "run"
+    assert RecipeRunner(load_recipe(path), out, RunOptions(max_minutes=1e-6, progress=False), adopt, name="tiny").run_all() is None
+    assert not (out / "tiny.safetensors").exists()
+    assembled = out / "tiny.assembled.safetensors"
+    assert main(["train", "--recipe", str(path), "--out", str(out), "--threads", "1"]) == 0  # the adopted stages stay done
+    final = out / "tiny.safetensors"
+    adapted, source = Estimator.load(final), Estimator.load(assembled)
+    assert adapted.config.training["adapt"]["steps"] == 2 and "adapt" not in source.config.training
+    assert adapted.config.training["recipe"]["adapt"]["recording"] == recipe["adapt"]["recording"]
+    weights, before = adapted.agm.denoiser.state_dict(), source.agm.denoiser.state_dict()
+    assert any(not torch.equal(v, before[k]) for k, v in weights.items() if v.is_floating_point())
+    made = {p: p.stat().st_mtime_ns for p in (assembled, out / "adapt" / "round0" / "agm.safetensors")}
+    assert RecipeRunner(load_recipe(path), out, RunOptions(progress=False), adopt, name="tiny").run_all() == final
+    assert made == {p: p.stat().st_mtime_ns for p in made}
+    recipe["adapt"]["recording"] = str(tmp_path / "nowhere")
+    with pytest.raises(RecipeError, match="adapt: "):
+        RecipeRunner(load_recipe(_write(tmp_path, recipe, "gone.yaml")), tmp_path / "gone", RunOptions(progress=False), adopt).run_all()

@@ -157,7 +157,7 @@ class Adaptation:
                 self._save()
         last = max(k for k, r in enumerate(self.state["rounds"]) if r.get("trained"))
         final = self.out / ADAPTED
-        _copy(self.round_dir(last) / ADAPTED, final)
+        copy_whole(self.round_dir(last) / ADAPTED, final)
         return final
 
     def _label(self, k: int, progress: bool) -> dict:
@@ -223,7 +223,7 @@ class Adaptation:
             self._save()
         est = Estimator.load(folder / AGM)
         if not (self.cfg.localiser.trains and est.localiser is not None):
-            _copy(folder / AGM, folder / ADAPTED)
+            copy_whole(folder / AGM, folder / ADAPTED)
             return True
         frame = self.recording.frames[0]
         h, w = frame.rgb().shape[:2]
@@ -242,7 +242,7 @@ class Adaptation:
         return train(dataclasses.replace(self.run_options, resume=state if state.is_file() else None, max_minutes=left)) >= steps
 
 
-def _copy(src: Path, dst: Path) -> None:
+def copy_whole(src: Path, dst: Path) -> None:
     """`src` copied to `dst` whole or not at all (a checkpoint is never half-written)."""
     tmp = dst.with_suffix(".tmp")
     shutil.copyfile(src, tmp)

@@ -13,7 +13,10 @@ A recipe (YAML; the shipped model's: config/recipes/axispose_lmo.yaml) holds
   `steps`, each but the last stopping at `until`);
 - `estimator`: the stages that make the checkpoint, the estimator settings it ships with (`config.refine`: the
   contour refiner's, which attaches the meshes of `models`), and the detection verifier fitted on the assembled
-  checkpoint (`verifier`: the data it is fitted on and its `VerifierFitConfig`).
+  checkpoint (`verifier`: the data it is fitted on and its `VerifierFitConfig`);
+- `adapt` (optional): the assembled checkpoint adapted to a recording of the scene, `axispose adapt`'s rounds on
+  its frames (`recording`: a BOP scene folder, whose labels are never read; `config`: `AdaptConfig`'s fields, a
+  YAML file or a mapping); the checkpoint is then the adapted one.
 """
 
 from __future__ import annotations
@@ -29,6 +32,7 @@ from typing import Any
 
 import yaml
 
+from axispose_core.adapt.run import AdaptConfig
 from axispose_core.config import ConfigError, config_from_dict
 from axispose_core.data.synth.config import RandomizationConfig, SceneConfig, SynthConfig
 from axispose_core.data.synth.config import recipe as synth_recipe
@@ -45,6 +49,7 @@ CONFIGS: dict[str, type] = {"reader": ReaderTrainConfig, "agm": TrainConfig, "lo
 SYNTH_KEYS = {"scenes", "images_per_scene", "seed", "recipe", "depth", "objects", "scene", "randomization"}
 STAGE_KEYS = {"name", "trainer", "config", "changes", "init", "fresh_trunk", "data", "val", "schedule"}
 ESTIMATOR_KEYS = {"agm", "reader", "localiser", "config", "half", "verifier"}
+ADAPT_KEYS = {"recording", "config"}
 ESTIMATOR_SETTINGS = {f.name for f in dataclasses.fields(EstimatorConfig)} - {"agm", "reader", "objects", "training", "localiser",
                                                                                "verifier"}  # fmt: skip
 
@@ -95,13 +100,20 @@ class Recipe:
     data: dict[str, dict[str, Any]]
     stages: tuple[Stage, ...]
     estimator: dict[str, Any]
+    adapt: dict[str, Any] | None = None
+    """`recording` and the resolved `config` mapping, or None: the assembled checkpoint is the recipe's."""
 
     def stage(self, name: str) -> Stage:
         return next(s for s in self.stages if s.name == name)
 
     def as_dict(self) -> dict[str, Any]:
         """The resolved recipe: what the checkpoint records and the hash covers."""
-        return {"models": self.models, "data": self.data, "stages": [_stage_dict(s) for s in self.stages], "estimator": self.estimator}
+        out = {"models": self.models, "data": self.data, "stages": [_stage_dict(s) for s in self.stages], "estimator": self.estimator}
+        return out | ({"adapt": self.adapt} if self.adapt is not None else {})  # a recipe without one hashes as before
+
+    def adapt_config(self) -> AdaptConfig:
+        """The adaptation's settings (the recipe has an `adapt`)."""
+        return config_from_dict(AdaptConfig, self.adapt["config"], "adapt: config")
 
     @property
     def sha256(self) -> str:
@@ -194,7 +206,7 @@ def load_recipe(path: str | Path) -> Recipe:
         raise RecipeError(f"{path}: cannot read the recipe ({err})") from err
     if not isinstance(raw, dict):
         raise RecipeError(f"{path}: expected a mapping")
-    _unknown(str(path), set(raw), {"models", "data", "stages", "estimator"})
+    _unknown(str(path), set(raw), {"models", "data", "stages", "estimator", "adapt"})
     data = {str(k): dict(v or {}) for k, v in (raw.get("data") or {}).items()}
     for name, spec in data.items():
         _unknown(f"data {name}", set(spec), SYNTH_KEYS)
@@ -247,7 +259,23 @@ def load_recipe(path: str | Path) -> Recipe:
     if "verifier" in est:
         verifier_spec(dict(est["verifier"] or {}), data)
     est = {"config": {}, "half": False} | est
-    return Recipe(str(raw.get("models", "")), data, tuple(stages), est)
+    return Recipe(str(raw.get("models", "")), data, tuple(stages), est, _adapt(raw.get("adapt"), path.parent))
+
+
+def _adapt(raw: Any, near: Path) -> dict[str, Any] | None:
+    """The recipe's `adapt`, its config resolved to a mapping and checked against AdaptConfig."""
+    if raw is None:
+        return None
+    if not isinstance(raw, dict) or not raw.get("recording"):
+        raise RecipeError("adapt: needs recording (a BOP scene folder of the scene's frames)")
+    _unknown("adapt", set(raw), ADAPT_KEYS)
+    config = raw.get("config")
+    config = _yaml_file(config, near) if isinstance(config, str) else dict(config or {})
+    try:
+        config_from_dict(AdaptConfig, config, "adapt: config")
+    except (ConfigError, TypeError, ValueError) as err:
+        raise RecipeError(str(err)) from err
+    return {"recording": str(raw["recording"]), "config": config}
 
 
 def refine_config(spec: Any) -> RefineConfig:

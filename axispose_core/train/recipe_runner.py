@@ -3,7 +3,9 @@
 The runner builds, in the recipe's order, the stages the checkpoint needs. A stage with OUT/NAME.done.json is done
 and must have been built from the same config; one with a resume state goes on from it; others start. An existing
 checkpoint may stand in for a stage (`adopt`); the record says so. The checkpoint's `training` record holds the
-resolved recipe (configs, not file names), its hash and each stage's steps, time and hardware.
+resolved recipe (configs, not file names), its hash and each stage's steps, time and hardware. A recipe with `adapt`
+assembles into OUT/NAME.assembled.safetensors, adapts that on its recording in OUT/adapt (`axispose adapt`'s rounds,
+resumed by the next call) and writes the adapted checkpoint as OUT/NAME.safetensors.
 """
 
 from __future__ import annotations
@@ -18,6 +20,8 @@ from typing import Any
 
 import torch
 
+from axispose_core.adapt.recording import RecordingError, read_recording
+from axispose_core.adapt.run import STATE, Adaptation, AdaptError, copy_whole
 from axispose_core.agm.model import fresh_trunk
 from axispose_core.checkpoint import ESTIMATOR, read_metadata
 from axispose_core.data.meshes import refiner_meshes
@@ -101,7 +105,31 @@ class RecipeRunner:
         for stage in self.recipe.needed(self.built):
             if not self.build(stage):
                 return None
-        return self.assemble()
+        return self.assemble() if self.recipe.adapt is None else self.adapt()
+
+    def adapt(self) -> Path | None:
+        """The assembled checkpoint adapted to the recipe's recording (module docstring); None when the time cap
+        stopped the adaptation (the same call goes on). An adaptation under way keeps the checkpoint it started from."""
+        source, folder = self.checkpoint(f"{self.name}.assembled"), self.out / "adapt"
+        started = (folder / STATE).is_file()
+        if not (started and source.is_file()):
+            self.assemble(source)
+        left = None if self.deadline is None else (self.deadline - time.time()) / 60
+        if left is not None and left <= 0:
+            return None
+        try:
+            recording = read_recording(self.recipe.adapt["recording"])
+            adaptation = Adaptation(recording, source, self.recipe.models, folder, self.recipe.adapt_config(),
+                                    dataclasses.replace(self.run, max_minutes=left), resume=started)  # fmt: skip
+            final = adaptation.run(progress=self.run.progress)
+        except (AdaptError, RecordingError) as err:
+            raise RecipeError(f"adapt: {err}") from err
+        if final is None:
+            print(f"adapt: stopped at the time cap; the same command goes on from {folder}")
+            return None
+        path = self.checkpoint(self.name)
+        copy_whole(final, path)
+        return path
 
     def build(self, stage: Stage) -> bool:
         """Make sure `stage` is done; False when the time cap stopped it first."""
@@ -188,8 +216,9 @@ class RecipeRunner:
             cfg = dataclasses.replace(cfg, localiser=dataclasses.replace(cfg.localiser, obj_ids=ids))
         return train_localiser(cfg, data, self.checkpoint(stage.name), val or None, run, init)
 
-    def assemble(self) -> Path:
-        """One estimator checkpoint from the estimator's stages, with the recipe and every stage's record."""
+    def assemble(self, path: Path | None = None) -> Path:
+        """One estimator checkpoint from the estimator's stages, with the recipe and every stage's record, at `path`
+        (default OUT/NAME.safetensors)."""
         est = self.recipe.estimator
         agm = Estimator.load(self.checkpoint(est["agm"]))
         reader = load_reader(self.checkpoint(est["reader"]))
@@ -205,7 +234,7 @@ class RecipeRunner:
         refine = refine_config(settings.pop("refine")) if "refine" in settings else None
         config = dataclasses.replace(agm.config, reader=reader.config, localiser=localiser.config, verifier=None, refine=None,
                                      training=training, **settings)  # fmt: skip
-        path = self.checkpoint(self.name)
+        path = path or self.checkpoint(self.name)
         estimator = Estimator(config, agm.agm, reader, "cpu", localiser)
         if refine is not None:  # the objects' meshes from the recipe's models (BOP's decimated models_eval beside them)
             estimator = estimator.with_refiner(refiner_meshes(self.recipe.models, [o.obj_id for o in config.objects]), refine)
