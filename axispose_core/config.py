@@ -4,6 +4,7 @@ training YAML, a synthetic-data run's synth_config.json and a checkpoint's confi
 from __future__ import annotations
 
 import dataclasses
+from pathlib import Path
 from types import UnionType
 from typing import Any, TypeVar, Union, get_args, get_origin, get_type_hints
 
@@ -12,6 +13,22 @@ C = TypeVar("C")
 
 class ConfigError(ValueError):
     """A dict that does not make the config dataclass asked for: a key missing or unknown, or a kind not allowed."""
+
+
+def yaml_mapping(text: str, empty_ok: bool = False) -> dict:
+    """A YAML mapping given inline or as the path of a file holding one (with `empty_ok`, nothing at all is {})."""
+    import yaml
+
+    path = Path(text)
+    try:
+        data = yaml.safe_load(path.read_text() if path.is_file() else text)
+    except yaml.YAMLError as err:
+        raise ConfigError(f"not YAML: {err}".replace("\n", " ")) from err
+    if data is None and empty_ok:
+        return {}
+    if not isinstance(data, dict):
+        raise ConfigError(f"expected a YAML mapping, got {text!r}")
+    return data
 
 
 def kind_of(cls: type) -> str | None:

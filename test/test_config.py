@@ -5,7 +5,7 @@ from dataclasses import dataclass, field
 
 import pytest
 
-from axispose_core.config import PRESET, ConfigError, config_from_dict, nest_moved_keys
+from axispose_core.config import PRESET, ConfigError, config_from_dict, nest_moved_keys, yaml_mapping
 
 
 @dataclass(frozen=True)
@@ -112,3 +112,12 @@ def test_the_crop_streams_appearance_keeps_its_preset_when_a_recipe_changes_one_
     cfg = config_from_dict(StreamConfig, {"randomization": {"light": {"ambient": [0.15, 1.0]}}})
     light = dataclasses.replace(STREAM_RANDOMIZATION.light, ambient=(0.15, 1.0))
     assert cfg.randomization == dataclasses.replace(STREAM_RANDOMIZATION, light=light)
+
+
+def test_a_yaml_mapping_is_read_inline_or_from_a_file_and_anything_else_refused(tmp_path):
+    (tmp_path / "c.yaml").write_text("optim: {steps: 3}\n")
+    assert yaml_mapping("{rounds: 2}") == {"rounds": 2} and yaml_mapping(str(tmp_path / "c.yaml")) == {"optim": {"steps": 3}}
+    assert yaml_mapping("", empty_ok=True) == {}
+    for text, message in (("", "expected a YAML mapping"), ("[1, 2]", "expected a YAML mapping"), ("{a: [", "not YAML")):
+        with pytest.raises(ConfigError, match=message):
+            yaml_mapping(text)

@@ -9,12 +9,10 @@ import sys
 from dataclasses import dataclass
 from pathlib import Path
 
-import yaml
-
 from axispose_core.adapt.recording import Recording, RecordingError, read_recording
 from axispose_core.adapt.run import Adaptation, AdaptConfig, AdaptError
 from axispose_core.checkpoint import CheckpointError
-from axispose_core.config import ConfigError, config_from_dict
+from axispose_core.config import ConfigError, config_from_dict, yaml_mapping
 from axispose_core.train.loop import RunOptions
 
 
@@ -38,13 +36,10 @@ class AdaptRequest:
 
 def adapt_config(request: AdaptRequest) -> AdaptConfig:
     """The YAML's fields over the defaults, then --rounds and --steps."""
-    data = {}
-    if request.config:
-        path = Path(request.config)
-        try:
-            data = yaml.safe_load(path.read_text() if path.is_file() else request.config) or {}
-        except yaml.YAMLError as err:
-            raise ConfigError(f"--config: not YAML ({err})") from err
+    try:
+        data = yaml_mapping(request.config, empty_ok=True) if request.config else {}
+    except ConfigError as err:
+        raise ConfigError(f"--config: {err}") from err
     cfg = config_from_dict(AdaptConfig, data, f"--config {request.config}")
     if request.rounds is not None:
         cfg = dataclasses.replace(cfg, rounds=request.rounds)

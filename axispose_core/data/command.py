@@ -11,20 +11,6 @@ from axispose_core.command_args import AddParser, object_ids
 from axispose_core.lmo import SHARED_LMO
 
 
-def _yaml_mapping(text: str) -> dict:
-    """A YAML mapping given inline or as the path of a file holding one."""
-    import yaml
-
-    path = Path(text)
-    try:
-        data = yaml.safe_load(path.read_text() if path.is_file() else text)
-    except yaml.YAMLError as err:
-        raise ValueError(f"not YAML: {err}".replace("\n", " ")) from err
-    if not isinstance(data, dict):
-        raise ValueError(f"expected a YAML mapping, got {text!r}")
-    return data
-
-
 def _camera_path(text: str | None, config: type) -> object | None:
     """`--camera-path`: the orbit in degrees per image, or a mapping of CameraPathConfig's fields."""
     if text is None:
@@ -32,13 +18,13 @@ def _camera_path(text: str | None, config: type) -> object | None:
     try:
         return config(orbit_deg=float(text))
     except ValueError:
-        from axispose_core.config import config_from_dict
+        from axispose_core.config import config_from_dict, yaml_mapping
 
-        return config_from_dict(config, _yaml_mapping(text), "--camera-path")
+        return config_from_dict(config, yaml_mapping(text), "--camera-path")
 
 
 def _synth(args: argparse.Namespace) -> int:
-    from axispose_core.config import ConfigError, config_from_dict
+    from axispose_core.config import ConfigError, config_from_dict, yaml_mapping
     from axispose_core.data.bop import BopFormatError, load_camera
     from axispose_core.data.synth.config import CameraPathConfig, RandomizationConfig, SceneConfig, SynthConfig, recipe
     from axispose_core.data.synth.generate import generate
@@ -47,9 +33,9 @@ def _synth(args: argparse.Namespace) -> int:
     try:
         scene, randomization = recipe(args.recipe)
         if args.randomization:
-            randomization = config_from_dict(RandomizationConfig, _yaml_mapping(args.randomization), "--randomization", randomization)
+            randomization = config_from_dict(RandomizationConfig, yaml_mapping(args.randomization), "--randomization", randomization)
         if args.scene:
-            scene = config_from_dict(SceneConfig, _yaml_mapping(args.scene), "--scene", scene)
+            scene = config_from_dict(SceneConfig, yaml_mapping(args.scene), "--scene", scene)
         path = _camera_path(args.camera_path, CameraPathConfig)
     except (ConfigError, TypeError, ValueError) as err:
         print(f"axispose synth: {err}", file=sys.stderr)
