@@ -33,7 +33,7 @@ from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.qos import QoSProfile, ReliabilityPolicy
-from rclpy.serialization import serialize_message
+from rclpy.serialization import deserialize_message
 from rosbags.rosbag2 import Writer
 from sensor_msgs.msg import CameraInfo, Image, RegionOfInterest
 from tqdm import tqdm
@@ -208,27 +208,24 @@ def _run(bag: str | Path, s: _Session, out_bag: Path, opts: ReplayOptions) -> Re
 
 def _record(s: _Session, writer: Writer, opts: ReplayOptions) -> _Recording:
     """Subscribe the player to the node's outputs: every message into `writer` (stamped by its header), and what
-    the result and the report need into the returned _Recording. Messages no hook reads are taken as their
-    serialized bytes and written as they came: the player shares the node's process and interpreter, and
-    deserialising every marker and detection would take the node's time."""
+    the result and the report need into the returned _Recording. Every message is taken as its serialized bytes
+    and written as it came (its stamp read from them), and only those a hook reads are deserialised, once: the
+    player shares the node's process and interpreter, and decoding every marker and detection would take the
+    node's time."""
     rec = _Recording()
     conns: dict[str, object] = {}
 
     def record(msg_class: type, topic: str, msgtype: str, hook: Callable | None = None, depth: int = 100) -> None:
-        def write(raw: bytes, stamp: int | None) -> None:
+        stamped = next(iter(msg_class.get_fields_and_field_types()), None) == "header"
+
+        def on_raw(raw: bytes, info: dict) -> None:
             if topic not in conns:
                 conns[topic] = writer.add_connection(topic, msgtype, typestore=TYPESTORE)
-            writer.write(conns[topic], stamp or time.time_ns(), raw)
+            writer.write(conns[topic], (cdr_stamp(raw) if stamped else None) or time.time_ns(), raw)
+            if hook:
+                hook(deserialize_message(raw, msg_class), info.get("received_timestamp") or time.time_ns())
 
-        def on_msg(msg, info: dict) -> None:
-            write(serialize_message(msg), stamp_ns(msg.header))
-            hook(msg, info.get("received_timestamp") or time.time_ns())
-
-        if hook is None:
-            stamped = next(iter(msg_class.get_fields_and_field_types()), None) == "header"
-            s.player.create_subscription(msg_class, topic, lambda raw: write(raw, cdr_stamp(raw) if stamped else None), depth, raw=True)
-        else:
-            s.player.create_subscription(msg_class, topic, on_msg, depth)
+        s.player.create_subscription(msg_class, topic, on_raw, depth, raw=True)
 
     def on_array(msg: PoseArray, received_ns: int) -> None:
         rec.arrays[stamp_ns(msg.header)] = received_ns
