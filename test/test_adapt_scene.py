@@ -9,7 +9,9 @@ from scipy.spatial.transform import Rotation
 
 from axispose_core.adapt.geometry import ObjectGeometry, inverse, pose_matrix, rotation_gap_deg
 from axispose_core.adapt.pseudo import AcceptConfig, Candidate
+from axispose_core.adapt.report import round_counts
 from axispose_core.adapt.scene import ConsistencyConfig, consistent
+from axispose_core.objects import lmo_objects
 
 ACCEPT = AcceptConfig(min_score=0.5, min_agreement=0.75)
 CFG = ConsistencyConfig()
@@ -50,7 +52,8 @@ def test_cameras_are_recovered_without_odometry_and_the_scene_predicts_every_obj
     scene's predictions nearer the truth than the frames' own poses."""
     objects, cameras, cands = planted_scene()
     out = consistent(cands, GEOMETRY, ACCEPT, CFG)
-    assert sorted(out.cameras) == sorted(cameras) and not out.rejected and not set().union(*out.moved.values())
+    assert sorted(out.cameras) == sorted(cameras) and not out.rejected and not out.moved_objects
+    assert round_counts(cands, ACCEPT, out, [], {}, lmo_objects())["moved"] == []  # frame ids are not object ids
     anchor = next(f for f, T in out.cameras.items() if np.allclose(T, np.eye(4)))
     for f, T in out.cameras.items():  # relative to the anchor camera, as the truth
         truth = inverse(cameras[anchor]) @ cameras[f]
@@ -107,7 +110,9 @@ def test_an_object_that_moved_falls_back_to_each_frames_own_evidence():
     for f in range(7, 14):  # the duck put elsewhere half way through
         cands[f] = [c for c in cands[f] if c.obj_id != 9] + [candidate(f, 9, inverse(cameras[f]) @ moved, rng)]
     out = consistent(cands, GEOMETRY, ACCEPT, CFG)
-    assert set().union(*out.moved.values()) == {9} and sorted(out.cameras) == sorted(cameras)
+    assert out.moved_objects == {9} and sorted(out.cameras) == sorted(cameras)
+    counts = round_counts(cands, ACCEPT, out, [], {}, lmo_objects())
+    assert counts["moved"] == ["duck"] and counts["objects"]["duck"]["moved"] and not counts["objects"]["ape"]["moved"]
     assert not any(p.obj_id == 9 for preds in out.predictions.values() for p in preds)
     assert sorted(c.im_id for c in out.alone if c.obj_id == 9) == list(range(14))
 

@@ -38,12 +38,12 @@ def round_counts(
             "candidates": len(cands), "accepted": sum(accept.accepts(c) for c in cands),
             "rejected": dict(Counter(why for c, why in scene.rejected if c.obj_id == o.obj_id)),
             "labels": sum(sources.values()), **{s: sources.get(s, 0) for s in BORDERS},
-            "unfilled": int(unfilled.get(o.obj_id, 0)), "moved": o.obj_id in scene.moved,
+            "unfilled": int(unfilled.get(o.obj_id, 0)), "moved": o.obj_id in scene.moved_objects,
         }  # fmt: skip
     total = {k: sum(v[k] for v in per.values()) for k in ("candidates", "accepted", "labels", *BORDERS, "unfilled")}
     total["rejected"] = sum(sum(v["rejected"].values()) for v in per.values())
     return {"frames": len(candidates), "cameras_placed": len(scene.cameras), "odometry": scene.odometry,
-            "moved": sorted(o.name for o in objects if o.obj_id in scene.moved), "objects": per, "total": total}  # fmt: skip
+            "moved": sorted(o.name for o in objects if o.obj_id in scene.moved_objects), "objects": per, "total": total}  # fmt: skip
 
 
 def contact_sheet(path: str | Path, frames: Mapping[int, Frame], labels: Sequence[Label], objects: Sequence[ObjectSpec],

@@ -97,6 +97,11 @@ class SceneResult:
     alone: list[Candidate]
     odometry: bool
 
+    @property
+    def moved_objects(self) -> set[int]:
+        """The objects found to have moved in any frame's scene."""
+        return set().union(*self.moved.values())
+
 
 def same_place(cfg: ConsistencyConfig, a: np.ndarray, b: np.ndarray, ray: np.ndarray) -> bool:
     """Whether two positions of one object seen along `ray` (from the camera to it, its length the distance) are
@@ -124,7 +129,7 @@ def _depth(c: Candidate) -> float:
 # --------------------------------------------------------------------------------------------- the fixed frame
 
 
-def _information(camera: np.ndarray, c: Candidate, cfg: ConsistencyConfig) -> np.ndarray:
+def information(camera: np.ndarray, c: Candidate, cfg: ConsistencyConfig) -> np.ndarray:
     """A view's position information in the fixed frame: weak along its line of sight, strong across it."""
     d = _depth(c)
     ray = c.t / max(d, 1e-9)
@@ -166,7 +171,7 @@ def build_instances(
     views.sort(key=lambda v: -(v[1].score + v[1].agreement))
     places: list[_Place] = []
     for T, c in views:
-        info = _information(cameras[c.im_id], c, cfg)
+        info = information(cameras[c.im_id], c, cfg)
         home = next((p for p in places if p.holds(cfg, T, c)), None)
         if home is None:
             places.append(_Place(c.obj_id, [(T, c)], info, info @ T[:3, 3]))
@@ -179,7 +184,7 @@ def build_instances(
             ray = b.centre() - cameras[b.views[0][1].im_id][:3, 3]  # b's place, seen from the camera of its best view
             if same_place(cfg, a.centre(), b.centre(), ray):
                 for T, c in b.views:
-                    a.add(T, c, _information(cameras[c.im_id], c, cfg))
+                    a.add(T, c, information(cameras[c.im_id], c, cfg))
                 places.remove(b)
                 merged = True
                 break
@@ -204,7 +209,7 @@ def _instance(
         else:
             kept.setdefault(c.im_id, (T, c))
     views = list(kept.values())
-    pose = fuse([T for T, _ in views], [_information(cameras[c.im_id], c, cfg) for _, c in views], geometry)
+    pose = fuse([T for T, _ in views], [information(cameras[c.im_id], c, cfg) for _, c in views], geometry)
     return Instance(obj_id, pose, {c.im_id: c for _, c in views}, turned)
 
 
@@ -264,7 +269,7 @@ def _refined_camera(
     R = Rotation.from_matrix(np.array(Rs)).mean(weights=np.array(weights)).as_matrix()
     for c, inst in inliers:
         V = aligned(_candidate_pose(c), inverse(camera) @ inst.pose, geometry[c.obj_id])
-        infos.append(_information(pose_matrix(R, np.zeros(3)), c, cfg))
+        infos.append(information(pose_matrix(R, np.zeros(3)), c, cfg))
         targets.append(inst.pose[:3, 3] - R @ V[:3, 3])
     t = np.linalg.solve(np.sum(infos, axis=0), np.einsum("nij,nj->i", np.array(infos), np.array(targets)))
     return pose_matrix(R, t)
