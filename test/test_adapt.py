@@ -21,6 +21,7 @@ from axispose_core.adapt.pseudo import PoseSettings, pose_frames, read_candidate
 from axispose_core.adapt.recording import RecordingError, read_recording
 from axispose_core.adapt.run import ADAPTED, AGM, Adaptation, AdaptConfig, AdaptError, object_geometry
 from axispose_core.adapt.scene import ConsistencyConfig, Prediction
+from axispose_core.adapt.search import SearchConfig
 from axispose_core.adapt.train import AdaptTrainConfig, blend
 from axispose_core.data.bop_scene import BopScene
 from axispose_core.data.synth.config import CameraPathConfig, PhotometricConfig, StreamConfig, SynthConfig
@@ -155,7 +156,8 @@ def _small(rounds: int = 1, steps: int = 2, localiser: bool = True) -> AdaptConf
     train = AdaptTrainConfig(optim=optim, real_per_batch=2, val_samples=2)
     frames = RenderedFrames(desk_scenes=0, plain_scenes=1, images_per_scene=2)
     tuned = AdaptLocaliserConfig(optim=dataclasses.replace(optim, batch=2, steps=steps if localiser else 0), val_frames=1, frames=frames)
-    return AdaptConfig(rounds=rounds, pose=PoseSettings(threshold=0.3), train=train, localiser=tuned)
+    search = SearchConfig(views=4, step=0.1, margin=0.0, min_support=3)
+    return AdaptConfig(rounds=rounds, pose=PoseSettings(threshold=0.3), search=search, train=train, localiser=tuned)
 
 
 def _weights(path: Path) -> dict[str, torch.Tensor]:
@@ -171,6 +173,9 @@ def test_a_round_runs_end_to_end_and_resumes_to_the_same_weights(recording, tmp_
     report = json.loads((tmp_path / "whole" / "report.json").read_text())
     counts = report["rounds"][0]["counts"]
     assert counts["frames"] == 4 and counts["total"]["labels"] > 0 and (tmp_path / "whole" / "round0" / "contact_sheet.png").is_file()
+    searched = {name for name, c in counts["objects"].items() if "searched" in c}  # those the scene predicts nowhere
+    assert searched == {name for name, c in counts["objects"].items() if c["checked"] + c["filled"] + c["unfilled"] == 0}
+    assert {"driller", "glue"} <= searched and (tmp_path / "whole" / "round0" / "search.json").is_file()
     adapted = Estimator.load(final)
     assert adapted.config.training["adapt"]["steps"] == 3 and adapted.localiser is not None and adapted.config.verifier is not None
     # The checkpoint is the fine-tune's EMA blended with the source's weights, not the EMA itself.
@@ -233,6 +238,8 @@ def test_a_config_changes_only_the_values_it_names(tmp_path):
     assert cfg.rounds == 1 and cfg.train.optim.lr == 3.0e-5
     assert dataclasses.replace(cfg.train.optim, lr=default.lr) == default
     assert adapt_config(dataclasses.replace(request, steps=300)).train.optim.steps == 300
+    search = adapt_config(dataclasses.replace(request, config="{search: {views: 0, levels: [0.0, 0.02]}}")).search
+    assert search == SearchConfig(views=0, levels=(0.0, 0.02))
 
 
 def test_bad_input_is_one_line_and_exit_2(recording, tmp_path, lmo_dir, capsys):

@@ -15,6 +15,7 @@ from axispose_core.adapt.labels import Label
 from axispose_core.adapt.pseudo import AcceptConfig, Candidate
 from axispose_core.adapt.recording import Frame
 from axispose_core.adapt.scene import SceneResult
+from axispose_core.adapt.search import Discovery
 from axispose_core.axis_image import draw_axes
 from axispose_core.camera import instance_crop
 from axispose_core.objects import ObjectSpec
@@ -25,12 +26,14 @@ BORDERS = {"checked": (60, 200, 60), "filled": (40, 200, 240), "alone": (230, 14
 
 def round_counts(
     candidates: Mapping[int, Sequence[Candidate]], accept: AcceptConfig, scene: SceneResult, labels: Sequence[Label],
-    unfilled: Mapping[int, int], objects: Sequence[ObjectSpec],
+    unfilled: Mapping[int, int], objects: Sequence[ObjectSpec], discoveries: Sequence[Discovery] = (),
 ) -> dict:  # fmt: skip
     """Per object (by name) and in all: candidates, accepted by their own evidence, rejected by the scene (by
-    reason), labels by source, predictions not filled; and the frames, those whose camera was placed, the objects
-    found to have moved."""
+    reason), labels by source, predictions not filled, and where the scene was searched for it, the frames that
+    agreed on its best place of those read; and the frames, those whose camera was placed, the objects found to
+    have moved."""
     per: dict[str, dict] = {}
+    names = {o.obj_id: o.name for o in objects}
     for o in objects:
         cands = [c for cs in candidates.values() for c in cs if c.obj_id == o.obj_id]
         sources = Counter(lab.source for lab in labels if lab.obj_id == o.obj_id)
@@ -40,6 +43,8 @@ def round_counts(
             "labels": sum(sources.values()), **{s: sources.get(s, 0) for s in BORDERS},
             "unfilled": int(unfilled.get(o.obj_id, 0)), "moved": o.obj_id in scene.moved_objects,
         }  # fmt: skip
+    for d in discoveries:
+        per[names[d.obj_id]]["searched"] = {"found": d.pose is not None, "support": d.support, "takes": d.takes, "views": d.views}
     total = {k: sum(v[k] for v in per.values()) for k in ("candidates", "accepted", "labels", *BORDERS, "unfilled")}
     total["rejected"] = sum(sum(v["rejected"].values()) for v in per.values())
     return {"frames": len(candidates), "cameras_placed": len(scene.cameras), "odometry": scene.odometry,

@@ -28,6 +28,7 @@ from axispose_core.adapt.pseudo import AcceptConfig, Candidate, PoseSettings, po
 from axispose_core.adapt.recording import Recording
 from axispose_core.adapt.report import contact_sheet, round_counts
 from axispose_core.adapt.scene import ConsistencyConfig, SceneResult, consistent
+from axispose_core.adapt.search import Discovery, SearchConfig, read_discoveries, search, with_discoveries, write_discoveries
 from axispose_core.adapt.train import AdaptTrainConfig, adapt_agm
 from axispose_core.estimator import Estimator
 from axispose_core.evaluation.records import object_symmetries
@@ -36,6 +37,8 @@ from axispose_core.train.resume import state_path
 
 STATE = "adapt.json"
 REPORT = "report.json"
+SEARCH = "search.json"
+"""A round's search for the objects no frame accepted (`search.Discovery` each): done once, read on resume."""
 ADAPTED = "adapted.safetensors"
 AGM = "agm.safetensors"
 """A round's checkpoint with its AGM adapted (its localiser as it was): what the localiser's stage starts from."""
@@ -50,14 +53,16 @@ class AdaptError(ValueError):
 @dataclass(frozen=True)
 class AdaptConfig:
     """The whole adaptation: how frames are posed and accepted, when poses agree across the recording, how the
-    scene's predictions become labels, how the AGM trains on them, and how many rounds at most (a round after the
-    first only while the labels grew by `min_growth` over the round before)."""
+    scene is searched for the objects no frame accepted, how the scene's predictions become labels, how the AGM
+    trains on them, and how many rounds at most (a round after the first only while the labels grew by
+    `min_growth` over the round before)."""
 
     rounds: int = 1
     min_growth: float = 0.05
     pose: PoseSettings = field(default_factory=PoseSettings)
     accept: AcceptConfig = field(default_factory=AcceptConfig)
     consistency: ConsistencyConfig = field(default_factory=ConsistencyConfig)
+    search: SearchConfig = field(default_factory=SearchConfig)
     fill: FillConfig = field(default_factory=FillConfig)
     train: AdaptTrainConfig = field(default_factory=AdaptTrainConfig)
     localiser: AdaptLocaliserConfig = field(default_factory=AdaptLocaliserConfig)
@@ -170,10 +175,13 @@ class Adaptation:
         bar = tqdm(total=len(self.recording.frames), desc=f"round {k}: posing", disable=not progress)
         candidates = pose_frames(est, self.recording.frames, self.cfg.pose, folder / "candidates.jsonl", _bar(bar))
         bar.close()
-        scene = self._scene(candidates, geometry)
+        in_view = self._in_view()
+        scene = self._scene(candidates, geometry, in_view)
+        discoveries = self._search(k, est, scene, geometry, progress)
+        scene = with_discoveries(scene, discoveries, in_view)
         labels, unfilled = self._labels(est, scene, geometry, progress)
         write_labels(_fresh(folder / "labels"), self.recording.frames, labels, self.models)
-        counts = round_counts(candidates, self.cfg.accept, scene, labels, unfilled, est.config.objects)
+        counts = round_counts(candidates, self.cfg.accept, scene, labels, unfilled, est.config.objects, discoveries)
         frames = {f.im_id: f for f in self.recording.frames}
         sheet = contact_sheet(folder / "contact_sheet.png", frames, labels, est.config.objects)
         (folder / "round.json").write_text(json.dumps(counts, indent=1))
@@ -182,7 +190,8 @@ class Adaptation:
               f"{counts['frames']} cameras placed; contact sheet {sheet}")  # fmt: skip
         return {"labels": counts["total"]["labels"], "counts": counts}
 
-    def _scene(self, candidates: dict[int, list[Candidate]], geometry: dict[int, ObjectGeometry]) -> SceneResult:
+    def _in_view(self) -> Callable[[int, int, np.ndarray, np.ndarray], bool]:
+        """Whether a frame shows a pose's origin (in front of its camera, inside its image)."""
         frames = {f.im_id: f for f in self.recording.frames}
         sizes = {f.im_id: f.rgb().shape[:2] for f in self.recording.frames}
 
@@ -191,8 +200,24 @@ class Adaptation:
             h, wd = sizes[im_id]
             return w > 0 and 0 <= u / w < wd and 0 <= v / w < h
 
+        return in_view
+
+    def _scene(self, candidates: dict[int, list[Candidate]], geometry: dict[int, ObjectGeometry],
+               in_view: Callable[[int, int, np.ndarray, np.ndarray], bool]) -> SceneResult:  # fmt: skip
         odometry = {f.im_id: f.camera for f in self.recording.frames} if self.recording.has_odometry else None
         return consistent(candidates, geometry, self.cfg.accept, self.cfg.consistency, odometry, in_view)
+
+    def _search(self, k: int, est: Estimator, scene: SceneResult, geometry: dict[int, ObjectGeometry], progress: bool) -> list[Discovery]:
+        """Round k's search for the objects no frame accepted: made once (OUT/round<k>/search.json), then read."""
+        path = self.round_dir(k) / SEARCH
+        found = read_discoveries(path)
+        if found is None:
+            bar = tqdm(total=0, desc=f"round {k}: searching", disable=not progress)
+            frames = {f.im_id: f for f in self.recording.frames}
+            found = search(est, frames, scene, geometry, self.cfg.consistency, self.cfg.fill, self.cfg.search, _bar(bar))
+            bar.close()
+            write_discoveries(path, found)
+        return found
 
     def _labels(self, est: Estimator, scene: SceneResult, geometry: dict[int, ObjectGeometry], progress: bool) -> tuple[list[Label], dict]:
         labels, unfilled = [], {}
