@@ -27,7 +27,7 @@ from axispose_core.adapt.pseudo import AcceptConfig, PoseSettings, pose_frames, 
 from axispose_core.adapt.recording import read_recording
 from axispose_core.adapt.run import object_geometry
 from axispose_core.adapt.scene import ConsistencyConfig, consistent
-from axispose_core.adapt.search import SearchConfig, search, spread, with_discoveries
+from axispose_core.adapt.search import Scene, SearchConfig, search, spread, with_discoveries
 from axispose_core.estimator import SHIPPED_ESTIMATOR, Estimator
 from axispose_core.lmo import SHARED_LMO
 from axispose_core.refine.refiner import Start
@@ -97,7 +97,7 @@ def main() -> int:
     consistency, fill = ConsistencyConfig(), FillConfig()
     scene = consistent(cands, geometry, AcceptConfig(), consistency, odometry)
     frames = {f.im_id: f for f in rec.frames}
-    found = search(est, frames, scene, geometry, consistency, fill, SearchConfig())
+    found = search(Scene(est, frames, scene, geometry, consistency, fill), SearchConfig())
     filled = with_discoveries(scene, found)
     gt = json.loads((recording / "scene_gt.json").read_text())
     rows = []

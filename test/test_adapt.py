@@ -156,7 +156,7 @@ def _small(rounds: int = 1, steps: int = 2, localiser: bool = True) -> AdaptConf
     train = AdaptTrainConfig(optim=optim, real_per_batch=2, val_samples=2)
     frames = RenderedFrames(desk_scenes=0, plain_scenes=1, images_per_scene=2)
     tuned = AdaptLocaliserConfig(optim=dataclasses.replace(optim, batch=2, steps=steps if localiser else 0), val_frames=1, frames=frames)
-    search = SearchConfig(views=4, step=0.1, margin=0.0, min_support=3)
+    search = SearchConfig(views=3, places=1, step=0.15, margin=0.0, min_support=3)
     return AdaptConfig(rounds=rounds, pose=PoseSettings(threshold=0.3), search=search, train=train, localiser=tuned)
 
 

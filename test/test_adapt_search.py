@@ -19,6 +19,7 @@ from axispose_core.adapt.run import object_geometry
 from axispose_core.adapt.scene import ConsistencyConfig, Instance, agree, consistent
 from axispose_core.adapt.search import (
     Discovery,
+    Scene,
     SearchConfig,
     gather,
     grid,
@@ -139,8 +140,8 @@ def test_on_a_rendered_desk_a_never_accepted_object_is_found_and_an_absent_one_i
     scene = consistent(cands, geometry, AcceptConfig(), CFG, {f.im_id: f.camera for f in rec.frames})
     assert missing_objects(scene, [1, 5, 6, 9, 12]) == [6, 9]
     frames = {f.im_id: f for f in rec.frames}
-    cfg = SearchConfig(views=6, step=0.04, margin=0.06)
-    found = {d.obj_id: d for d in search(est, frames, scene, geometry, CFG, FillConfig(), cfg, objects=(6, 9))}
+    cfg = SearchConfig(views=5, places=2, step=0.04, margin=0.05)
+    found = {d.obj_id: d for d in search(Scene(est, frames, scene, geometry, CFG, FillConfig()), cfg, objects=(6, 9))}
     assert found[6].pose is None and found[9].pose is not None and found[9].takes >= cfg.min_share * cfg.views
     filled = with_discoveries(scene, list(found.values()))
     errors = []

@@ -300,7 +300,7 @@ def test_a_recipe_that_adapts_writes_the_adapted_checkpoint_and_resumes(lmo_dir,
     optim = {**OPTIM, "steps": 2, "batch": 4, "save_every": 1000, "val_every": 1000}
     recipe["adapt"] = {"recording": str(tmp_path / "recording" / "000000"),
                        "config": {"pose": {"threshold": 0.3}, "train": {"optim": optim, "real_per_batch": 2, "val_samples": 2},
-                                  "localiser": {"optim": {"steps": 0}}}}  # fmt: skip
+                                  "localiser": {"optim": {"steps": 0}}, "search": {"views": 0}}}  # fmt: skip
     path = _write(tmp_path, recipe)
     adopt = {"reader": str(SHIPPED_READER), "agm_more": str(SHIPPED_ESTIMATOR), "localiser": str(SHIPPED_ESTIMATOR)}
     out = tmp_path / "run"

@@ -28,7 +28,7 @@ from axispose_core.adapt.pseudo import AcceptConfig, Candidate, PoseSettings, po
 from axispose_core.adapt.recording import Recording
 from axispose_core.adapt.report import contact_sheet, round_counts
 from axispose_core.adapt.scene import ConsistencyConfig, SceneResult, consistent
-from axispose_core.adapt.search import Discovery, SearchConfig, read_discoveries, search, with_discoveries, write_discoveries
+from axispose_core.adapt.search import Discovery, Scene, SearchConfig, read_discoveries, search, with_discoveries, write_discoveries
 from axispose_core.adapt.train import AdaptTrainConfig, adapt_agm
 from axispose_core.estimator import Estimator
 from axispose_core.evaluation.records import object_symmetries
@@ -214,7 +214,7 @@ class Adaptation:
         if found is None:
             bar = tqdm(total=0, desc=f"round {k}: searching", disable=not progress)
             frames = {f.im_id: f for f in self.recording.frames}
-            found = search(est, frames, scene, geometry, self.cfg.consistency, self.cfg.fill, self.cfg.search, _bar(bar))
+            found = search(Scene(est, frames, scene, geometry, self.cfg.consistency, self.cfg.fill), self.cfg.search, _bar(bar))
             bar.close()
             write_discoveries(path, found)
         return found

@@ -238,50 +238,60 @@ def places(reads: Reads, cameras: Mapping[int, np.ndarray], geometry: ObjectGeom
     return out
 
 
-def takes(est: Estimator, frames: Mapping[int, Frame], scene: SceneResult, views: Sequence[int], obj_id: int, pose: np.ndarray,
-          geometry: Mapping[int, ObjectGeometry], consistency: ConsistencyConfig, fill: FillConfig) -> int:  # fmt: skip
+@dataclass(frozen=True)
+class Scene:
+    """A recording's scene as the search reads it: the estimator that reads and refines, the frames, the consistency
+    stage's result, the objects' geometry, and the scene's and the fills' settings."""
+
+    est: Estimator
+    frames: Mapping[int, Frame]
+    result: SceneResult
+    geometry: Mapping[int, ObjectGeometry]
+    consistency: ConsistencyConfig
+    fill: FillConfig
+
+
+def takes(scene: Scene, views: Sequence[int], obj_id: int, pose: np.ndarray) -> int:
     """In how many of the views the object at `pose` becomes a label: its prediction refined on the frame's contours
     with the scene's others (each masking those behind it), as the label stage does."""
     n = 0
     for f in views:
-        T = inverse(scene.cameras[f]) @ pose
+        T = inverse(scene.result.cameras[f]) @ pose
         if T[2, 3] <= 0:
             continue
-        mine = Prediction(f, obj_id, T[:3, :3], T[:3, 3], None)
-        labels = label_frame(est.refiner, frames[f].rgb(), frames[f].K, [*scene.predictions.get(f, []), mine], [], geometry,
-                             consistency, fill)  # fmt: skip
+        predictions = [*scene.result.predictions.get(f, []), Prediction(f, obj_id, T[:3, :3], T[:3, 3], None)]
+        frame = scene.frames[f]
+        labels = label_frame(scene.est.refiner, frame.rgb(), frame.K, predictions, [], scene.geometry, scene.consistency, scene.fill)
         n += any(lab.obj_id == obj_id and lab.source == "filled" for lab in labels)
     return n
 
 
-def search(
-    est: Estimator, frames: Mapping[int, Frame], scene: SceneResult, geometry: Mapping[int, ObjectGeometry],
-    consistency: ConsistencyConfig, fill: FillConfig, cfg: SearchConfig, progress: Callable[[int, int], None] | None = None,
-    objects: Sequence[int] | None = None,
-) -> list[Discovery]:  # fmt: skip
+def search(scene: Scene, cfg: SearchConfig, progress: Callable[[int, int], None] | None = None,
+           objects: Sequence[int] | None = None) -> list[Discovery]:  # fmt: skip
     """Every missing object (`missing_objects`; of `objects`, None: the checkpoint's) searched for over the scene's
-    placed frames; nothing where the scene
-    is not one still scene with cameras and found objects to stand the plane on. Of an object's best supported
-    places, the one whose contour the most views take wins, where `min_share` of them do."""
-    objects = missing_objects(scene, [o.obj_id for o in est.config.objects] if objects is None else objects)
-    found = _static_instances(scene, consistency)
-    if not objects or cfg.views == 0 or consistency.window != 0 or not found or len(scene.cameras) < cfg.min_support:
+    placed frames; nothing where the scene is not one still scene with cameras and found objects to stand the plane
+    on. Of an object's best supported places, the one whose contour the most views take wins, where `min_share` of
+    them do."""
+    result, est = scene.result, scene.est
+    objects = missing_objects(result, [o.obj_id for o in est.config.objects] if objects is None else objects)
+    found = _static_instances(result, scene.consistency)
+    if not objects or cfg.views == 0 or scene.consistency.window != 0 or not found or len(result.cameras) < cfg.min_support:
         return []
-    views = spread(sorted(scene.cameras), cfg.views)
-    grid_places = grid(np.array([i.pose[:3, 3] for i in found]), [scene.cameras[f] for f in views], cfg)
+    views = spread(sorted(result.cameras), cfg.views)
+    grid_places = grid(np.array([i.pose[:3, 3] for i in found]), [result.cameras[f] for f in views], cfg)
     out = []
     for n, obj_id in enumerate(objects):
-        diameter = geometry[obj_id].diameter
-        free = grid_places[unoccupied(grid_places, diameter, found, geometry)]
+        diameter = scene.geometry[obj_id].diameter
+        free = grid_places[unoccupied(grid_places, diameter, found, scene.geometry)]
         reads = []
         for m, f in enumerate(views):
-            reads += read_places(est, frames[f], scene.cameras[f], obj_id, free, cfg)
+            reads += read_places(est, scene.frames[f], result.cameras[f], obj_id, free, cfg)
             if progress is not None:
                 progress(n * len(views) + m + 1, len(objects) * len(views))
-        seen = gather(reads, scene.cameras)
-        seen = subset(seen, unoccupied(seen.poses[:, :3, 3], diameter, found, geometry))
-        scored = [(takes(est, frames, scene, views, obj_id, pose, geometry, consistency, fill), support, pose)
-                  for pose, support in places(seen, scene.cameras, geometry[obj_id], consistency, cfg)]  # fmt: skip
+        seen = gather(reads, result.cameras)
+        seen = subset(seen, unoccupied(seen.poses[:, :3, 3], diameter, found, scene.geometry))
+        candidates = places(seen, result.cameras, scene.geometry[obj_id], scene.consistency, cfg)
+        scored = [(takes(scene, views, obj_id, pose), support, pose) for pose, support in candidates]
         best = max(scored, key=lambda x: x[:2], default=(0, 0, None))
         taken = best[0] >= cfg.min_share * len(views)
         out.append(Discovery(obj_id, best[2] if taken else None, best[1], best[0], len(views)))
