@@ -178,18 +178,17 @@ def agreement(reads: Reads, rows: np.ndarray, geometry: ObjectGeometry, cfg: Con
     return place & turned
 
 
-def best_place(reads: Reads, geometry: ObjectGeometry, cfg: ConsistencyConfig, chunk: int = 256) -> tuple[int, np.ndarray]:
-    """The read most frames agree with (its index) and, per frame, whether one of that frame's reads agrees."""
+def best_place(reads: Reads, geometry: ObjectGeometry, cfg: ConsistencyConfig, chunk: int = 256) -> int:
+    """The read the most frames agree with (one of a frame's reads agreeing counts the frame)."""
     starts = np.flatnonzero(np.r_[True, reads.frames[1:] != reads.frames[:-1]])
-    best, best_row = -1, np.zeros(len(starts), bool)
+    best, most = 0, -1
     for lo in range(0, len(reads.candidates), chunk):
         rows = np.arange(lo, min(lo + chunk, len(reads.candidates)))
-        per_frame = np.logical_or.reduceat(agreement(reads, rows, geometry, cfg), starts, axis=1)
-        counts = per_frame.sum(axis=1)
+        counts = np.logical_or.reduceat(agreement(reads, rows, geometry, cfg), starts, axis=1).sum(axis=1)
         k = int(np.argmax(counts))
-        if counts[k] > best_row.sum():
-            best, best_row = int(rows[k]), per_frame[k]
-    return best, best_row
+        if counts[k] > most:
+            best, most = int(rows[k]), int(counts[k])
+    return best
 
 
 def unoccupied(points: np.ndarray, diameter: float, found: Sequence[Instance], geometry: Mapping[int, ObjectGeometry]) -> np.ndarray:
@@ -204,6 +203,7 @@ def unoccupied(points: np.ndarray, diameter: float, found: Sequence[Instance], g
 
 
 def subset(reads: Reads, keep: np.ndarray) -> Reads:
+    """The reads `keep` (N,) bool selects."""
     return Reads(reads.poses[keep], reads.rays[keep], reads.frames[keep], [c for c, k in zip(reads.candidates, keep, strict=True) if k])
 
 
@@ -229,7 +229,7 @@ def places(reads: Reads, cameras: Mapping[int, np.ndarray], geometry: ObjectGeom
     supported first; each from the reads the places before left (those further than the object's diameter)."""
     out = []
     while reads.candidates and len(out) < cfg.places:
-        k, _ = best_place(reads, geometry, consistency)
+        k = best_place(reads, geometry, consistency)
         pose, support = fused_place(reads, k, cameras, geometry, consistency)
         if support < cfg.min_support:
             break
