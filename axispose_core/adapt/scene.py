@@ -85,8 +85,8 @@ class Prediction:
 class SceneResult:
     """The consistency stage's answer, per frame: its camera (4x4 camera to the fixed frame of its scene; frames
     left out could not be placed), its scene's instances and the objects found to have moved there, and the
-    predictions of the static instances with enough views; in all, the candidates rejected (with why) and the
-    frames' own accepted poses that stand on per-frame evidence alone (unplaced frames, moved or thinly seen
+    predictions of the static instances with enough views (`static`); in all, the candidates rejected (with why)
+    and the frames' own accepted poses that stand on per-frame evidence alone (unplaced frames, moved or thinly seen
     objects)."""
 
     cameras: dict[int, np.ndarray]
@@ -96,6 +96,7 @@ class SceneResult:
     rejected: list[tuple[Candidate, str]]
     alone: list[Candidate]
     odometry: bool
+    static: dict[int, list[Instance]] = field(default_factory=dict)
 
     @property
     def moved_objects(self) -> set[int]:
@@ -357,7 +358,7 @@ def consistent(
         if window not in scenes:
             scenes[window] = _static_scene({g: seeds[g] for g in window}, geometry, cfg, odometry)
         scene = scenes[window]
-        out.instances[f], out.moved[f] = scene.instances, scene.moved
+        out.instances[f], out.moved[f], out.static[f] = scene.instances, scene.moved, scene.static
         if f in scene.cameras:
             out.cameras[f] = scene.cameras[f]
         for c in seeds[f]:
@@ -397,15 +398,22 @@ class _Scene:
         return "alone"
 
     def predictions(self, f: int, in_view: Callable[[int, int, np.ndarray, np.ndarray], bool] | None) -> list[Prediction]:
-        """Where the static instances lie in frame f (those in front of its camera and, where given, `in_view`)."""
-        to_camera = inverse(self.cameras[f])
-        out = []
-        for inst in self.static:
-            T = to_camera @ inst.pose
-            if T[2, 3] <= 0 or (in_view is not None and not in_view(f, inst.obj_id, T[:3, :3], T[:3, 3])):
-                continue
-            out.append(Prediction(f, inst.obj_id, T[:3, :3], T[:3, 3], inst.members.get(f)))
-        return out
+        """Where the static instances lie in frame f (`predict`)."""
+        return predict(f, self.cameras[f], self.static, in_view)
+
+
+def predict(f: int, camera: np.ndarray, instances: Sequence[Instance],
+            in_view: Callable[[int, int, np.ndarray, np.ndarray], bool] | None = None) -> list[Prediction]:  # fmt: skip
+    """Where the instances lie in frame f seen from `camera` (4x4 camera to fixed): those in front of it and, where
+    given, `in_view`; each with the frame's own accepted pose of it, if any."""
+    to_camera = inverse(camera)
+    out = []
+    for inst in instances:
+        T = to_camera @ inst.pose
+        if T[2, 3] <= 0 or (in_view is not None and not in_view(f, inst.obj_id, T[:3, :3], T[:3, 3])):
+            continue
+        out.append(Prediction(f, inst.obj_id, T[:3, :3], T[:3, 3], inst.members.get(f)))
+    return out
 
 
 def _static_scene(

@@ -11,6 +11,7 @@ prediction, a label only where the frame's contours take it.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
@@ -22,7 +23,7 @@ from axispose_core.adapt.geometry import ObjectGeometry, fuse, inverse, pose_mat
 from axispose_core.adapt.labels import FillConfig, label_frame
 from axispose_core.adapt.pseudo import Candidate
 from axispose_core.adapt.recording import Frame
-from axispose_core.adapt.scene import ConsistencyConfig, Instance, Prediction, SceneResult, information
+from axispose_core.adapt.scene import ConsistencyConfig, Instance, SceneResult, information, predict
 from axispose_core.estimator import EstimateOptions, Estimator
 
 PLANE_SPAN = 0.05
@@ -256,10 +257,10 @@ def takes(scene: Scene, views: Sequence[int], obj_id: int, pose: np.ndarray) -> 
     with the scene's others (each masking those behind it), as the label stage does."""
     n = 0
     for f in views:
-        T = inverse(scene.result.cameras[f]) @ pose
-        if T[2, 3] <= 0:
+        mine = predict(f, scene.result.cameras[f], [Instance(obj_id, pose)])
+        if not mine:
             continue
-        predictions = [*scene.result.predictions.get(f, []), Prediction(f, obj_id, T[:3, :3], T[:3, 3], None)]
+        predictions = [*scene.result.predictions.get(f, []), *mine]
         frame = scene.frames[f]
         labels = label_frame(scene.est.refiner, frame.rgb(), frame.K, predictions, [], scene.geometry, scene.consistency, scene.fill)
         n += any(lab.obj_id == obj_id and lab.source == "filled" for lab in labels)
@@ -274,7 +275,7 @@ def search(scene: Scene, cfg: SearchConfig, progress: Callable[[int, int], None]
     them do."""
     result, est = scene.result, scene.est
     objects = missing_objects(result, [o.obj_id for o in est.config.objects] if objects is None else objects)
-    found = _static_instances(result, scene.consistency)
+    found = _static_instances(result)
     if not objects or cfg.views == 0 or scene.consistency.window != 0 or not found or len(result.cameras) < cfg.min_support:
         return []
     views = spread(sorted(result.cameras), cfg.views)
@@ -298,11 +299,10 @@ def search(scene: Scene, cfg: SearchConfig, progress: Callable[[int, int], None]
     return out
 
 
-def _static_instances(scene: SceneResult, cfg: ConsistencyConfig) -> list[Instance]:
-    """The instances the scene predicts from: well seen, of objects that stayed (one scene: every frame's list is
-    the same one)."""
-    lists = {id(v): v for v in scene.instances.values()}
-    return [i for v in lists.values() for i in v if i.views >= cfg.min_views and i.obj_id not in scene.moved_objects]
+def _static_instances(scene: SceneResult) -> list[Instance]:
+    """The instances the scene predicts from (one scene: every frame's list is the same one)."""
+    lists = {id(v): v for v in scene.static.values()}
+    return [i for v in lists.values() for i in v]
 
 
 def with_discoveries(scene: SceneResult, discoveries: Sequence[Discovery],
@@ -312,15 +312,11 @@ def with_discoveries(scene: SceneResult, discoveries: Sequence[Discovery],
     added = [Instance(d.obj_id, d.pose, {}, []) for d in discoveries if d.pose is not None]
     if not added:
         return scene
-    instances = {f: [*v, *added] for f, v in scene.instances.items()}
     predictions = {f: list(ps) for f, ps in scene.predictions.items()}
     for f, camera in scene.cameras.items():
-        to_camera = inverse(camera)
-        for inst in added:
-            T = to_camera @ inst.pose
-            if T[2, 3] > 0 and (in_view is None or in_view(f, inst.obj_id, T[:3, :3], T[:3, 3])):
-                predictions.setdefault(f, []).append(Prediction(f, inst.obj_id, T[:3, :3], T[:3, 3], None))
-    return SceneResult(scene.cameras, instances, scene.moved, predictions, scene.rejected, scene.alone, scene.odometry)
+        predictions.setdefault(f, []).extend(predict(f, camera, added, in_view))
+    return dataclasses.replace(scene, instances={f: [*v, *added] for f, v in scene.instances.items()},
+                               static={f: [*v, *added] for f, v in scene.static.items()}, predictions=predictions)  # fmt: skip
 
 
 def write_discoveries(path: Path, discoveries: Sequence[Discovery]) -> None:
