@@ -86,6 +86,8 @@ class Adaptation:
     def __init__(self, recording: Recording, checkpoint: str | Path, models: str | Path, out: str | Path, cfg: AdaptConfig,
                  run: RunOptions = DEFAULT_RUN, resume: bool = False) -> None:  # fmt: skip
         self.recording, self.checkpoint, self.models = recording, Path(checkpoint), Path(models)
+        self.frames = {f.im_id: f for f in recording.frames}
+        """The recording's frames by id."""
         self.out, self.cfg, self.run_options = Path(out), cfg, run
         self.deadline = None if run.max_minutes is None else time.time() + 60 * run.max_minutes
         object_geometry(Estimator.load(self.checkpoint))  # a checkpoint that cannot be adapted says so now, not rounds later
@@ -182,8 +184,7 @@ class Adaptation:
         labels, unfilled = self._labels(est, scene, geometry, progress)
         write_labels(_fresh(folder / "labels"), self.recording.frames, labels, self.models)
         counts = round_counts(candidates, self.cfg.accept, scene, labels, unfilled, est.config.objects, discoveries)
-        frames = {f.im_id: f for f in self.recording.frames}
-        sheet = contact_sheet(folder / "contact_sheet.png", frames, labels, est.config.objects)
+        sheet = contact_sheet(folder / "contact_sheet.png", self.frames, labels, est.config.objects)
         (folder / "round.json").write_text(json.dumps(counts, indent=1))
         print(f"round {k}: {counts['total']['labels']} labels ({counts['total']['checked']} checked, {counts['total']['filled']} filled, "
               f"{counts['total']['alone']} alone), {counts['total']['rejected']} rejected; {counts['cameras_placed']} of "
@@ -192,11 +193,10 @@ class Adaptation:
 
     def _in_view(self) -> Callable[[int, int, np.ndarray, np.ndarray], bool]:
         """Whether a frame shows a pose's origin (in front of its camera, inside its image)."""
-        frames = {f.im_id: f for f in self.recording.frames}
         sizes = {f.im_id: f.rgb().shape[:2] for f in self.recording.frames}
 
         def in_view(im_id: int, obj_id: int, R: np.ndarray, t: np.ndarray) -> bool:
-            u, v, w = frames[im_id].K @ t
+            u, v, w = self.frames[im_id].K @ t
             h, wd = sizes[im_id]
             return w > 0 and 0 <= u / w < wd and 0 <= v / w < h
 
@@ -213,8 +213,7 @@ class Adaptation:
         found = read_discoveries(path)
         if found is None:
             bar = tqdm(total=0, desc=f"round {k}: searching", disable=not progress)
-            frames = {f.im_id: f for f in self.recording.frames}
-            found = search(Scene(est, frames, scene, geometry, self.cfg.consistency, self.cfg.fill), self.cfg.search, _bar(bar))
+            found = search(Scene(est, self.frames, scene, geometry, self.cfg.consistency, self.cfg.fill), self.cfg.search, _bar(bar))
             bar.close()
             write_discoveries(path, found)
         return found
